@@ -1,0 +1,5 @@
+import sys
+
+from afmdrift.cli import main
+
+sys.exit(main())

@@ -1,0 +1,64 @@
+"""The ``afmdrift`` command.
+
+Each subcommand lives in its own module under :mod:`afmdrift.cli` and exposes
+``register(subparsers)``. Modules import heavy dependencies (FFTW, torch) inside
+their handlers so that ``--help`` stays fast. A handler returns an exit code.
+Deliberate errors (:class:`afmdrift.errors.AfmdriftError`) are printed as one
+clear message with exit status 2, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+from afmdrift._version import __version__
+from afmdrift.errors import AfmdriftError
+
+__all__ = ["build_parser", "main"]
+
+#: Subcommand modules, in the order they appear in ``afmdrift --help``.
+COMMAND_MODULES: tuple[str, ...] = ("afmdrift.cli._config_cmd",)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="afmdrift",
+        description="Measure, predict and compensate AFM drift.",
+    )
+    parser.add_argument("--version", action="version", version=f"afmdrift {__version__}")
+    parser.add_argument(
+        "-v", "--verbose", action="count", default=0, help="More log output (repeatable)."
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub.required = True
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    _setup_logging(args.verbose)
+    try:
+        code: int = args.handler(args)
+    except AfmdriftError as err:
+        print(f"afmdrift: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    return code
+
+
+def _setup_logging(verbosity: int) -> None:
+    import logging
+
+    level = logging.WARNING if verbosity == 0 else logging.INFO if verbosity == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

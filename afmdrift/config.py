@@ -1,0 +1,144 @@
+"""The configuration root: one pydantic model, loaded from TOML.
+
+Each part of afmdrift owns the model of its own section (``registration``,
+``driver``, ``model``, ``service``, ...), defined next to the code that uses it.
+This module assembles them into :class:`AfmdriftConfig`, rejects unknown keys
+and out-of-range values, and turns pydantic's errors into messages that name
+the key, the value and the allowed range.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Any, Literal, get_args, get_origin
+
+import annotated_types
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic.fields import FieldInfo
+
+from afmdrift.errors import ConfigError
+from afmdrift.registration._config import RegistrationConfig
+
+__all__ = ["DEFAULT_CONFIG_PATH", "AfmdriftConfig", "load_config", "parse_config"]
+
+#: ``config/default.toml`` in a source checkout.
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.toml"
+
+
+class AfmdriftConfig(BaseModel):
+    """Root of the configuration file. Every section is optional."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+
+
+def parse_config(data: dict[str, Any], *, source: str = "<config>") -> AfmdriftConfig:
+    """Validate a mapping (as read from TOML) into :class:`AfmdriftConfig`.
+
+    Raises
+    ------
+    ConfigError
+        One line per problem, each naming the dotted key, the value and what is allowed.
+    """
+    try:
+        return AfmdriftConfig.model_validate(data)
+    except ValidationError as err:
+        lines = [_describe_error(e, source) for e in err.errors()]
+        raise ConfigError("\n".join(lines)) from None
+
+
+def load_config(path: str | Path | None = None) -> AfmdriftConfig:
+    """Read and validate a TOML configuration file (default: ``config/default.toml``)."""
+    if path is None:
+        if not DEFAULT_CONFIG_PATH.is_file():
+            return AfmdriftConfig()
+        path = DEFAULT_CONFIG_PATH
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: configuration file not found") from None
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot read configuration file: {err.strerror}") from None
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{p}: not valid TOML: {err}") from None
+    return parse_config(data, source=str(p))
+
+
+def _describe_error(error: Any, source: str) -> str:
+    loc = tuple(error["loc"])
+    key = ".".join(str(part) for part in loc)
+    kind = error["type"]
+    value = error.get("input")
+    if kind == "extra_forbidden":
+        allowed = _allowed_keys(loc[:-1])
+        hint = f" (allowed keys: {', '.join(allowed)})" if allowed else ""
+        return f"{source}: unknown key '{key}'{hint}"
+    field = _field_at(loc)
+    allowed_range = _allowed_range(field) if field is not None else ""
+    shown = repr(value) if not isinstance(value, dict) else "a table"
+    msg = f"{source}: {key} = {shown}: {error['msg']}"
+    if allowed_range:
+        msg += f" (allowed: {allowed_range})"
+    return msg
+
+
+def _model_at(loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    model: type[BaseModel] = AfmdriftConfig
+    for part in loc:
+        info = model.model_fields.get(str(part))
+        if info is None:
+            return None
+        ann = info.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            model = ann
+        else:
+            return None
+    return model
+
+
+def _allowed_keys(loc: tuple[Any, ...]) -> list[str]:
+    model = _model_at(loc)
+    return sorted(model.model_fields) if model is not None else []
+
+
+def _field_at(loc: tuple[Any, ...]) -> FieldInfo | None:
+    if not loc:
+        return None
+    model = _model_at(loc[:-1])
+    if model is None:
+        return None
+    return model.model_fields.get(str(loc[-1]))
+
+
+def _allowed_range(field: FieldInfo) -> str:
+    bounds: list[str] = []
+    for meta in field.metadata:
+        if isinstance(meta, annotated_types.Ge):
+            bounds.append(f">= {meta.ge}")
+        elif isinstance(meta, annotated_types.Gt):
+            bounds.append(f"> {meta.gt}")
+        elif isinstance(meta, annotated_types.Le):
+            bounds.append(f"<= {meta.le}")
+        elif isinstance(meta, annotated_types.Lt):
+            bounds.append(f"< {meta.lt}")
+    if bounds:
+        return " and ".join(bounds)
+    ann = field.annotation
+    literal_values = _literal_values(ann)
+    if literal_values:
+        return "one of " + ", ".join(repr(v) for v in literal_values)
+    return ""
+
+
+def _literal_values(ann: Any) -> list[Any]:
+    if get_origin(ann) is Literal:
+        return list(get_args(ann))
+    values: list[Any] = []
+    for arg in get_args(ann):
+        values.extend(_literal_values(arg))
+    return values

@@ -1,0 +1,1 @@
+"""The simulated AFM: physics, sample, raster scanner, and protocol server."""

@@ -1,0 +1,1 @@
+"""Readers for image files: .npy, .tif, NanoScope, Gwyddion, HS-AFM .asd, NetCDF."""

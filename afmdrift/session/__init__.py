@@ -1,0 +1,21 @@
+"""Session directories (format v1): recorded, simulated or imported AFM sessions."""
+
+from afmdrift.session._format import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Session,
+    SessionError,
+    SessionMeta,
+    read_session,
+    write_session,
+)
+
+__all__ = [
+    "FORMAT_NAME",
+    "FORMAT_VERSION",
+    "Session",
+    "SessionError",
+    "SessionMeta",
+    "read_session",
+    "write_session",
+]
