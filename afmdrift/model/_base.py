@@ -1,0 +1,135 @@
+"""The predictor interface shared by every drift model.
+
+A predictor sees the cumulative drift position p(t) (nm, registration sign
+convention, commanded offset moves already removed) one frame at a time, with
+the logged channels and events, and predicts p at any later time.
+"""
+
+from __future__ import annotations
+
+import abc
+import bisect
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.drivers._base import ChannelSample, Event, ScanDirection
+
+__all__ = ["History", "Observation", "Prediction", "Predictor"]
+
+
+@dataclass(frozen=True, slots=True)
+class Observation:
+    """One frame's drift measurement as a model sees it.
+
+    Attributes
+    ----------
+    t_s : float
+        Mid-scan time of the frame (instrument clock, s).
+    x_nm, y_nm : float
+        Cumulative drift position p at ``t_s`` relative to the session's
+        reference, with commanded offset moves removed.
+    sigma_nm : float
+        Standard uncertainty of each coordinate, nm.
+    direction : ScanDirection
+        Slow-scan direction of the frame (for the scan-direction bias).
+    frame : int
+        Frame index.
+    """
+
+    t_s: float
+    x_nm: float
+    y_nm: float
+    sigma_nm: float
+    direction: ScanDirection = ScanDirection.UP
+    frame: int = -1
+
+
+@dataclass(slots=True)
+class History:
+    """Append-only log of channel samples and events that models read.
+
+    Channels are interpolated linearly inside the log and held at the last
+    value beyond it (a model predicting ahead does not know the future).
+    """
+
+    channel_t_s: list[float] = field(default_factory=list)
+    channels: dict[str, list[float]] = field(default_factory=dict)
+    events: list[Event] = field(default_factory=list)
+
+    def add_channels(self, sample: ChannelSample) -> None:
+        if self.channel_t_s and sample.t_s < self.channel_t_s[-1]:
+            raise ValueError(
+                f"channel sample at t={sample.t_s} s is older than the last "
+                f"({self.channel_t_s[-1]} s)"
+            )
+        n = len(self.channel_t_s)
+        self.channel_t_s.append(float(sample.t_s))
+        for name, value in sample.values.items():
+            col = self.channels.setdefault(name, [float("nan")] * n)
+            col.append(float(value))
+        for col in self.channels.values():
+            if len(col) < n + 1:
+                col.append(float("nan"))
+
+    def add_events(self, events: Iterable[Event]) -> None:
+        for e in events:
+            bisect.insort(self.events, e, key=lambda ev: ev.t_s)
+
+    def channel_at(self, name: str, t_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """Channel ``name`` at ``t_s`` (linear inside the log, held outside)."""
+        if name not in self.channels:
+            raise KeyError(f"no channel {name!r} logged (have: {sorted(self.channels)})")
+        t = np.asarray(self.channel_t_s, dtype=np.float64)
+        v = np.asarray(self.channels[name], dtype=np.float64)
+        ok = np.isfinite(v)
+        if not ok.any():
+            return np.full(np.shape(t_s), np.nan)
+        return np.interp(np.asarray(t_s, dtype=np.float64), t[ok], v[ok])
+
+    def events_before(self, t_s: float) -> Sequence[Event]:
+        k = bisect.bisect_right(self.events, t_s, key=lambda ev: ev.t_s)
+        return self.events[:k]
+
+
+@dataclass(frozen=True, slots=True)
+class Prediction:
+    """Predicted drift at one or more times.
+
+    ``t_s`` has shape (n,); ``mean_nm`` and ``sigma_nm`` have shape (n, 2) for (x, y).
+    """
+
+    t_s: npt.NDArray[np.float64]
+    mean_nm: npt.NDArray[np.float64]
+    sigma_nm: npt.NDArray[np.float64]
+
+
+class Predictor(abc.ABC):
+    """Common interface of every drift predictor.
+
+    Lifecycle: ``update`` once per new frame (in time order), ``predict`` any
+    number of times, ``state_dict``/``load_state_dict`` to survive restarts.
+    Implementations must be deterministic for a given seed.
+    """
+
+    #: Name used on the command line and in configuration (``--predictors``).
+    name: ClassVar[str]
+
+    @abc.abstractmethod
+    def update(self, obs: Observation, history: History) -> None:
+        """Incorporate a new measurement; ``history`` holds channels and events up to now."""
+
+    @abc.abstractmethod
+    def predict(self, t_s: npt.ArrayLike, history: History) -> Prediction:
+        """Predict p at times ``t_s`` (usually after the last observation)."""
+
+    @abc.abstractmethod
+    def state_dict(self) -> dict[str, Any]:
+        """JSON-serialisable state (arrays as lists) from which the model resumes."""
+
+    @abc.abstractmethod
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore the state produced by :meth:`state_dict`."""
