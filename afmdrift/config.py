@@ -20,7 +20,13 @@ from pydantic.fields import FieldInfo
 from afmdrift.errors import ConfigError
 from afmdrift.registration._config import RegistrationConfig
 
-__all__ = ["DEFAULT_CONFIG_PATH", "AfmdriftConfig", "load_config", "parse_config"]
+__all__ = [
+    "DEFAULT_CONFIG_PATH",
+    "AfmdriftConfig",
+    "describe_validation_error",
+    "load_config",
+    "parse_config",
+]
 
 #: ``config/default.toml`` in a source checkout.
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.toml"
@@ -45,8 +51,19 @@ def parse_config(data: dict[str, Any], *, source: str = "<config>") -> AfmdriftC
     try:
         return AfmdriftConfig.model_validate(data)
     except ValidationError as err:
-        lines = [_describe_error(e, source) for e in err.errors()]
-        raise ConfigError("\n".join(lines)) from None
+        raise ConfigError(
+            describe_validation_error(err, source=source, root=AfmdriftConfig)
+        ) from None
+
+
+def describe_validation_error(err: ValidationError, *, source: str, root: type[BaseModel]) -> str:
+    """One line per problem of ``err``, naming the dotted key, the value and the allowed range.
+
+    ``root`` is the model that was validated; any pydantic model built like the
+    configuration (nested models, ``extra="forbid"``, ``Field`` ranges) works,
+    e.g. the simulator's scenario files.
+    """
+    return "\n".join(_describe_error(e, source, root) for e in err.errors())
 
 
 def load_config(path: str | Path | None = None) -> AfmdriftConfig:
@@ -69,16 +86,16 @@ def load_config(path: str | Path | None = None) -> AfmdriftConfig:
     return parse_config(data, source=str(p))
 
 
-def _describe_error(error: Any, source: str) -> str:
+def _describe_error(error: Any, source: str, root: type[BaseModel]) -> str:
     loc = tuple(error["loc"])
     key = ".".join(str(part) for part in loc)
     kind = error["type"]
     value = error.get("input")
     if kind == "extra_forbidden":
-        allowed = _allowed_keys(loc[:-1])
+        allowed = _allowed_keys(loc[:-1], root)
         hint = f" (allowed keys: {', '.join(allowed)})" if allowed else ""
         return f"{source}: unknown key '{key}'{hint}"
-    field = _field_at(loc)
+    field = _field_at(loc, root)
     allowed_range = _allowed_range(field) if field is not None else ""
     shown = repr(value) if not isinstance(value, dict) else "a table"
     msg = f"{source}: {key} = {shown}: {error['msg']}"
@@ -87,29 +104,32 @@ def _describe_error(error: Any, source: str) -> str:
     return msg
 
 
-def _model_at(loc: tuple[Any, ...]) -> type[BaseModel] | None:
-    model: type[BaseModel] = AfmdriftConfig
+def _model_at(loc: tuple[Any, ...], root: type[BaseModel]) -> type[BaseModel] | None:
+    model: type[BaseModel] = root
     for part in loc:
+        if isinstance(part, int):  # index into an array of tables: stay on its model
+            continue
         info = model.model_fields.get(str(part))
         if info is None:
             return None
-        ann = info.annotation
-        if isinstance(ann, type) and issubclass(ann, BaseModel):
-            model = ann
-        else:
+        # A nested table may be optional (``Section | None``) or a list of tables.
+        candidates = [info.annotation, *get_args(info.annotation)]
+        sub = [a for a in candidates if isinstance(a, type) and issubclass(a, BaseModel)]
+        if not sub:
             return None
+        model = sub[0]
     return model
 
 
-def _allowed_keys(loc: tuple[Any, ...]) -> list[str]:
-    model = _model_at(loc)
+def _allowed_keys(loc: tuple[Any, ...], root: type[BaseModel]) -> list[str]:
+    model = _model_at(loc, root)
     return sorted(model.model_fields) if model is not None else []
 
 
-def _field_at(loc: tuple[Any, ...]) -> FieldInfo | None:
+def _field_at(loc: tuple[Any, ...], root: type[BaseModel]) -> FieldInfo | None:
     if not loc:
         return None
-    model = _model_at(loc[:-1])
+    model = _model_at(loc[:-1], root)
     if model is None:
         return None
     return model.model_fields.get(str(loc[-1]))
