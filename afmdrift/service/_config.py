@@ -1,0 +1,130 @@
+"""Configuration of the drift service (``[service]``).
+
+Times are seconds on the *wall* clock for the service's own loops (offset
+stream, heartbeat, polling) and seconds on the *instrument* clock for physical
+limits (offset rate of change, staleness), so an accelerated simulator or a
+replay behaves like the real instrument.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+from typing import Self
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+__all__ = ["ServiceConfig", "endpoint_is_local"]
+
+
+def endpoint_is_local(endpoint: str) -> bool:
+    """True when a ZeroMQ bind endpoint is reachable only from this machine.
+
+    ``ipc://`` and ``inproc://`` are local; ``tcp://HOST:PORT`` is local when
+    HOST is ``localhost`` or a loopback address (127.0.0.0/8, ::1). Wildcards
+    (``*``, ``0.0.0.0``) and any other interface are not.
+    """
+    if endpoint.startswith(("ipc://", "inproc://")):
+        return True
+    if not endpoint.startswith("tcp://"):
+        return False
+    host = endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+class ServiceConfig(BaseModel):
+    """Parameters of the drift daemon (``afmdrift run``) and of replay.
+
+    Binding a socket anywhere but the loopback interface requires ZeroMQ CURVE
+    keys (``curve_secret_key_file`` and ``curve_authorized_clients_dir``);
+    the configuration is rejected otherwise.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    pub_endpoint: str = Field(
+        "tcp://127.0.0.1:5560", description="ZeroMQ PUB bind endpoint (offset/model/frame/status)."
+    )
+    control_endpoint: str = Field(
+        "tcp://127.0.0.1:5561", description="ZeroMQ REP bind endpoint of the control socket."
+    )
+    curve_secret_key_file: str | None = Field(
+        None, description="Server certificate with secret key (zmq.auth.create_certificates)."
+    )
+    curve_authorized_clients_dir: str | None = Field(
+        None, description="Directory of client public certificates allowed to connect."
+    )
+    run_dir: str = Field("runs/latest", description="Run directory (store, archive, logs).")
+    archive_frames: bool = Field(False, description="Also keep every image as frames/NNNNNN.npy.")
+    offset_rate_hz: float = Field(100.0, ge=1.0, le=1000.0, description="Offset stream rate.")
+    heartbeat_interval_s: float = Field(1.0, ge=0.05, le=60.0, description="Status period.")
+    frame_poll_interval_s: float = Field(0.5, ge=0.005, le=60.0, description="Frame poll period.")
+    channel_poll_interval_s: float = Field(5.0, ge=0.01, le=3600.0, description="Channels.")
+    event_poll_interval_s: float = Field(1.0, ge=0.01, le=3600.0, description="Event log.")
+    clock_sync_interval_s: float = Field(
+        1.0, ge=0.01, le=60.0, description="How often the instrument clock is read."
+    )
+    reconnect_delay_s: float = Field(
+        1.0, ge=0.01, le=60.0, description="Wait before reconnecting a failed instrument."
+    )
+    expected_frame_interval_s: float | None = Field(
+        None,
+        gt=0,
+        description="Instrument seconds between frames; default: learned from the frames.",
+    )
+    stale_factor: float = Field(
+        2.0, ge=1.0, le=100.0, description="No frame for this many expected intervals: stale."
+    )
+    training_window: int = Field(
+        50, ge=2, le=10000, description="Observations kept for refits (paper: last 50)."
+    )
+    min_valid_blocks: int = Field(
+        4, ge=1, le=4096, description="Fewer valid blocks: the frame does not feed the model."
+    )
+    max_offset_nm: float = Field(
+        5000.0, gt=0, le=1e6, description="Published offsets are clamped to this magnitude."
+    )
+    max_offset_rate_nm_s: float = Field(
+        5.0, gt=0, le=1e6, description="Largest offset change per instrument second."
+    )
+    rolling_window: int = Field(
+        20, ge=1, le=10000, description="Frames in the rolling prediction error."
+    )
+    closed_loop: bool = Field(
+        False, description="Apply the offset on the instrument (XY-offset command)."
+    )
+    closed_loop_interval_s: float = Field(
+        1.0, ge=0.01, le=3600.0, description="Wall seconds between closed-loop moves."
+    )
+    closed_loop_min_step_nm: float = Field(
+        0.2, ge=0.0, le=1000.0, description="Smaller corrections are not sent."
+    )
+    sndhwm: int = Field(
+        10000, ge=1, le=10_000_000, description="PUB high-water mark; slow subscribers drop."
+    )
+
+    @model_validator(mode="after")
+    def _require_curve_off_loopback(self) -> Self:
+        for key in ("pub_endpoint", "control_endpoint"):
+            endpoint = getattr(self, key)
+            if endpoint_is_local(endpoint):
+                continue
+            missing = [
+                k
+                for k in ("curve_secret_key_file", "curve_authorized_clients_dir")
+                if getattr(self, k) is None
+            ]
+            if missing:
+                raise ValueError(
+                    f"{key} {endpoint!r} is not a loopback address; binding it requires "
+                    f"ZeroMQ CURVE keys: set service.{' and service.'.join(missing)}"
+                )
+        if self.pub_endpoint == self.control_endpoint:
+            raise ValueError(
+                f"pub_endpoint and control_endpoint must differ (both {self.pub_endpoint!r})"
+            )
+        return self

@@ -1,0 +1,520 @@
+"""The run store: SQLite (WAL) record of everything the service did.
+
+One database ``RUN_DIR/run.sqlite`` per run directory (schema in
+``docs/service.md``). Each frame is written in a single transaction together
+with the channels and events logged since the previous frame, the predictor
+state after the frame and the published curve, so a ``kill -9`` at any moment
+loses at most the frame being processed, and a restarted service resumes
+from the last committed frame. The registration reference image is kept next
+to the database (``reference-NNNNNN.npy``, written before and deleted only after a
+later reference is committed) so the restarted
+tracker measures the next frame against the same image. With
+``archive_frames`` every image is kept as ``frames/NNNNNN.npy``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sqlite3
+import time
+from collections.abc import Iterable, Sequence
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.drivers._base import ChannelSample, Event, EventKind
+from afmdrift.errors import AfmdriftError
+
+__all__ = [
+    "MEASUREMENT_COLUMNS",
+    "STORE_SCHEMA_VERSION",
+    "FrameRecord",
+    "ResumeState",
+    "RunStore",
+    "StoreError",
+]
+
+STORE_SCHEMA_VERSION = 1
+DB_NAME = "run.sqlite"
+
+
+class StoreError(AfmdriftError):
+    """The run store cannot be opened or is not a store this version can read."""
+
+
+@dataclass(frozen=True, slots=True)
+class FrameRecord:
+    """Everything the service knows about one processed frame (one store row).
+
+    ``seq`` numbers frames as the service saw them (0, 1, 2, ...);
+    ``instrument_frame`` is the instrument's own index. Measured values are
+    NaN when the measurement failed or the frame is the reference.
+    """
+
+    seq: int
+    instrument_frame: int
+    epoch: int
+    t_start_s: float
+    t_end_s: float
+    t_mid_s: float
+    direction: str
+    rows: int
+    cols: int
+    pixel_x_nm: float
+    pixel_y_nm: float
+    dx_nm: float
+    dy_nm: float
+    image_x_nm: float
+    image_y_nm: float
+    x_nm: float
+    y_nm: float
+    sigma_nm: float
+    valid: bool
+    fed_model: bool
+    reason: str
+    valid_blocks: int
+    total_blocks: int
+    keyframe_index: int
+    reanchored: bool
+    pred_x_nm: float
+    pred_y_nm: float
+    pred_sigma_nm: float
+    offset_x_nm: float
+    offset_y_nm: float
+    wall_s: float
+    latency_s: float
+    field_json: str
+
+    @property
+    def resid_x_nm(self) -> float:
+        return self.x_nm - self.pred_x_nm
+
+    @property
+    def resid_y_nm(self) -> float:
+        return self.y_nm - self.pred_y_nm
+
+    @property
+    def pred_error_nm(self) -> float:
+        """Distance between the prediction and the measured position (NaN if either is)."""
+        return math.hypot(self.resid_x_nm, self.resid_y_nm)
+
+
+_FRAME_FIELDS = [f.name for f in fields(FrameRecord)]
+_SQL_TYPES = {"int": "INTEGER", "float": "REAL", "str": "TEXT", "bool": "INTEGER"}
+
+#: Columns of ``measurements.csv`` (see docs/service.md).
+MEASUREMENT_COLUMNS: tuple[str, ...] = (
+    "frame",
+    "t_s",
+    "dx_nm",
+    "dy_nm",
+    "x_nm",
+    "y_nm",
+    "sigma_nm",
+    "valid_blocks",
+    "pred_x_nm",
+    "pred_y_nm",
+    "total_blocks",
+    "valid",
+    "fed_model",
+    "image_x_nm",
+    "image_y_nm",
+    "offset_x_nm",
+    "offset_y_nm",
+    "pred_sigma_nm",
+    "pred_error_nm",
+    "reason",
+)
+
+
+@dataclass(frozen=True, slots=True)
+class ResumeState:
+    """What a restarted service needs from the store."""
+
+    last: FrameRecord
+    predictor: str
+    predictor_state: dict[str, Any] | None
+    reference: npt.NDArray[np.float32] | None
+    reference_seq: int | None
+    reference_x_nm: float
+    reference_y_nm: float
+    event_cursor: int
+    epoch: int
+
+
+def _schema() -> list[str]:
+    cols = []
+    for f in fields(FrameRecord):
+        sql_type = _SQL_TYPES[str(f.type)]
+        # REAL columns hold NULL for a value that does not exist (NaN in Python).
+        suffix = " PRIMARY KEY" if f.name == "seq" else "" if sql_type == "REAL" else " NOT NULL"
+        cols.append(f"{f.name} {sql_type}{suffix}")
+    return [
+        "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
+        f"CREATE TABLE IF NOT EXISTS frames ({', '.join(cols)})",
+        "CREATE TABLE IF NOT EXISTS channels (id INTEGER PRIMARY KEY, t_s REAL NOT NULL, "
+        "name TEXT NOT NULL, value REAL)",
+        "CREATE TABLE IF NOT EXISTS events (id INTEGER PRIMARY KEY, epoch INTEGER NOT NULL, "
+        "log_index INTEGER NOT NULL, t_s REAL NOT NULL, kind TEXT NOT NULL, "
+        "x_nm REAL NOT NULL, y_nm REAL NOT NULL, UNIQUE (epoch, log_index))",
+        "CREATE TABLE IF NOT EXISTS model_state (seq INTEGER PRIMARY KEY "
+        "REFERENCES frames(seq), predictor TEXT NOT NULL, state_json TEXT NOT NULL, "
+        "curve_json TEXT)",
+        "CREATE INDEX IF NOT EXISTS channels_t ON channels (t_s)",
+    ]
+
+
+def _nan_to_none(v: Any) -> Any:
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
+
+
+def _none_to_nan(name: str, v: Any) -> Any:
+    if v is None:
+        return float("nan")
+    return v
+
+
+class RunStore:
+    """SQLite run store in WAL mode; one instance per process, used from one thread.
+
+    Parameters
+    ----------
+    run_dir : path-like
+        Directory of the run (created if needed).
+    archive_frames : bool
+        Keep every image as ``frames/NNNNNN.npy``.
+    """
+
+    def __init__(self, run_dir: str | Path, *, archive_frames: bool = False) -> None:
+        self.run_dir = Path(run_dir)
+        try:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise StoreError(f"{self.run_dir}: cannot create run directory ({err})") from None
+        self.archive_frames = archive_frames
+        self.path = self.run_dir / DB_NAME
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None)
+            self._db.execute("PRAGMA journal_mode=WAL")
+            self._db.execute("PRAGMA synchronous=FULL")
+            self._db.execute("PRAGMA foreign_keys=ON")
+            with self._transaction():
+                for stmt in _schema():
+                    self._db.execute(stmt)
+                version = self._meta_get("schema_version")
+                if version is None:
+                    self._meta_set("schema_version", str(STORE_SCHEMA_VERSION))
+                    self._meta_set("created_unix_s", repr(time.time()))
+                elif int(version) != STORE_SCHEMA_VERSION:
+                    raise StoreError(
+                        f"{self.path}: store schema version {version} is not supported "
+                        f"(this version writes {STORE_SCHEMA_VERSION})"
+                    )
+        except sqlite3.DatabaseError as err:
+            raise StoreError(f"{self.path}: not a usable run store ({err})") from None
+        self._pending_channels: list[ChannelSample] = []
+        self._pending_events: list[tuple[int, int, Event]] = []
+
+    # ------------------------------------------------------------------ lifecycle
+
+    def close(self) -> None:
+        """Write pending channels and events and close the database."""
+        if self._pending_channels or self._pending_events:
+            with self._transaction():
+                self._flush_pending()
+        self._db.close()
+
+    def __enter__(self) -> RunStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ writing
+
+    def set_meta(self, items: dict[str, str]) -> None:
+        """Record run-level facts (configuration, instrument identity, source)."""
+        with self._transaction():
+            for k, v in items.items():
+                self._meta_set(k, v)
+
+    def add_channels(self, sample: ChannelSample) -> None:
+        """Queue a channel sample; it is committed with the next frame (or on close)."""
+        self._pending_channels.append(sample)
+
+    def add_event(self, *, epoch: int, log_index: int, event: Event) -> None:
+        """Queue an event-log entry; committed with the next frame (or on close)."""
+        self._pending_events.append((epoch, log_index, event))
+
+    def record_frame(
+        self,
+        record: FrameRecord,
+        *,
+        predictor: str,
+        predictor_state: dict[str, Any] | None,
+        curve: dict[str, Any] | None,
+        image: npt.NDArray[np.floating] | None = None,
+        reference: npt.NDArray[np.floating] | None = None,
+    ) -> None:
+        """Commit one frame atomically with everything queued since the last one.
+
+        ``reference`` is the tracker's reference image when it changed with this
+        frame; it is written (atomically) before the transaction, and the
+        transaction records which frame it belongs to, so the two never
+        disagree after a crash.
+        """
+        if self.archive_frames and image is not None:
+            self._save_npy(self.run_dir / "frames" / f"{record.seq:06d}.npy", image)
+        if reference is not None:
+            self._save_npy(self._reference_path(record.seq), reference)
+        with self._transaction():
+            self._flush_pending()
+            values = [_nan_to_none(getattr(record, n)) for n in _FRAME_FIELDS]
+            placeholders = ", ".join("?" for _ in _FRAME_FIELDS)
+            self._db.execute(
+                f"INSERT INTO frames ({', '.join(_FRAME_FIELDS)}) VALUES ({placeholders})",
+                values,
+            )
+            if predictor_state is not None:
+                self._db.execute(
+                    "INSERT INTO model_state (seq, predictor, state_json, curve_json) "
+                    "VALUES (?, ?, ?, ?)",
+                    (
+                        record.seq,
+                        predictor,
+                        json.dumps(predictor_state),
+                        None if curve is None else json.dumps(curve),
+                    ),
+                )
+            if reference is not None:
+                self._meta_set("reference_seq", str(record.seq))
+                self._meta_set("reference_x_nm", repr(record.image_x_nm))
+                self._meta_set("reference_y_nm", repr(record.image_y_nm))
+        if reference is not None:
+            # Only now is the new reference committed; older images can go.
+            for old in self.run_dir.glob("reference-*.npy"):
+                if old != self._reference_path(record.seq):
+                    old.unlink(missing_ok=True)
+
+    def _reference_path(self, seq: int) -> Path:
+        return self.run_dir / f"reference-{seq:06d}.npy"
+
+    # ------------------------------------------------------------------ reading
+
+    def frame_count(self) -> int:
+        row = self._db.execute("SELECT COUNT(*) FROM frames").fetchone()
+        return int(row[0])
+
+    def frames(self, *, since_seq: int = -1) -> list[FrameRecord]:
+        """All frame records with ``seq > since_seq``, in order."""
+        cur = self._db.execute(
+            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames WHERE seq > ? ORDER BY seq",
+            (since_seq,),
+        )
+        return [self._row_to_record(row) for row in cur]
+
+    def last_frames(self, n: int) -> list[FrameRecord]:
+        """The last ``n`` frame records, oldest first."""
+        cur = self._db.execute(
+            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames ORDER BY seq DESC LIMIT ?", (n,)
+        )
+        return [self._row_to_record(row) for row in cur][::-1]
+
+    def channels(self) -> list[ChannelSample]:
+        """Committed channel samples in time order (one sample per distinct time)."""
+        out: list[ChannelSample] = []
+        cur = self._db.execute("SELECT t_s, name, value FROM channels ORDER BY id")
+        for t_s, name, value in cur:
+            v = float("nan") if value is None else float(value)
+            if out and out[-1].t_s == t_s:
+                merged = dict(out[-1].values)
+                merged[name] = v
+                out[-1] = ChannelSample(t_s=t_s, values=merged)
+            else:
+                out.append(ChannelSample(t_s=float(t_s), values={name: v}))
+        return out
+
+    def events(self, *, epoch: int | None = None) -> list[tuple[int, int, Event]]:
+        """Committed events as ``(epoch, log_index, Event)`` in log order."""
+        query = "SELECT epoch, log_index, t_s, kind, x_nm, y_nm FROM events"
+        args: tuple[Any, ...] = ()
+        if epoch is not None:
+            query += " WHERE epoch = ?"
+            args = (epoch,)
+        cur = self._db.execute(query + " ORDER BY epoch, log_index", args)
+        return [
+            (int(e), int(i), Event(t_s=float(t), kind=EventKind(k), x_nm=float(x), y_nm=float(y)))
+            for e, i, t, k, x, y in cur
+        ]
+
+    def curve(self, seq: int) -> dict[str, Any] | None:
+        row = self._db.execute(
+            "SELECT curve_json FROM model_state WHERE seq = ?", (seq,)
+        ).fetchone()
+        if row is None or row[0] is None:
+            return None
+        doc: dict[str, Any] = json.loads(row[0])
+        return doc
+
+    def meta(self) -> dict[str, str]:
+        return {k: v for k, v in self._db.execute("SELECT key, value FROM meta")}
+
+    def resume_state(self) -> ResumeState | None:
+        """State to resume from, or ``None`` for an empty store."""
+        last = self.last_frames(1)
+        if not last:
+            return None
+        row = self._db.execute(
+            "SELECT predictor, state_json FROM model_state ORDER BY seq DESC LIMIT 1"
+        ).fetchone()
+        predictor, state = ("", None) if row is None else (str(row[0]), json.loads(row[1]))
+        meta = self.meta()
+        reference = None
+        reference_seq = int(meta["reference_seq"]) if "reference_seq" in meta else None
+        if reference_seq is not None:
+            # Written before the frame's transaction and deleted only after a
+            # later one committed, so the committed reference is always on disk
+            # unless someone removed it.
+            ref_path = self._reference_path(reference_seq)
+            if ref_path.is_file():
+                reference = np.load(ref_path, allow_pickle=False)
+        cursor_row = self._db.execute(
+            "SELECT MAX(epoch), MAX(log_index) FROM events WHERE epoch = "
+            "(SELECT MAX(epoch) FROM events)"
+        ).fetchone()
+        event_cursor = 0 if cursor_row[1] is None else int(cursor_row[1]) + 1
+        return ResumeState(
+            last=last[0],
+            predictor=predictor,
+            predictor_state=state,
+            reference=reference,
+            reference_seq=reference_seq if reference is not None else None,
+            reference_x_nm=float(meta.get("reference_x_nm", "nan")),
+            reference_y_nm=float(meta.get("reference_y_nm", "nan")),
+            event_cursor=event_cursor,
+            epoch=last[0].epoch,
+        )
+
+    def check_consistency(self) -> list[str]:
+        """Problems found in the store (empty when consistent): integrity, gaps, orphans."""
+        problems: list[str] = []
+        ok = self._db.execute("PRAGMA integrity_check").fetchone()[0]
+        if ok != "ok":
+            problems.append(f"integrity_check: {ok}")
+        seqs = [int(r[0]) for r in self._db.execute("SELECT seq FROM frames ORDER BY seq")]
+        if seqs and seqs != list(range(seqs[0], seqs[0] + len(seqs))):
+            problems.append("frames: sequence numbers have gaps")
+        orphans = self._db.execute(
+            "SELECT COUNT(*) FROM model_state WHERE seq NOT IN (SELECT seq FROM frames)"
+        ).fetchone()[0]
+        if orphans:
+            problems.append(f"model_state: {orphans} rows without a frame")
+        return problems
+
+    def write_measurements_csv(self, path: str | Path | None = None) -> Path:
+        """Write ``measurements.csv`` (columns :data:`MEASUREMENT_COLUMNS`) atomically."""
+        out = Path(path) if path is not None else self.run_dir / "measurements.csv"
+        tmp = out.with_name(out.name + ".tmp")
+        with tmp.open("w", newline="", encoding="utf-8") as fh:
+            w = csv.writer(fh)
+            w.writerow(MEASUREMENT_COLUMNS)
+            for r in self.frames():
+                w.writerow(_measurement_row(r))
+        tmp.replace(out)
+        return out
+
+    # ------------------------------------------------------------------ internals
+
+    def _transaction(self) -> _Transaction:
+        return _Transaction(self._db)
+
+    def _meta_get(self, key: str) -> str | None:
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def _meta_set(self, key: str, value: str) -> None:
+        self._db.execute(
+            "INSERT INTO meta (key, value) VALUES (?, ?) "
+            "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
+            (key, value),
+        )
+
+    def _flush_pending(self) -> None:
+        rows = [
+            (s.t_s, name, _nan_to_none(float(v)))
+            for s in self._pending_channels
+            for name, v in s.values.items()
+        ]
+        self._db.executemany("INSERT INTO channels (t_s, name, value) VALUES (?, ?, ?)", rows)
+        self._db.executemany(
+            "INSERT OR IGNORE INTO events (epoch, log_index, t_s, kind, x_nm, y_nm) "
+            "VALUES (?, ?, ?, ?, ?, ?)",
+            [
+                (epoch, idx, e.t_s, e.kind.value, e.x_nm, e.y_nm)
+                for epoch, idx, e in self._pending_events
+            ],
+        )
+        self._pending_channels.clear()
+        self._pending_events.clear()
+
+    @staticmethod
+    def _row_to_record(row: Sequence[Any]) -> FrameRecord:
+        kwargs: dict[str, Any] = {}
+        for f, v in zip(fields(FrameRecord), row, strict=True):
+            if f.type == "bool":
+                kwargs[f.name] = bool(v)
+            elif f.type == "float":
+                kwargs[f.name] = _none_to_nan(f.name, v)
+            else:
+                kwargs[f.name] = v
+        return FrameRecord(**kwargs)
+
+    @staticmethod
+    def _save_npy(path: Path, image: npt.NDArray[np.floating]) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        with tmp.open("wb") as fh:
+            np.save(fh, np.asarray(image, dtype=np.float32), allow_pickle=False)
+        os.replace(tmp, path)
+
+
+class _Transaction:
+    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error) on an autocommit connection."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __enter__(self) -> None:
+        self._db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, bool):
+        return "1" if v else "0"
+    if isinstance(v, float):
+        return "" if not math.isfinite(v) else repr(v)
+    return str(v)
+
+
+def _measurement_row(r: FrameRecord) -> list[str]:
+    values = asdict(r)
+    values["frame"] = r.seq
+    values["t_s"] = r.t_mid_s
+    values["pred_error_nm"] = r.pred_error_nm
+    return [_fmt(values[c]) for c in MEASUREMENT_COLUMNS]
+
+
+def records_to_rows(records: Iterable[FrameRecord]) -> list[list[str]]:
+    """``measurements.csv`` rows (without header) of ``records``."""
+    return [_measurement_row(r) for r in records]

@@ -1,0 +1,281 @@
+"""Wire format of the drift service, version 1 (documented in ``docs/wire.md``).
+
+Every message on the PUB socket is a two-part ZeroMQ message
+``[topic, payload]``: the topic is one of ``offset``, ``model``, ``frame``,
+``status`` (ASCII, used for subscription filtering) and the payload is a UTF-8
+JSON object validated by the pydantic schema of that topic. Every payload
+carries ``"v"`` (the schema version, :data:`SCHEMA_VERSION`) and ``"topic"``.
+A decoder rejects another version with :class:`WireError` instead of guessing.
+
+The control socket (REQ/REP) exchanges single-part JSON messages
+(:class:`ControlRequest`, :class:`ControlReply`) with the same version field.
+
+Times: ``t_s`` is the instrument clock (s since the session start), ``wall_s``
+the publisher's Unix time (s). Positions and offsets are nm in the
+registration sign convention (``README.md``, Conventions).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any, Literal, TypeVar
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+
+from afmdrift.errors import AfmdriftError
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "TOPICS",
+    "ClockSync",
+    "ControlReply",
+    "ControlRequest",
+    "FieldSummary",
+    "FrameMsg",
+    "Message",
+    "ModelMsg",
+    "OffsetMsg",
+    "StatusMsg",
+    "WireError",
+    "decode",
+    "decode_control_reply",
+    "decode_control_request",
+    "encode",
+]
+
+#: Version of every schema in this module; bumped on any incompatible change.
+SCHEMA_VERSION: Literal[1] = 1
+
+TOPICS: tuple[str, ...] = ("offset", "model", "frame", "status")
+
+
+class WireError(AfmdriftError, ValueError):
+    """A message does not follow the wire format (topic, version or fields)."""
+
+
+_M = TypeVar("_M", bound=BaseModel)
+
+
+class _Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    v: Literal[1] = SCHEMA_VERSION
+
+
+class ClockSync(BaseModel):
+    """Mapping from the publisher's wall clock to the instrument clock.
+
+    ``t_s = instrument_s + rate * (wall - wall_s)`` for a wall time ``wall``;
+    ``rate`` is 1 for a real instrument and the speed-up of an accelerated
+    simulator or replay.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    wall_s: float
+    instrument_s: float
+    rate: float = Field(gt=0)
+
+    def instrument_at(self, wall_s: float) -> float:
+        """Instrument time at Unix time ``wall_s``."""
+        return self.instrument_s + self.rate * (wall_s - self.wall_s)
+
+
+class OffsetMsg(_Msg):
+    """One sample of the offset stream d(t) (topic ``offset``).
+
+    ``valid`` is false before the first model, while the stream is stale, or
+    when the service is paused; ``clamped`` is true when the safety limits
+    changed the value.
+    """
+
+    topic: Literal["offset"] = "offset"
+    seq: int = Field(ge=0)
+    t_s: float
+    wall_s: float
+    x_nm: float
+    y_nm: float
+    valid: bool
+    clamped: bool = False
+
+
+class ModelMsg(_Msg):
+    """The current model after a frame (topic ``model``).
+
+    ``curve`` is ``OffsetCurve.to_dict()``; a subscriber rebuilds it with
+    ``afmdrift.model.OffsetCurve.from_dict`` and evaluates d(t) at any time and
+    rate (``afmdrift.client.Subscriber.offset_at`` does this). The published
+    offset stream additionally applies the safety limits ``max_offset_nm`` and
+    ``max_offset_rate_nm_s``, given here so a subscriber can apply them too.
+    """
+
+    topic: Literal["model"] = "model"
+    seq: int = Field(ge=0)
+    frame: int = Field(ge=0)
+    t_s: float
+    wall_s: float
+    predictor: str
+    curve: dict[str, Any]
+    clock: ClockSync
+    max_offset_nm: float
+    max_offset_rate_nm_s: float
+
+
+class FieldSummary(BaseModel):
+    """Summary of a frame's block displacement field (nm, over valid blocks)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    total_blocks: int
+    valid_blocks: int
+    mean_dx_nm: float | None
+    mean_dy_nm: float | None
+    std_dx_nm: float | None
+    std_dy_nm: float | None
+    median_confidence: float | None
+
+
+class FrameMsg(_Msg):
+    """One frame's measurement (topic ``frame``).
+
+    ``dx_nm, dy_nm`` is the measured increment, ``x_nm, y_nm`` the drift
+    position p (cumulative, commanded offset moves removed); ``pred_*`` is the
+    prediction of p for this frame made before it arrived, and
+    ``pred_error_nm`` the Euclidean distance between the two. Values that do
+    not exist (first frame, failed measurement) are ``null``.
+    """
+
+    topic: Literal["frame"] = "frame"
+    seq: int = Field(ge=0)
+    frame: int = Field(ge=0)
+    instrument_frame: int
+    t_s: float
+    wall_s: float
+    dx_nm: float | None
+    dy_nm: float | None
+    x_nm: float | None
+    y_nm: float | None
+    sigma_nm: float | None
+    valid: bool
+    fed_model: bool
+    reason: str
+    valid_blocks: int
+    total_blocks: int
+    field: FieldSummary | None
+    pred_x_nm: float | None
+    pred_y_nm: float | None
+    pred_error_nm: float | None
+    latency_s: float
+
+
+class StatusMsg(_Msg):
+    """Heartbeat (topic ``status``).
+
+    ``state`` is ``running``, ``paused``, ``stale`` or ``stopping``. ``flags``
+    lists active conditions: ``no_model`` (no curve yet), ``low_confidence``
+    (last frame did not feed the model), ``stale`` (no frame for more than
+    ``stale_factor`` expected intervals), ``instrument_error`` (the driver is
+    failing and being reconnected), ``clamped`` (the last offset was limited),
+    ``paused``.
+    """
+
+    topic: Literal["status"] = "status"
+    seq: int = Field(ge=0)
+    t_s: float | None
+    wall_s: float
+    state: Literal["starting", "running", "paused", "stale", "stopping"]
+    flags: list[str]
+    frames: int
+    last_frame_t_s: float | None
+    expected_frame_interval_s: float | None
+    rolling_error_nm: float | None
+    rolling_max_error_nm: float | None
+    rolling_window: int
+
+
+Message = Annotated[OffsetMsg | ModelMsg | FrameMsg | StatusMsg, Field(discriminator="topic")]
+_MESSAGE_ADAPTER: TypeAdapter[OffsetMsg | ModelMsg | FrameMsg | StatusMsg] = TypeAdapter(Message)
+
+
+class ControlRequest(_Msg):
+    """A command on the control socket.
+
+    ``cmd``: ``status`` (reply carries a StatusMsg), ``pause`` (stop feeding
+    the model and publishing valid offsets), ``resume``, ``reset_reference``
+    (the next frame becomes the registration reference; the drift position
+    continues), ``reload_model`` (re-read ``[model]`` from ``config_path`` or
+    the daemon's configuration file and refit on the kept history).
+    """
+
+    cmd: Literal["status", "pause", "resume", "reset_reference", "reload_model"]
+    config_path: str | None = None
+
+
+class ControlReply(_Msg):
+    """Answer to a :class:`ControlRequest`; ``error`` is set when ``ok`` is false."""
+
+    ok: bool
+    error: str | None = None
+    status: StatusMsg | None = None
+
+
+def encode(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> list[bytes]:
+    """``[topic, payload]`` frames of a PUB message."""
+    return [msg.topic.encode("ascii"), msg.model_dump_json().encode("utf-8")]
+
+
+def _load_json(payload: bytes, what: str) -> dict[str, Any]:
+    try:
+        doc = json.loads(payload)
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise WireError(f"{what}: payload is not JSON ({err})") from None
+    if not isinstance(doc, dict):
+        raise WireError(f"{what}: payload must be a JSON object, got {type(doc).__name__}")
+    version = doc.get("v")
+    if version != SCHEMA_VERSION:
+        raise WireError(
+            f"{what}: schema version {version!r} is not supported (this side speaks "
+            f"{SCHEMA_VERSION})"
+        )
+    return doc
+
+
+def decode(parts: list[bytes]) -> OffsetMsg | ModelMsg | FrameMsg | StatusMsg:
+    """Validate a received ``[topic, payload]`` message.
+
+    Raises
+    ------
+    WireError
+        Wrong number of parts, unknown topic, topic/payload mismatch, another
+        schema version, or fields that do not match the schema.
+    """
+    if len(parts) != 2:
+        raise WireError(f"expected 2 message parts [topic, payload], got {len(parts)}")
+    topic = parts[0].decode("ascii", errors="replace")
+    if topic not in TOPICS:
+        raise WireError(f"unknown topic {topic!r} (known: {', '.join(TOPICS)})")
+    doc = _load_json(parts[1], f"topic {topic!r}")
+    if doc.get("topic") != topic:
+        raise WireError(f"topic {topic!r} carries a payload for topic {doc.get('topic')!r}")
+    try:
+        return _MESSAGE_ADAPTER.validate_python(doc)
+    except ValidationError as err:
+        raise WireError(f"topic {topic!r}: invalid payload: {err}") from None
+
+
+def decode_control_request(payload: bytes) -> ControlRequest:
+    """Validate a control request; raise :class:`WireError` naming the problem."""
+    return _decode_control(payload, ControlRequest, "control request")
+
+
+def decode_control_reply(payload: bytes) -> ControlReply:
+    """Validate a control reply; raise :class:`WireError` naming the problem."""
+    return _decode_control(payload, ControlReply, "control reply")
+
+
+def _decode_control(payload: bytes, model: type[_M], what: str) -> _M:
+    doc = _load_json(payload, what)
+    try:
+        return model.model_validate(doc)
+    except ValidationError as err:
+        raise WireError(f"{what}: {err}") from None
