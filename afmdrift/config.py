@@ -19,6 +19,7 @@ from pydantic.fields import FieldInfo
 
 from afmdrift.errors import ConfigError
 from afmdrift.registration._config import RegistrationConfig
+from afmdrift.service._config import ServiceConfig
 
 __all__ = [
     "DEFAULT_CONFIG_PATH",
@@ -38,6 +39,7 @@ class AfmdriftConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
+    service: ServiceConfig = Field(default_factory=ServiceConfig)
 
 
 def parse_config(data: dict[str, Any], *, source: str = "<config>") -> AfmdriftConfig:
