@@ -1,0 +1,123 @@
+"""The in-memory image record returned by every reader, and its errors."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.drivers._base import ScanDirection
+from afmdrift.errors import InputError
+
+__all__ = ["AfmImage", "ImageFileError", "height_factor_nm", "length_unit_to_nm"]
+
+
+class ImageFileError(InputError):
+    """An image file cannot be read: missing, unknown suffix, corrupt, wrong channel
+    or frame index. The message names the file and the problem."""
+
+
+@dataclass(frozen=True, slots=True)
+class AfmImage:
+    """One height image read from a file.
+
+    Attributes
+    ----------
+    heights_nm : ndarray, shape (rows, cols), float64
+        Heights in nm. x runs along columns (fast axis), y along rows.
+    pixel_size_nm : (float, float)
+        Pixel size along x (columns) and y (rows) in nm.
+    path : Path
+        The file the image came from.
+    frame : int or None
+        Frame index inside a multi-frame file (``.asd`` movie, 3-D ``.npy``), else ``None``.
+    channel : str
+        The channel actually read (for example ``"Height"``, ``"TP"``).
+    timestamp : datetime or None
+        Start of this frame's scan when the header gives a date (naive local
+        time as written by the instrument), else ``None``. See
+        ``docs/session-format.md`` and the reader docstrings for what each
+        format's date marks.
+    frame_time_s : float or None
+        Time to scan the whole frame, when the header gives it.
+    line_time_s : float or None
+        Time per scan line (trace and retrace), when the header gives it.
+    scan_direction : ScanDirection or None
+        Slow-axis direction in the stored row order, when the header gives it.
+    """
+
+    heights_nm: npt.NDArray[np.float64]
+    pixel_size_nm: tuple[float, float]
+    path: Path
+    frame: int | None = None
+    channel: str = "Height"
+    timestamp: datetime | None = None
+    frame_time_s: float | None = None
+    line_time_s: float | None = None
+    scan_direction: ScanDirection | None = None
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        rows, cols = self.heights_nm.shape
+        return int(rows), int(cols)
+
+    @property
+    def source(self) -> str:
+        """``path`` or ``path:frame`` — the spec that reads this image again."""
+        return str(self.path) if self.frame is None else f"{self.path}:{self.frame}"
+
+
+#: Length units accepted in file headers and options, as nm per unit.
+_LENGTH_UNITS_NM: dict[str, float] = {
+    "m": 1e9,
+    "mm": 1e6,
+    "um": 1e3,
+    "µm": 1e3,
+    "μm": 1e3,
+    "micron": 1e3,
+    "microns": 1e3,
+    "nm": 1.0,
+    "a": 0.1,
+    "å": 0.1,
+    "angstrom": 0.1,
+    "pm": 1e-3,
+}
+
+
+def length_unit_to_nm(unit: str, *, where: str) -> float:
+    """Nanometres per ``unit`` (m, mm, um/µm/micron, nm, Å/A/angstrom, pm).
+
+    Raises
+    ------
+    ImageFileError
+        ``unit`` is empty or not a length; the message starts with ``where``.
+    """
+    key = unit.strip()
+    factor = _LENGTH_UNITS_NM.get(key) or _LENGTH_UNITS_NM.get(key.lower())
+    if factor is None:
+        known = ", ".join(sorted({k for k in _LENGTH_UNITS_NM if k.isascii()}))
+        raise ImageFileError(f"{where}: unit {unit!r} is not a length unit (known: {known})")
+    return factor
+
+
+def height_factor_nm(file_unit: str, height_unit: str | None, *, where: str) -> float:
+    """Nanometres per stored height value.
+
+    ``file_unit`` is the unit the file declares (``""`` when it declares none);
+    ``height_unit`` is the caller's unit for files that declare none.
+
+    Raises
+    ------
+    ImageFileError
+        Neither gives a unit, or the unit is not a length; names ``where``.
+    """
+    if file_unit:
+        return length_unit_to_nm(file_unit, where=f"{where} height unit")
+    if height_unit is not None:
+        return length_unit_to_nm(height_unit, where="height_unit")
+    raise ImageFileError(
+        f"{where}: heights have no unit; give the height unit (height_unit=..., --height-unit)"
+    )

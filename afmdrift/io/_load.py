@@ -1,0 +1,275 @@
+"""``load_image`` / ``load_stack``: pick the reader from the file suffix.
+
+Formats
+-------
+``.npy``
+    2-D (one image) or 3-D (N, rows, cols) array; heights taken as nm unless
+    ``height_unit`` says otherwise; ``pixel_size_nm`` is required.
+``.tif`` / ``.tiff``
+    2-D page or 3-D stack read with tifffile; heights as for ``.npy``. The pixel
+    size comes from the ImageJ ``unit`` metadata with the X/YResolution tags,
+    or from X/YResolution in cm or inch when that gives a pixel below 10 µm
+    (larger values are printing defaults such as 72 dpi, not calibrations);
+    otherwise ``pixel_size_nm`` is required.
+``.spm``, ``.000``–``.999``
+    NanoScope, see :mod:`afmdrift.io._nanoscope`.
+``.gwy``
+    Gwyddion, see :mod:`afmdrift.io._gwyddion`.
+``.asd``
+    HS-AFM movie, see :mod:`afmdrift.io._asd`.
+``.nc``
+    NetCDF-3, see :mod:`afmdrift.io._netcdf`.
+
+A spec ``FILE:i`` selects frame ``i`` of a multi-frame file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.io._asd import read_asd
+from afmdrift.io._gwyddion import read_gwy
+from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
+from afmdrift.io._nanoscope import is_nanoscope_suffix, read_nanoscope
+from afmdrift.io._netcdf import read_netcdf
+
+__all__ = ["SUFFIXES", "PixelSize", "load_image", "load_stack", "parse_spec"]
+
+#: Suffixes understood by :func:`load_image` (plus ``.000``–``.999``).
+SUFFIXES = (".npy", ".tif", ".tiff", ".spm", ".gwy", ".asd", ".nc")
+
+#: A pixel size in nm: one number for square pixels or ``(x, y)``.
+PixelSize = float | Sequence[float]
+
+_FRAME_SPEC = re.compile(r"^(?P<path>.+):(?P<frame>-?\d+)$")
+_MAX_CALIBRATED_PIXEL_NM = 1e4
+
+
+def parse_spec(spec: str | Path) -> tuple[Path, int | None]:
+    """Split ``FILE:i`` into ``(Path(FILE), i)``; a plain path gives ``(path, None)``."""
+    text = str(spec)
+    m = _FRAME_SPEC.match(text)
+    if m is None or Path(text).exists():
+        return Path(text), None
+    return Path(m.group("path")), int(m.group("frame"))
+
+
+def _pixel_pair(pixel_size_nm: PixelSize | None) -> tuple[float, float] | None:
+    if pixel_size_nm is None:
+        return None
+    values = (
+        [float(pixel_size_nm)]
+        if isinstance(pixel_size_nm, int | float)
+        else [float(v) for v in pixel_size_nm]
+    )
+    if len(values) == 1:
+        values = values * 2
+    if len(values) != 2 or not all(math.isfinite(v) and v > 0 for v in values):
+        raise ImageFileError(f"pixel_size_nm must be one or two positive numbers, got {values}")
+    return values[0], values[1]
+
+
+def _read_all(
+    path: Path,
+    *,
+    pixel_size_nm: tuple[float, float] | None,
+    channel: str,
+    height_unit: str | None,
+) -> list[AfmImage]:
+    """Every frame of ``path``, with ``pixel_size_nm`` (if given) overriding the file's."""
+    if not path.exists():
+        raise ImageFileError(f"{path}: no such file")
+    if not path.is_file():
+        raise ImageFileError(f"{path}: not a file")
+    suffix = path.suffix.lower()
+    images: list[AfmImage]
+    if suffix == ".npy":
+        images = _read_array(path, _load_npy(path), pixel_size_nm, height_unit, "a .npy array")
+    elif suffix in (".tif", ".tiff"):
+        images = _read_tiff(path, pixel_size_nm, height_unit)
+    elif is_nanoscope_suffix(suffix):
+        images = [read_nanoscope(path, channel=channel)]
+    elif suffix == ".gwy":
+        images = [
+            read_gwy(path, channel=channel, pixel_size_nm=pixel_size_nm, height_unit=height_unit)
+        ]
+    elif suffix == ".asd":
+        images = read_asd(path, channel=channel)
+    elif suffix == ".nc":
+        images = read_netcdf(
+            path, channel=channel, pixel_size_nm=pixel_size_nm, height_unit=height_unit
+        )
+    else:
+        known = ", ".join((*SUFFIXES, ".000-.999"))
+        raise ImageFileError(f"{path}: unknown image file suffix {path.suffix!r} (known: {known})")
+    if pixel_size_nm is not None:
+        images = [dataclasses.replace(im, pixel_size_nm=pixel_size_nm) for im in images]
+    return images
+
+
+def load_image(
+    spec: str | Path,
+    *,
+    pixel_size_nm: PixelSize | None = None,
+    channel: str = "Height",
+    height_unit: str | None = None,
+) -> AfmImage:
+    """Read one height image from a file.
+
+    Parameters
+    ----------
+    spec : str or Path
+        File path, or ``FILE:i`` for frame ``i`` of a multi-frame file.
+    pixel_size_nm : float or (float, float), optional
+        Pixel size (x, y) in nm. Required for files without a calibration
+        (``.npy``, most ``.tif``); overrides the file's calibration otherwise.
+    channel : str
+        Channel to read. ``"Height"`` also selects ``TP`` in ``.asd`` movies and
+        the only (or the height/topography) field of a ``.gwy`` file.
+    height_unit : str, optional
+        Unit of heights stored without one (``.npy``, ``.tif``: default nm;
+        unitless ``.gwy``/``.nc`` fields: required).
+
+    Returns
+    -------
+    AfmImage
+        Heights in nm, shape (rows, cols), float64.
+
+    Raises
+    ------
+    ImageFileError
+        Missing file, unknown suffix, truncated or corrupt data, unknown
+        channel, a frame index out of range, or a multi-frame file without one.
+    """
+    path, frame = parse_spec(spec)
+    images = _read_all(
+        path, pixel_size_nm=_pixel_pair(pixel_size_nm), channel=channel, height_unit=height_unit
+    )
+    if frame is None:
+        if len(images) > 1:
+            raise ImageFileError(
+                f"{path}: holds {len(images)} frames; choose one as {path}:i "
+                f"(i = 0..{len(images) - 1})"
+            )
+        return images[0]
+    if not 0 <= frame < len(images):
+        raise ImageFileError(
+            f"{path}: frame {frame} out of range "
+            f"(file has {len(images)} frame(s), 0..{len(images) - 1})"
+        )
+    return images[frame]
+
+
+def load_stack(
+    path: str | Path,
+    *,
+    pixel_size_nm: PixelSize | None = None,
+    channel: str = "Height",
+    height_unit: str | None = None,
+) -> list[AfmImage]:
+    """Read every frame of a file: an (N, rows, cols) ``.npy``/``.tif``/``.nc``
+    stack or an ``.asd`` movie (a single-image file gives a list of one).
+
+    Parameters and errors are those of :func:`load_image`.
+    """
+    return _read_all(
+        Path(path),
+        pixel_size_nm=_pixel_pair(pixel_size_nm),
+        channel=channel,
+        height_unit=height_unit,
+    )
+
+
+# --------------------------------------------------------------------------- arrays
+
+
+def _load_npy(path: Path) -> npt.NDArray[np.float64]:
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as err:
+        raise ImageFileError(f"{path}: not a readable .npy array ({err})") from None
+    if not isinstance(data, np.ndarray) or data.dtype.kind not in "iuf":
+        raise ImageFileError(f"{path}: expected a numeric array, got {getattr(data, 'dtype', '?')}")
+    return data.astype(np.float64)
+
+
+def _read_array(
+    path: Path,
+    data: npt.NDArray[np.float64],
+    pixel_size_nm: tuple[float, float] | None,
+    height_unit: str | None,
+    what: str,
+) -> list[AfmImage]:
+    if data.ndim not in (2, 3) or min(data.shape) == 0:
+        raise ImageFileError(
+            f"{path}: {what} must be (rows, cols) or (N, rows, cols), got shape {data.shape}"
+        )
+    if pixel_size_nm is None:
+        raise ImageFileError(
+            f"{path}: {what} carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
+        )
+    factor = length_unit_to_nm(height_unit, where="height_unit") if height_unit else 1.0
+    stack = data if data.ndim == 3 else data[np.newaxis]
+    if not np.all(np.isfinite(stack)):
+        raise ImageFileError(f"{path}: {what} contains non-finite heights")
+    return [
+        AfmImage(
+            heights_nm=np.ascontiguousarray(stack[i] * factor),
+            pixel_size_nm=pixel_size_nm,
+            path=path,
+            frame=i if data.ndim == 3 else None,
+            channel="Height",
+        )
+        for i in range(stack.shape[0])
+    ]
+
+
+def _read_tiff(
+    path: Path, pixel_size_nm: tuple[float, float] | None, height_unit: str | None
+) -> list[AfmImage]:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            data = np.asarray(tif.asarray(), dtype=np.float64)
+            calibration = _tiff_pixel_size(tif, path)
+    except (tifffile.TiffFileError, ValueError, OSError, EOFError, KeyError, IndexError) as err:
+        raise ImageFileError(f"{path}: not a readable TIFF image ({err})") from None
+    if data.ndim == 3 and data.shape[-1] in (3, 4) and data.shape[0] > 4:
+        raise ImageFileError(f"{path}: colour TIFF (shape {data.shape}) holds no height data")
+    return _read_array(path, data, pixel_size_nm or calibration, height_unit, "TIFF image")
+
+
+def _tiff_pixel_size(tif: object, path: Path) -> tuple[float, float] | None:
+    """Pixel size from TIFF resolution tags (see the module docstring), or ``None``."""
+    page = tif.pages[0]  # type: ignore[attr-defined]
+    tags = page.tags
+    if "XResolution" not in tags or "YResolution" not in tags:
+        return None
+    per_unit = []
+    for name in ("XResolution", "YResolution"):
+        num, den = tags[name].value
+        if num <= 0 or den <= 0:
+            return None
+        per_unit.append(num / den)
+    imagej = tif.imagej_metadata or {}  # type: ignore[attr-defined]
+    unit_name = str(imagej.get("unit", "")).replace("\\u00B5", "µ")
+    if unit_name:
+        try:
+            nm_per_unit = length_unit_to_nm(unit_name, where=f"{path}: ImageJ unit")
+        except ImageFileError:
+            return None
+    else:
+        code = int(tags["ResolutionUnit"].value) if "ResolutionUnit" in tags else 2
+        nm_per_unit = {2: 2.54e7, 3: 1e7}.get(code, 0.0)
+    pixel = (nm_per_unit / per_unit[0], nm_per_unit / per_unit[1])
+    if not (0 < pixel[0] < _MAX_CALIBRATED_PIXEL_NM and 0 < pixel[1] < _MAX_CALIBRATED_PIXEL_NM):
+        return None
+    return pixel
