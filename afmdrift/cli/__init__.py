@@ -20,7 +20,10 @@ from afmdrift.errors import AfmdriftError
 __all__ = ["build_parser", "main"]
 
 #: Subcommand modules, in the order they appear in ``afmdrift --help``.
-COMMAND_MODULES: tuple[str, ...] = ("afmdrift.cli._config_cmd",)
+COMMAND_MODULES: tuple[str, ...] = (
+    "afmdrift.cli._config_cmd",
+    "afmdrift.cli._import",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -42,8 +42,8 @@ def read_asd(path: Path, *, channel: str) -> list[AfmImage]:
     Returns
     -------
     list of AfmImage
-        One per frame, ``frame`` = 0, 1, ..., each with ``timestamp``,
-        ``frame_time_s`` and ``line_time_s`` (frame time / rows).
+        One per frame, ``frame`` = 0, 1, ..., each with ``timestamp`` and
+        ``frame_time_s`` (the header gives no line time).
 
     Raises
     ------
@@ -79,7 +79,6 @@ def read_asd(path: Path, *, channel: str) -> list[AfmImage]:
             channel=code,
             timestamp=start + timedelta(seconds=i * frame_time_s) if start else None,
             frame_time_s=frame_time_s,
-            line_time_s=frame_time_s / stack.shape[1],
         )
         for i in range(n)
     ]

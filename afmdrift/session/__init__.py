@@ -9,6 +9,7 @@ from afmdrift.session._format import (
     read_session,
     write_session,
 )
+from afmdrift.session._import import import_files
 
 __all__ = [
     "FORMAT_NAME",
@@ -16,6 +17,7 @@ __all__ = [
     "Session",
     "SessionError",
     "SessionMeta",
+    "import_files",
     "read_session",
     "write_session",
 ]

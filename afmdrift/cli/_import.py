@@ -1,0 +1,64 @@
+"""``afmdrift import FILES... --out DIR``: build a session directory from AFM files."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from afmdrift.errors import InputError
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "import",
+        help="Build a session directory (format v1) from AFM image files.",
+        description="Read NanoScope (.spm, .000-.999), HS-AFM (.asd), Gwyddion (.gwy), "
+        "NetCDF-3 (.nc), .npy and .tif files and write them as one session directory "
+        "(docs/session-format.md). Frames are sorted by their header timestamps; "
+        "session.json's 'source' says where each timing value came from.",
+    )
+    p.add_argument("files", nargs="+", metavar="FILE", help="AFM image files")
+    p.add_argument("--out", required=True, metavar="DIR", help="session directory to write")
+    p.add_argument(
+        "--pixel-size-nm",
+        type=float,
+        nargs="+",
+        metavar="PX",
+        help="pixel size in nm: PX, or PX PY (required for .npy/.tif; overrides headers)",
+    )
+    p.add_argument("--channel", default="Height", help="channel to read (default: Height)")
+    p.add_argument("--height-unit", help="unit of heights stored without one (m, um, nm, pm, A)")
+    p.add_argument(
+        "--frame-time-s",
+        type=float,
+        help="scan time of one frame in s, for files whose headers give no timing",
+    )
+    p.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
+    p.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from afmdrift.session import import_files, write_session
+
+    out = Path(args.out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.force:
+        raise InputError(f"{out}: exists and is not an empty directory (use --force to write)")
+    if args.pixel_size_nm is not None and len(args.pixel_size_nm) > 2:
+        raise InputError(f"--pixel-size-nm takes PX or PX PY, got {args.pixel_size_nm}")
+    session = import_files(
+        args.files,
+        pixel_size_nm=args.pixel_size_nm,
+        channel=args.channel,
+        height_unit=args.height_unit,
+        frame_time_s=args.frame_time_s,
+    )
+    write_session(session, out)
+    n, rows, cols = session.frames.shape
+    px, py = session.meta.pixel_size_nm
+    span = float(session.frame_times[-1, 1] - session.frame_times[0, 0])
+    print(
+        f"{out}: {n} frame(s) of {rows}x{cols} px at {px:g} x {py:g} nm/px "
+        f"over {span:g} s, line time {session.meta.line_time_s:g} s"
+    )
+    return 0

@@ -1,0 +1,175 @@
+"""Build a format-v1 session from real AFM files (``afmdrift import``).
+
+Each file contributes its frames (a NanoScope file one, an ``.asd`` movie or an
+``.npy``/``.tif``/``.nc`` stack all of theirs). Frames are ordered by the
+header timestamps and timed relative to the first frame's start:
+
+* ``t_start_s`` = frame timestamp − first timestamp; without timestamps, frames
+  follow each other back to back in the order given.
+* ``t_end_s`` = ``t_start_s`` + the frame's scan time from its header
+  (NanoScope: lines / scan rate; ``.asd``: frame_time; ``.nc``: line_time_s ×
+  rows). Without one, the frame interval is used (frames back to back) or the
+  caller's ``frame_time_s``; ``source`` in ``session.json`` says which.
+* ``line_time_s`` = the header's line time (NanoScope ``1 / Scan rate``),
+  otherwise frame time / rows.
+* ``direction`` from the header (NanoScope ``Frame direction``), else ``up``.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Sequence
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+from afmdrift.drivers._base import ScanDirection
+from afmdrift.io import AfmImage, PixelSize, load_stack
+from afmdrift.session._format import Session, SessionError, SessionMeta
+
+__all__ = ["import_files"]
+
+_REL_TOL = 1e-6
+
+
+def import_files(
+    paths: Sequence[str | Path],
+    *,
+    pixel_size_nm: PixelSize | None = None,
+    channel: str = "Height",
+    height_unit: str | None = None,
+    frame_time_s: float | None = None,
+) -> Session:
+    """Read AFM image files into one in-memory :class:`Session`.
+
+    Parameters
+    ----------
+    paths : sequence of path-like
+        Image files (any format :func:`afmdrift.io.load_stack` reads).
+    pixel_size_nm : float or (float, float), optional
+        Pixel size (x, y) in nm, for files without one or to override theirs.
+    channel : str
+        Channel to read from every file (``"Height"``; ``TP`` in ``.asd``).
+    height_unit : str, optional
+        Unit of heights for files that store them without one.
+    frame_time_s : float, optional
+        Scan time of one frame, for files whose headers give no timing.
+
+    Returns
+    -------
+    Session
+        Frames (N, rows, cols) float64 in nm, sorted by time.
+
+    Raises
+    ------
+    SessionError
+        No files, shapes or pixel sizes differ between files, timing missing
+        or inconsistent; the message names the file.
+    afmdrift.io.ImageFileError
+        A file cannot be read.
+    """
+    if not paths:
+        raise SessionError("import: no input files given")
+    if frame_time_s is not None and not (math.isfinite(frame_time_s) and frame_time_s > 0):
+        raise SessionError(f"import: frame_time_s must be positive, got {frame_time_s}")
+    images: list[AfmImage] = []
+    for p in paths:
+        images.extend(
+            load_stack(p, pixel_size_nm=pixel_size_nm, channel=channel, height_unit=height_unit)
+        )
+    _check_consistent(images)
+    notes: list[str] = []
+    timed = [im.timestamp is not None for im in images]
+    if any(timed) and not all(timed):
+        missing = images[timed.index(False)]
+        raise SessionError(
+            f"{missing.source}: no timestamp in its header, but other files have one; "
+            "import files with and without timestamps separately"
+        )
+    scan_times = _scan_times(images, frame_time_s, notes)
+    if all(timed):
+        stamps = [im.timestamp for im in images if im.timestamp is not None]
+        order = sorted(range(len(images)), key=stamps.__getitem__)
+        images = [images[i] for i in order]
+        scan_times = [scan_times[i] for i in order]
+        starts = [(stamps[i] - stamps[order[0]]).total_seconds() for i in order]
+        notes.append("frame start times from header timestamps")
+    else:
+        starts = list(np.cumsum([0.0, *scan_times[:-1]]))
+        notes.append("no timestamps: frames taken back to back in the order given")
+    times = np.array([[s, s + d] for s, d in zip(starts, scan_times, strict=True)])
+    rows = images[0].shape[0]
+    line_times = [im.line_time_s for im in images if im.line_time_s is not None]
+    if line_times:
+        line_time = float(np.median(line_times))
+        notes.append("line_time_s from the file headers")
+    else:
+        line_time = float(np.median(scan_times)) / rows
+        notes.append("line_time_s = frame time / rows")
+    directions = [im.scan_direction or ScanDirection.UP for im in images]
+    if any(im.scan_direction is None for im in images):
+        notes.append("scan direction not in header: 'up' assumed")
+    first = images[0].timestamp
+    meta = SessionMeta(
+        pixel_size_nm=images[0].pixel_size_nm,
+        line_time_s=line_time,
+        start_time=first.isoformat() if isinstance(first, datetime) else "",
+        source="imported from "
+        + ", ".join(dict.fromkeys(str(im.path) for im in images))
+        + "; "
+        + "; ".join(notes),
+        extra={
+            "channel": images[0].channel,
+            "frame_sources": [im.source for im in images],
+        },
+    )
+    return Session(
+        meta=meta,
+        frames=np.stack([im.heights_nm for im in images]).astype(np.float64),
+        frame_times=times,
+        directions=directions,
+    )
+
+
+def _check_consistent(images: list[AfmImage]) -> None:
+    ref = images[0]
+    for im in images[1:]:
+        if im.shape != ref.shape:
+            raise SessionError(
+                f"{im.source}: image is {im.shape[0]}x{im.shape[1]} px but "
+                f"{ref.source} is {ref.shape[0]}x{ref.shape[1]} px; a session needs one shape"
+            )
+        if not all(
+            math.isclose(a, b, rel_tol=_REL_TOL)
+            for a, b in zip(im.pixel_size_nm, ref.pixel_size_nm, strict=True)
+        ):
+            raise SessionError(
+                f"{im.source}: pixel size {im.pixel_size_nm} nm differs from "
+                f"{ref.pixel_size_nm} nm of {ref.source}"
+            )
+
+
+def _scan_times(
+    images: list[AfmImage], frame_time_s: float | None, notes: list[str]
+) -> list[float]:
+    """Scan time of each frame: header, else frame interval, else ``frame_time_s``."""
+    if all(im.frame_time_s is not None for im in images):
+        notes.append("frame scan times from the file headers")
+        return [float(im.frame_time_s or 0.0) for im in images]
+    if frame_time_s is not None:
+        notes.append(f"frame scan time {frame_time_s} s given on import")
+        return [im.frame_time_s or frame_time_s for im in images]
+    stamps = sorted(im.timestamp for im in images if im.timestamp is not None)
+    gaps = [(b - a).total_seconds() for a, b in itertools.pairwise(stamps)]
+    positive = [g for g in gaps if g > 0]
+    if len(stamps) == len(images) and positive:
+        interval = float(np.median(positive))
+        notes.append(f"frame scan time = median frame interval {interval:g} s (back to back)")
+        return [im.frame_time_s or interval for im in images]
+    untimed = next(im for im in images if im.frame_time_s is None)
+    raise SessionError(
+        f"{untimed.source}: the file gives no frame timing; give the frame scan time "
+        "(frame_time_s=..., --frame-time-s)"
+    )
