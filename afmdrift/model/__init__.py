@@ -1,5 +1,86 @@
-"""Drift prediction and reconstruction of the continuous offset d(t)."""
+"""Drift prediction and reconstruction of the continuous offset d(t).
+
+Importing this package does not import torch; :class:`NNPredictor` and
+:class:`NNSeriesModel` load it on first access.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
 
 from afmdrift.model._base import History, Observation, Prediction, Predictor
+from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
+from afmdrift.model._config import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
+from afmdrift.model._effects import (
+    ENTRY_POINT_GROUP,
+    LIBRARY,
+    EffectTerm,
+    NonlinearParam,
+    available_terms,
+    load_term_class,
+    make_term,
+)
+from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
+from afmdrift.model._physics import PhysicsPredictor, solve_wls
+from afmdrift.model._positions import (
+    commanded_offset_nm,
+    drift_from_measurements,
+    truth_frame_mean,
+)
+from afmdrift.model._reconstruct import (
+    OffsetCurve,
+    build_offset_curve,
+    hermite_curve,
+    reconstruct_offset,
+    sinc_curve,
+    sinc_reconstruct,
+)
+from afmdrift.model._registry import PREDICTOR_NAMES, make_predictor
 
-__all__ = ["History", "Observation", "Prediction", "Predictor"]
+if TYPE_CHECKING:
+    from afmdrift.model._nn import NNPredictor, NNSeriesModel
+
+__all__ = [
+    "ENTRY_POINT_GROUP",
+    "LIBRARY",
+    "PREDICTOR_NAMES",
+    "ConstantVelocityPredictor",
+    "EffectTerm",
+    "History",
+    "KalmanCAPredictor",
+    "KalmanConfig",
+    "KalmanPredictor",
+    "LastValuePredictor",
+    "ModelConfig",
+    "NNConfig",
+    "NNPredictor",
+    "NNSeriesModel",
+    "NonlinearParam",
+    "Observation",
+    "OffsetCurve",
+    "PhysicsConfig",
+    "PhysicsPredictor",
+    "Prediction",
+    "Predictor",
+    "available_terms",
+    "build_offset_curve",
+    "commanded_offset_nm",
+    "drift_from_measurements",
+    "hermite_curve",
+    "load_term_class",
+    "make_predictor",
+    "make_term",
+    "reconstruct_offset",
+    "sinc_curve",
+    "sinc_reconstruct",
+    "solve_wls",
+    "truth_frame_mean",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name in ("NNPredictor", "NNSeriesModel"):
+        from afmdrift.model import _nn
+
+        return getattr(_nn, name)
+    raise AttributeError(f"module 'afmdrift.model' has no attribute {name!r}")

@@ -133,3 +133,11 @@ class Predictor(abc.ABC):
     @abc.abstractmethod
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore the state produced by :meth:`state_dict`."""
+
+    def observed(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Times (n,) and positions (n, 2) of the observations seen so far.
+
+        Used by the reconstruction (the sinc formula sums over measured
+        samples). The default says "none"; every built-in predictor overrides it.
+        """
+        return np.zeros(0), np.zeros((0, 2))

@@ -1,0 +1,536 @@
+"""A library of physical drift effects, each a small parametric term.
+
+Every term contributes, per axis, a few *basis functions* of time built from
+the logged channels and events, given the term's *nonlinear parameters*
+(time constants). The drift model is linear in the basis coefficients::
+
+    p_axis(t) = Σ_terms  B_term(t; θ_term, axis) · β_term,axis
+
+so fitting is a weighted least-squares solve for β once the θ are fixed, and a
+1-D scan plus bounded refinement over each θ (see
+:class:`afmdrift.model.PhysicsPredictor`). This split is also what the
+diagnostics use: for any library term not in the model they call
+:meth:`EffectTerm.design` on the residual times for every candidate in
+:meth:`EffectTerm.nonlinear_grid` and test the added variables.
+
+Term API
+--------
+``design(t_s, history, *, scan_sign, params, axis) -> (n, k)``
+    Basis matrix at times ``t_s`` for one axis (0 = x, 1 = y). ``scan_sign``
+    is +1 for up frames and −1 for down frames at those times. ``params``
+    maps every name of :attr:`EffectTerm.nonlinear_params` to a value. Columns
+    that are zero everywhere carry no information and are dropped by the fit.
+``nonlinear_grid()``
+    Candidate nonlinear parameter sets (log-spaced inside the bounds).
+``missing(history)``
+    Why the term cannot be built from this history (a channel not logged), or
+    ``None``.
+
+Users add terms without editing afmdrift: subclass :class:`EffectTerm`, give
+it a unique ``name`` and register it under the entry-point group
+``afmdrift.effects`` or list ``"package.module:Class"`` in
+``[model.physics] plugins`` (see ``docs/effects-plugins.md``).
+"""
+
+from __future__ import annotations
+
+import abc
+import importlib
+import itertools
+import logging
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+from typing import ClassVar
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import lfilter
+
+from afmdrift.drivers._base import EventKind
+from afmdrift.errors import ConfigError
+from afmdrift.model._base import History
+
+__all__ = [
+    "ENTRY_POINT_GROUP",
+    "LIBRARY",
+    "EffectTerm",
+    "NonlinearParam",
+    "available_terms",
+    "load_term_class",
+    "make_term",
+]
+
+_log = logging.getLogger(__name__)
+
+#: Entry-point group under which third-party packages register effect terms.
+ENTRY_POINT_GROUP = "afmdrift.effects"
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class NonlinearParam:
+    """A nonlinear parameter of a term, searched on a bounded log scale.
+
+    Attributes
+    ----------
+    name : str
+        Key in the ``params`` mapping (with its unit, e.g. ``tau_s``).
+    lower, upper : float
+        Search bounds (positive).
+    default : float
+        Value used before any fit.
+    grid_points : int
+        Number of log-spaced candidates in :meth:`EffectTerm.nonlinear_grid`.
+    """
+
+    name: str
+    lower: float
+    upper: float
+    default: float
+    grid_points: int = 13
+
+    def grid(self) -> FloatArray:
+        return np.geomspace(self.lower, self.upper, self.grid_points)
+
+
+class EffectTerm(abc.ABC):
+    """One physical effect: basis functions given nonlinear parameters.
+
+    Subclasses set :attr:`name`, :attr:`nonlinear_params` (may be empty),
+    :attr:`provides_intercept` if a basis column is constant, and implement
+    :meth:`design`. Their docstring gives the equation and the meaning and
+    unit of each coefficient.
+    """
+
+    #: Canonical name used in ``[model.physics] terms``.
+    name: ClassVar[str]
+    #: Nonlinear parameters, searched by the fit.
+    nonlinear_params: ClassVar[tuple[NonlinearParam, ...]] = ()
+    #: True if one basis column is the constant 1 (the model then adds no intercept).
+    provides_intercept: ClassVar[bool] = False
+    #: Names of the linear coefficients with units, for reports.
+    coefficient_units: ClassVar[tuple[str, ...]] = ()
+
+    @abc.abstractmethod
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        """Basis matrix, shape (n, k), at times ``t_s`` (shape (n,)) for ``axis``."""
+
+    def missing(self, history: History) -> str | None:
+        """Reason this term cannot be built from ``history``, or ``None``."""
+        return None
+
+    def default_params(self) -> dict[str, float]:
+        return {p.name: p.default for p in self.nonlinear_params}
+
+    def nonlinear_grid(self) -> list[dict[str, float]]:
+        """Candidate nonlinear parameter sets (the Cartesian product of each grid)."""
+        if not self.nonlinear_params:
+            return [{}]
+        grids = [p.grid() for p in self.nonlinear_params]
+        names = [p.name for p in self.nonlinear_params]
+        return [
+            {n: float(v) for n, v in zip(names, combo, strict=True)}
+            for combo in itertools.product(*grids)
+        ]
+
+
+def _channel_missing(history: History, name: str) -> str | None:
+    if name not in history.channels:
+        return f"channel {name!r} is not logged (have: {sorted(history.channels)})"
+    if not np.isfinite(np.asarray(history.channels[name], dtype=np.float64)).any():
+        return f"channel {name!r} has no finite values"
+    return None
+
+
+def _first_finite(history: History, name: str) -> float:
+    v = np.asarray(history.channels[name], dtype=np.float64)
+    return float(v[np.isfinite(v)][0])
+
+
+class Trend(EffectTerm):
+    """Constant drift velocity plus an offset.
+
+    p(t) = a + v·t/3600, with a the offset (nm) and v the velocity (nm/h),
+    t on the instrument clock. The generic slow drift that every model needs.
+    """
+
+    name = "trend"
+    provides_intercept = True
+    coefficient_units = ("offset_nm", "velocity_nm_per_h")
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        return np.column_stack([np.ones_like(t_s), t_s / 3600.0])
+
+
+class _ChannelProportional(EffectTerm):
+    """p(t) = k·(C(t) − C₀) for a logged channel C (C₀ its first logged value)."""
+
+    channel: ClassVar[str]
+
+    def missing(self, history: History) -> str | None:
+        return _channel_missing(history, self.channel)
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        v = history.channel_at(self.channel, t_s) - _first_finite(history, self.channel)
+        return v[:, None]
+
+
+class Thermal(_ChannelProportional):
+    """Thermal expansion proportional to the logged temperature.
+
+    p(t) = k·(T(t) − T₀), T the logged ``temperature_c`` (held at its last
+    value beyond the log), T₀ its first logged value, k in nm/K: the expansion
+    coefficient times the thermal path length of the sample-scanner loop.
+    """
+
+    name = "thermal"
+    coefficient_units = ("k_nm_per_K",)
+    channel = "temperature_c"
+
+
+class Humidity(_ChannelProportional):
+    """Hygroscopic swelling proportional to the logged relative humidity.
+
+    p(t) = k·(RH(t) − RH₀), RH the logged ``humidity_pct``, RH₀ its first
+    logged value, k in nm/%RH.
+    """
+
+    name = "humidity"
+    coefficient_units = ("k_nm_per_pct_rh",)
+    channel = "humidity_pct"
+
+
+class ThermalLag(EffectTerm):
+    """Thermal expansion of a scanner whose temperature lags the logged one.
+
+    The scanner temperature T_s follows the logged temperature T through a
+    first-order low-pass, τ·dT_s/dt = T − T_s, with T_s(t₀) = T(t₀) at the
+    first log entry; p(t) = k·(T_s(t) − T₀). Parameters: k in nm/K (as for
+    ``thermal``) and the thermal time constant ``tau_s`` in s (how long the
+    scanner takes to follow the room or stage sensor). Beyond the log, T is
+    held at its last value and T_s keeps relaxing towards it.
+    """
+
+    name = "thermal_lag"
+    nonlinear_params = (NonlinearParam("tau_s", 60.0, 20000.0, 1200.0, grid_points=15),)
+    coefficient_units = ("k_nm_per_K",)
+    channel = "temperature_c"
+
+    def __init__(self) -> None:
+        self._cache: dict[tuple[float, int], tuple[FloatArray, FloatArray]] = {}
+
+    def missing(self, history: History) -> str | None:
+        return _channel_missing(history, self.channel)
+
+    def lagged(self, t_s: FloatArray, history: History, tau_s: float) -> FloatArray:
+        """Low-passed temperature T_s(t) − T₀ at ``t_s`` (K)."""
+        tg, yg = self._filtered(history, tau_s)
+        out = np.interp(t_s, tg, yg)
+        beyond = t_s > tg[-1]
+        if beyond.any():
+            t_last = history.channel_at(self.channel, [tg[-1]])[0] - _first_finite(
+                history, self.channel
+            )
+            decay = np.exp(-(t_s[beyond] - tg[-1]) / tau_s)
+            out[beyond] = t_last + (yg[-1] - t_last) * decay
+        return out
+
+    def _filtered(self, history: History, tau_s: float) -> tuple[FloatArray, FloatArray]:
+        key = (float(tau_s), len(history.channel_t_s))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        t = np.asarray(history.channel_t_s, dtype=np.float64)
+        span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+        if span <= 0:
+            grid = np.array([t[0], t[0] + 1.0])
+        else:
+            step = max(span / 20000.0, min(float(np.median(np.diff(t))), tau_s / 10.0))
+            grid = np.arange(t[0], t[-1] + 0.5 * step, step)
+        temp = history.channel_at(self.channel, grid) - _first_finite(history, self.channel)
+        h = float(grid[1] - grid[0])
+        a = np.exp(-h / tau_s)
+        y, _ = lfilter([1.0 - a], [1.0, -a], temp, zi=np.array([a * temp[0]]))
+        result = (grid, np.asarray(y, dtype=np.float64))
+        if len(self._cache) > 64:
+            self._cache.clear()
+        self._cache[key] = result
+        return result
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        return self.lagged(t_s, history, float(params["tau_s"]))[:, None]
+
+
+def _moves(history: History, axis: int) -> tuple[FloatArray, FloatArray]:
+    ev = [e for e in history.events if e.kind is EventKind.OFFSET_MOVE]
+    t = np.array([e.t_s for e in ev], dtype=np.float64)
+    d = np.array([(e.x_nm, e.y_nm)[axis] for e in ev], dtype=np.float64)
+    return t, d
+
+
+class Creep(EffectTerm):
+    """Logarithmic piezo creep after each commanded offset move.
+
+    p(t) = c · Σ_m Δ_m · log10(1 + (t − t_m)/t₀) for t > t_m, summed over the
+    logged ``offset_move`` events m with step Δ_m on this axis. c is the
+    dimensionless creep fraction per decade of time (typically 0.01–0.2) and
+    ``t0_s`` the creep onset time scale in s.
+    """
+
+    name = "creep"
+    nonlinear_params = (NonlinearParam("t0_s", 0.3, 3000.0, 10.0, grid_points=13),)
+    coefficient_units = ("c_per_decade",)
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        tm, dm = _moves(history, axis)
+        out = np.zeros_like(t_s)
+        t0 = float(params["t0_s"])
+        for t_move, delta in zip(tm, dm, strict=True):
+            if delta == 0.0:
+                continue
+            dt = t_s - t_move
+            on = dt > 0
+            out[on] += delta * np.log10(1.0 + dt[on] / t0)
+        return out[:, None]
+
+
+class Warmup(EffectTerm):
+    """Exponential thermal settling after power-on.
+
+    p(t) = A·(1 − exp(−(t − t_on)/τ_w)) for t > t_on, t_on the most recent
+    logged ``power_on`` event before t. A (nm) is the total warm-up excursion,
+    ``tau_w_s`` (s) the settling time constant.
+    """
+
+    name = "warmup"
+    nonlinear_params = (NonlinearParam("tau_w_s", 120.0, 40000.0, 3600.0, grid_points=15),)
+    coefficient_units = ("amplitude_nm",)
+
+    def missing(self, history: History) -> str | None:
+        if not any(e.kind is EventKind.POWER_ON for e in history.events):
+            return "no power_on event logged"
+        return None
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        on = np.array(
+            [e.t_s for e in history.events if e.kind is EventKind.POWER_ON], dtype=np.float64
+        )
+        out = np.zeros_like(t_s)
+        if on.size == 0:
+            return out[:, None]
+        k = np.searchsorted(on, t_s, side="right") - 1
+        ok = k >= 0
+        dt = t_s[ok] - on[k[ok]]
+        out[ok] = 1.0 - np.exp(-dt / float(params["tau_w_s"]))
+        return out[:, None]
+
+
+class ScanDirectionBias(EffectTerm):
+    """Apparent offset between up- and down-scanned frames.
+
+    p(t) = b·s/2, s = +1 for up frames and −1 for down frames: b (nm) is the
+    up-minus-down bias of the measured position, caused by slow-axis creep and
+    hysteresis of the scanner during the frame.
+    """
+
+    name = "scan_direction"
+    coefficient_units = ("bias_nm",)
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        return (0.5 * np.asarray(scan_sign, dtype=np.float64))[:, None]
+
+
+class Hysteresis(EffectTerm):
+    """Direction-dependent positioning error after offset moves.
+
+    p(t) = h·sign(Δ_last(t)), Δ_last the step on this axis of the most recent
+    ``offset_move`` before t with a nonzero step on this axis (0 before any).
+    h (nm) is half the hysteresis gap between approaching a position from
+    below and from above.
+    """
+
+    name = "hysteresis"
+    coefficient_units = ("h_nm",)
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        tm, dm = _moves(history, axis)
+        keep = dm != 0.0
+        tm, sign = tm[keep], np.sign(dm[keep])
+        out = np.zeros_like(t_s)
+        if tm.size:
+            k = np.searchsorted(tm, t_s, side="right") - 1
+            ok = k >= 0
+            out[ok] = sign[k[ok]]
+        return out[:, None]
+
+
+class TipChange(EffectTerm):
+    """A position step at each logged tip change.
+
+    p(t) = Σ_j s_j·H(t − t_j), one column per logged ``tip_change`` event j;
+    s_j (nm) is the apparent jump of the image when the imaging apex changes.
+    """
+
+    name = "tip_change"
+    coefficient_units = ("step_nm",)
+
+    def missing(self, history: History) -> str | None:
+        if not any(e.kind is EventKind.TIP_CHANGE for e in history.events):
+            return "no tip_change event logged"
+        return None
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        tc = [e.t_s for e in history.events if e.kind is EventKind.TIP_CHANGE]
+        if not tc:
+            return np.zeros((t_s.size, 0))
+        return np.column_stack([(t_s > t).astype(np.float64) for t in tc])
+
+
+#: The canonical library, by name.
+LIBRARY: dict[str, type[EffectTerm]] = {
+    cls.name: cls
+    for cls in (
+        Trend,
+        Thermal,
+        ThermalLag,
+        Humidity,
+        Creep,
+        Warmup,
+        ScanDirectionBias,
+        Hysteresis,
+        TipChange,
+    )
+}
+
+
+def load_term_class(spec: str) -> type[EffectTerm]:
+    """Import an :class:`EffectTerm` subclass from ``"package.module:Class"``.
+
+    Raises
+    ------
+    ConfigError
+        If the module cannot be imported, has no such attribute, or it is not
+        an :class:`EffectTerm` subclass.
+    """
+    module_name, sep, attr = spec.partition(":")
+    if not sep or not module_name or not attr:
+        raise ConfigError(f"effect plugin {spec!r}: expected 'package.module:ClassName'")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ConfigError(f"effect plugin {spec!r}: cannot import {module_name!r}: {err}") from None
+    obj = getattr(module, attr, None)
+    if obj is None:
+        raise ConfigError(f"effect plugin {spec!r}: module {module_name!r} has no {attr!r}")
+    if not (isinstance(obj, type) and issubclass(obj, EffectTerm)):
+        raise ConfigError(f"effect plugin {spec!r}: {attr!r} is not an EffectTerm subclass")
+    if not isinstance(getattr(obj, "name", None), str):
+        raise ConfigError(f"effect plugin {spec!r}: the class must set a string 'name'")
+    return obj
+
+
+def available_terms(plugins: Iterable[str] = ()) -> dict[str, type[EffectTerm]]:
+    """All known terms by name: the library, entry points, then ``plugins`` specs.
+
+    A plugin may not reuse a library name (that would silently change the
+    meaning of a configuration).
+    """
+    terms = dict(LIBRARY)
+    for ep in entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            cls = load_term_class(ep.value)
+        except ConfigError as err:
+            _log.warning("ignoring entry point %s in %s: %s", ep.name, ENTRY_POINT_GROUP, err)
+            continue
+        _add(terms, cls, f"entry point {ep.name!r}")
+    for spec in plugins:
+        _add(terms, load_term_class(spec), f"plugin {spec!r}")
+    return terms
+
+
+def _add(terms: dict[str, type[EffectTerm]], cls: type[EffectTerm], where: str) -> None:
+    if cls.name in LIBRARY and LIBRARY[cls.name] is not cls:
+        raise ConfigError(f"{where}: term name {cls.name!r} is taken by the built-in library")
+    terms[cls.name] = cls
+
+
+def make_term(name: str, plugins: Iterable[str] = ()) -> EffectTerm:
+    """Instantiate the term called ``name`` (library, entry points or ``plugins``)."""
+    terms = available_terms(plugins)
+    if name not in terms:
+        raise ConfigError(f"unknown effect term {name!r} (known: {', '.join(sorted(terms))})")
+    return terms[name]()

@@ -1,0 +1,476 @@
+"""Physics-informed drift predictor: a sum of terms from the effects library.
+
+Model, per axis a ∈ {x, y}::
+
+    p_a(t) = Σ_terms B_term(t; θ_term, a)·β_term,a  [+ intercept]  + residual_a(t)
+
+with B the basis functions of :mod:`afmdrift.model._effects`. The fit, redone
+at every frame over all points (optionally down-weighted with age by
+exp(−age/``memory_s``)):
+
+1. **Which terms**: a configured term whose inputs are absent (channel not
+   logged, no event of its kind) is left out and logged once. Terms enter in
+   configured order once there are ``min_points_per_column`` points per basis
+   column, so an early fit is never under-determined.
+2. **Nonlinear parameters θ** (time constants) are shared by both axes. Each
+   is found by coordinate descent: a scan of the term's log grid
+   (:meth:`EffectTerm.nonlinear_grid`), then a bounded 1-D refinement
+   (Brent, on log θ, between the grid neighbours of the best point); the
+   objective is the weighted residual sum of squares of both axes.
+3. **Linear coefficients β** by weighted least squares with weights
+   1/max(σ, ``sigma_floor_nm``)², on column-normalised designs (rank-deficient
+   directions get the minimum-norm solution). Their covariance s²(XᵀWX)⁺ gives
+   the parametric part of the prediction uncertainty.
+4. **Residual**: ``none``; ``ar1``, r̂(t_n + h·Δ) = φ^h·r_n with φ the lag-1
+   regression coefficient of the recent in-sample residuals clipped to [0, 1]
+   (slow unmodelled wander persists, white noise does not); or ``nn``, the
+   paper's network trained online on the residual series.
+
+Scan direction at future times is extrapolated from the last frames
+(alternating up/down continues to alternate).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+from scipy.optimize import minimize_scalar
+
+from afmdrift.model._base import History, Observation, Prediction
+from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
+from afmdrift.model._config import NNConfig, PhysicsConfig
+from afmdrift.model._effects import EffectTerm, available_terms
+
+__all__ = ["FitResult", "PhysicsNNPredictor", "PhysicsPredictor", "solve_wls"]
+
+_log = logging.getLogger(__name__)
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class FitResult:
+    """Weighted least-squares solution of one axis.
+
+    ``coef`` (K,) for the kept columns ``keep`` (bool mask over the full
+    design), ``cov`` (K, K), ``wrss`` the weighted residual sum of squares.
+    """
+
+    coef: FloatArray
+    cov: FloatArray
+    keep: npt.NDArray[np.bool_]
+    wrss: float
+
+
+def solve_wls(x: FloatArray, y: FloatArray, w: FloatArray) -> FitResult:
+    """Weighted least squares y ≈ X·β with weights ``w``, dropping zero columns.
+
+    Parameters
+    ----------
+    x : ndarray, shape (n, K)
+    y : ndarray, shape (n,)
+    w : ndarray, shape (n,)
+        Non-negative weights (1/σ²).
+    """
+    keep = np.any(np.abs(x) > 1e-12, axis=0)
+    xk = x[:, keep]
+    sw = np.sqrt(w)
+    a = xk * sw[:, None]
+    norms = np.sqrt(np.sum(a * a, axis=0))
+    norms = np.where(norms > 0, norms, 1.0)
+    an = a / norms
+    b = y * sw
+    coef_n, *_ = np.linalg.lstsq(an, b, rcond=1e-10)
+    coef = coef_n / norms
+    resid = b - an @ coef_n
+    wrss = float(resid @ resid)
+    n, k = an.shape
+    s2 = wrss / (n - k) if n > k else 1.0
+    cov = s2 * np.linalg.pinv(an.T @ an, rcond=1e-10) / np.outer(norms, norms)
+    return FitResult(coef, cov, keep, wrss)
+
+
+def future_scan_sign(t_s: FloatArray, obs_t_s: FloatArray, obs_sign: FloatArray) -> FloatArray:
+    """Scan sign (+1 up, −1 down) at ``t_s``: the nearest frame's in the past,
+    extrapolated frame by frame (alternating if the last two differ) after it."""
+    out = np.empty_like(t_s)
+    if obs_t_s.size == 0:
+        out[:] = 1.0
+        return out
+    idx = np.clip(np.searchsorted(obs_t_s, t_s), 0, obs_t_s.size - 1)
+    prev = np.clip(idx - 1, 0, obs_t_s.size - 1)
+    nearest = np.where(np.abs(obs_t_s[prev] - t_s) <= np.abs(obs_t_s[idx] - t_s), prev, idx)
+    out[:] = obs_sign[nearest]
+    after = t_s > obs_t_s[-1]
+    if after.any():
+        alternating = obs_sign.size >= 2 and obs_sign[-1] != obs_sign[-2]
+        if alternating:
+            step = float(np.median(np.diff(obs_t_s)))
+            k = np.rint((t_s[after] - obs_t_s[-1]) / step).astype(np.int64)
+            out[after] = obs_sign[-1] * np.where(k % 2 == 0, 1.0, -1.0)
+        else:
+            out[after] = obs_sign[-1]
+    return out
+
+
+def _conform(x: FloatArray, k: int) -> FloatArray:
+    """Trim or zero-pad ``x`` to ``k`` columns.
+
+    A term with one column per event (``tip_change``) gains a column when an
+    event is logged after the last fit; its amplitude is unknown until the next
+    fit, so it contributes nothing until then.
+    """
+    if x.shape[1] == k:
+        return x
+    if x.shape[1] > k:
+        return x[:, :k]
+    return np.hstack([x, np.zeros((x.shape[0], k - x.shape[1]))])
+
+
+class PhysicsPredictor(_LoggingPredictor):
+    """Sum of library effect terms with online-fitted physical parameters.
+
+    Parameters
+    ----------
+    config : PhysicsConfig
+        Terms, plugins, residual model, weighting.
+    nn_config : NNConfig
+        Network used when ``config.residual == "nn"``.
+    """
+
+    name = "physics"
+
+    def __init__(
+        self, config: PhysicsConfig | None = None, *, nn_config: NNConfig | None = None
+    ) -> None:
+        super().__init__()
+        self.config = config or PhysicsConfig()
+        self.nn_config = nn_config or NNConfig()
+        known = available_terms(self.config.plugins)
+        unknown = [t for t in self.config.terms if t not in known]
+        if unknown:
+            from afmdrift.errors import ConfigError
+
+            raise ConfigError(
+                f"model.physics.terms: unknown term(s) {', '.join(map(repr, unknown))} "
+                f"(known: {', '.join(sorted(known))})"
+            )
+        if len(set(self.config.terms)) != len(self.config.terms):
+            from afmdrift.errors import ConfigError
+
+            raise ConfigError(f"model.physics.terms: duplicate names in {self.config.terms}")
+        self.terms: list[EffectTerm] = [known[name]() for name in self.config.terms]
+        self.params: dict[str, dict[str, float]] = {t.name: t.default_params() for t in self.terms}
+        self.active: list[str] = []
+        self.fits: list[FitResult] = []
+        self.columns: list[list[tuple[str, int]]] = []
+        self.add_intercept = False
+        self.phi = np.zeros(2)
+        self.last_residual = np.zeros(2)
+        self.residual_sd = np.full(2, math.nan)
+        self._missing_logged: set[str] = set()
+        self.residual_net = None
+        if self.config.residual == "nn":
+            from afmdrift.model._nn import NNSeriesModel
+
+            self.residual_net = NNSeriesModel(self.nn_config)
+        self._residuals: list[tuple[float, float]] = []
+        self.min_points_to_predict = 2
+
+    # ----------------------------------------------------------------- design
+    def _term(self, name: str) -> EffectTerm:
+        for t in self.terms:
+            if t.name == name:
+                return t
+        raise KeyError(name)
+
+    def design_blocks(
+        self,
+        t_s: FloatArray,
+        history: History,
+        scan_sign: FloatArray,
+        axis: int,
+        *,
+        active: Sequence[str] | None = None,
+        params: dict[str, dict[str, float]] | None = None,
+    ) -> list[tuple[str, FloatArray]]:
+        """(name, basis block) of each active term, led by ``intercept`` if needed."""
+        names = self.active if active is None else active
+        prm = self.params if params is None else params
+        blocks: list[tuple[str, FloatArray]] = []
+        if self._needs_intercept(names):
+            blocks.append(("intercept", np.ones((t_s.size, 1))))
+        for name in names:
+            term = self._term(name)
+            blocks.append(
+                (name, term.design(t_s, history, scan_sign=scan_sign, params=prm[name], axis=axis))
+            )
+        return blocks
+
+    def _needs_intercept(self, names: Sequence[str]) -> bool:
+        return not any(self._term(n).provides_intercept for n in names)
+
+    # -------------------------------------------------------------------- fit
+    def update(self, obs: Observation, history: History) -> None:
+        self.log.append(obs, self._one_step_error(obs, history))
+        self._fit(history)
+
+    def _weights(self) -> FloatArray:
+        sigma = np.maximum(np.asarray(self.log.sigma_nm), self.config.sigma_floor_nm)
+        w = 1.0 / sigma**2
+        if self.config.memory_s is not None:
+            t = self.log.t()
+            w = w * np.exp(-(t[-1] - t) / self.config.memory_s)
+        return np.asarray(w, dtype=np.float64)
+
+    def _choose_active(self, history: History, t: FloatArray, sign: FloatArray) -> list[str]:
+        n = t.size
+        chosen: list[str] = []
+        columns = 0
+        for term in self.terms:
+            why = term.missing(history)
+            if why is not None:
+                if term.name not in self._missing_logged:
+                    self._missing_logged.add(term.name)
+                    _log.info("physics: term %r left out: %s", term.name, why)
+                continue
+            k = max(
+                int(
+                    np.count_nonzero(
+                        np.any(
+                            np.abs(
+                                term.design(
+                                    t,
+                                    history,
+                                    scan_sign=sign,
+                                    params=self.params[term.name],
+                                    axis=axis,
+                                )
+                            )
+                            > 1e-12,
+                            axis=0,
+                        )
+                    )
+                )
+                for axis in (0, 1)
+            )
+            extra = 1 if (not chosen and not term.provides_intercept) else 0
+            if n >= self.config.min_points_per_column * (columns + k + extra):
+                chosen.append(term.name)
+                columns += k + extra
+        return chosen
+
+    def _objective(
+        self,
+        t: FloatArray,
+        xy: FloatArray,
+        w: FloatArray,
+        sign: FloatArray,
+        history: History,
+        active: list[str],
+        params: dict[str, dict[str, float]],
+    ) -> float:
+        total = 0.0
+        for axis in (0, 1):
+            blocks = self.design_blocks(t, history, sign, axis, active=active, params=params)
+            x = np.hstack([b for _, b in blocks])
+            total += solve_wls(x, xy[:, axis], w).wrss
+        return total
+
+    def _fit(self, history: History) -> None:
+        t = self.log.t()
+        xy = self.log.xy()
+        sign = np.asarray(self.log.scan_sign, dtype=np.float64)
+        w = self._weights()
+        active = self._choose_active(history, t, sign)
+        params = {k: dict(v) for k, v in self.params.items()}
+        nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]
+        if nonlinear and t.size >= 3:
+            for _ in range(self.config.refine_passes):
+                for name, p in nonlinear:
+
+                    def obj(log_v: float, name: str = name, pname: str = p.name) -> float:
+                        params[name][pname] = float(10.0**log_v)
+                        return self._objective(t, xy, w, sign, history, active, params)
+
+                    grid = np.log10(p.grid())
+                    values = [obj(g) for g in grid]
+                    best = int(np.argmin(values))
+                    lo = grid[max(best - 1, 0)]
+                    hi = grid[min(best + 1, grid.size - 1)]
+                    res = minimize_scalar(
+                        obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
+                    )
+                    best_log = float(res.x) if float(res.fun) <= values[best] else grid[best]
+                    params[name][p.name] = float(10.0**best_log)
+        self.params = params
+        self.active = active
+        self.add_intercept = self._needs_intercept(active)
+        self.fits = []
+        self.columns = []
+        residuals = np.zeros_like(xy)
+        for axis in (0, 1):
+            blocks = self.design_blocks(t, history, sign, axis)
+            self.columns.append([(name, int(b.shape[1])) for name, b in blocks])
+            x = np.hstack([b for _, b in blocks])
+            fit = solve_wls(x, xy[:, axis], w)
+            self.fits.append(fit)
+            residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
+        self._fit_residual(t, residuals, history)
+
+    def _fit_residual(self, t: FloatArray, residuals: FloatArray, history: History) -> None:
+        self.last_residual = residuals[-1].copy()
+        n = residuals.shape[0]
+        dof = max(n - sum(int(f.keep.sum()) for f in self.fits) // 2, 1)
+        self.residual_sd = np.sqrt(np.sum(residuals**2, axis=0) / dof)
+        self._residuals = [(float(a), float(b)) for a, b in residuals]
+        if self.config.residual == "ar1":
+            r = residuals[-50:]
+            if r.shape[0] >= 4:
+                num = np.sum(r[1:] * r[:-1], axis=0)
+                den = np.sum(r[:-1] ** 2, axis=0)
+                self.phi = np.clip(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), 0, 1)
+            else:
+                self.phi = np.zeros(2)
+        elif self.config.residual == "nn" and self.residual_net is not None:
+            from afmdrift.model._nn import channel_matrix
+
+            self.residual_net.fit(residuals, channel_matrix(history, self.nn_config.channels, t))
+
+    # ---------------------------------------------------------------- predict
+    def model_at(self, t_s: npt.ArrayLike, history: History) -> tuple[FloatArray, FloatArray]:
+        """Deterministic part (terms only) and its parametric σ at ``t_s``, each (n, 2)."""
+        t = as_times(t_s)
+        sign = future_scan_sign(t, self.log.t(), np.asarray(self.log.scan_sign))
+        mean = np.zeros((t.size, 2))
+        var = np.zeros((t.size, 2))
+        for axis, fit in enumerate(self.fits):
+            blocks = self.design_blocks(t, history, sign, axis)
+            widths = dict(self.columns[axis])
+            x = np.hstack([_conform(b, widths[name]) for name, b in blocks])[:, fit.keep]
+            mean[:, axis] = x @ fit.coef
+            var[:, axis] = np.einsum("ij,jk,ik->i", x, fit.cov, x)
+        return mean, np.sqrt(np.maximum(var, 0.0))
+
+    def _residual_at(self, t: FloatArray, history: History) -> FloatArray:
+        out = np.zeros((t.size, 2))
+        t_last = self.log.t_s[-1]
+        step = self.log.step_s()
+        h = np.maximum((t - t_last) / step, 0.0) if math.isfinite(step) else np.zeros_like(t)
+        ahead = t >= t_last
+        if self.config.residual == "ar1":
+            out[ahead] = self.phi[None, :] ** h[ahead, None] * self.last_residual[None, :]
+        elif self.config.residual == "nn" and self.residual_net is not None:
+            from afmdrift.model._nn import channel_matrix
+
+            lags = self.nn_config.lags
+            r = np.asarray(self._residuals[-lags - 1 :], dtype=np.float64).reshape(-1, 2)
+            tail = self.log.t()[-r.shape[0] :]
+            inc = self.residual_net.next_increment(
+                r, channel_matrix(history, self.nn_config.channels, tail)
+            )
+            if inc is not None:
+                out[ahead] = self.last_residual[None, :] + h[ahead, None] * inc[None, :]
+        return out
+
+    def predict(self, t_s: npt.ArrayLike, history: History) -> Prediction:
+        self._require_data()
+        t = as_times(t_s)
+        if not self.fits:
+            xy = self.log.xy()
+            return Prediction(t, np.repeat(xy[-1:], t.size, axis=0), np.ones((t.size, 2)))
+        mean, sd = self.model_at(t, history)
+        mean = mean + self._residual_at(t, history)
+        res_sd = np.where(np.isfinite(self.residual_sd), self.residual_sd, 0.0)
+        sigma = np.sqrt(sd**2 + res_sd[None, :] ** 2)
+        return Prediction(t, mean, sigma)
+
+    # ------------------------------------------------------------------ state
+    def coefficients(self) -> dict[str, dict[str, list[float]]]:
+        """Fitted linear coefficients per active term and axis (x, y), for reports.
+
+        Columns dropped as all-zero (e.g. creep before any move) read NaN.
+        """
+        out: dict[str, dict[str, list[float]]] = {}
+        for axis, fit in enumerate(self.fits):
+            full = np.full(fit.keep.size, math.nan)
+            full[fit.keep] = fit.coef
+            i = 0
+            for name, k in self.columns[axis]:
+                out.setdefault(name, {})["xy"[axis]] = [float(v) for v in full[i : i + k]]
+                i += k
+        return out
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "config": self.config.model_dump(),
+            "nn_config": self.nn_config.model_dump(),
+            "log": self.log.to_dict(),
+            "params": self.params,
+            "active": list(self.active),
+            "fits": [
+                {
+                    "coef": f.coef.tolist(),
+                    "cov": f.cov.tolist(),
+                    "keep": f.keep.tolist(),
+                    "wrss": f.wrss,
+                }
+                for f in self.fits
+            ],
+            "columns": [[[n, k] for n, k in axis_cols] for axis_cols in self.columns],
+            "phi": self.phi.tolist(),
+            "last_residual": self.last_residual.tolist(),
+            "residual_sd": [None if not math.isfinite(v) else float(v) for v in self.residual_sd],
+            "residuals": [list(r) for r in self._residuals],
+            "residual_net": None if self.residual_net is None else self.residual_net.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        type(self).__init__(
+            self,
+            PhysicsConfig.model_validate(state["config"]),
+            nn_config=NNConfig.model_validate(state["nn_config"]),
+        )
+        self.log = ObservationLog.from_dict(state["log"])
+        self.params = {
+            k: {kk: float(vv) for kk, vv in v.items()} for k, v in state["params"].items()
+        }
+        self.active = list(state["active"])
+        self.add_intercept = self._needs_intercept(self.active)
+        self.fits = [
+            FitResult(
+                np.asarray(f["coef"], dtype=np.float64),
+                np.asarray(f["cov"], dtype=np.float64).reshape(len(f["coef"]), len(f["coef"])),
+                np.asarray(f["keep"], dtype=bool),
+                float(f["wrss"]),
+            )
+            for f in state["fits"]
+        ]
+        self.columns = [[(str(n), int(k)) for n, k in ac] for ac in state["columns"]]
+        self.phi = np.asarray(state["phi"], dtype=np.float64)
+        self.last_residual = np.asarray(state["last_residual"], dtype=np.float64)
+        self.residual_sd = np.array(
+            [math.nan if v is None else float(v) for v in state["residual_sd"]]
+        )
+        self._residuals = [(float(a), float(b)) for a, b in state["residuals"]]
+        if self.residual_net is not None and state["residual_net"] is not None:
+            self.residual_net.load_state_dict(state["residual_net"])
+
+
+class PhysicsNNPredictor(PhysicsPredictor):
+    """:class:`PhysicsPredictor` with the paper's NN learning the residual."""
+
+    name = "physics_nn"
+
+    def __init__(
+        self, config: PhysicsConfig | None = None, *, nn_config: NNConfig | None = None
+    ) -> None:
+        cfg = (config or PhysicsConfig()).model_copy(update={"residual": "nn"})
+        super().__init__(cfg, nn_config=nn_config)

@@ -1,0 +1,145 @@
+"""From measured image positions to drift positions p(t).
+
+The registration engine measures where the image content of each frame sits
+relative to a reference frame. Two things move image content: drift, and the
+XY scan offset that the operator (or afmdrift itself) commands. Models want
+drift only, so commanded moves are added back here. The service and
+``afmdrift evaluate`` both use :func:`drift_from_measurements`, so there is one
+definition of the sign convention.
+
+Sign convention
+---------------
+Registration convention: a feature at image position u in the reference
+appears at u + m in the current frame (m is the *measured image position*).
+Drift p moves the sample under the tip by +p, so it moves image content by
++p. A commanded offset move of +Δ moves the scan window by +Δ over the sample,
+so it moves image content by −Δ. With O(t) the cumulative commanded offset
+(sum of ``offset_move`` deltas logged at or before t)::
+
+    m(t) = p(t) − (O(t) − O(t_ref))      ⇒      p(t) = m(t) + O(t) − O(t_ref)
+
+where t_ref is the time of the reference frame (frame 0), so p(t_ref) = 0.
+
+Why mid-scan time
+-----------------
+A frame's rows are scanned at different times. The block-averaged displacement
+of a frame against the reference is, to first order, the mean over its rows of
+the drift at each row's scan time. For linear drift p(t) = a + b·t the mean of
+p over equally spaced row times is p at their mean, which is the mid-scan time
+``Frame.t_mid_s``. Each measurement is therefore placed at ``t_mid_s``.
+Where the drift curves within a frame (creep, warm-up) this is only first-order
+accurate; the comparison against simulator truth uses the exact per-line form
+(:func:`truth_frame_mean`, the mean of p over the row times) instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.drivers._base import Event, EventKind, Frame
+
+__all__ = ["commanded_offset_nm", "drift_from_measurements", "truth_frame_mean"]
+
+
+def commanded_offset_nm(t_s: npt.ArrayLike, events: Sequence[Event]) -> npt.NDArray[np.float64]:
+    """Cumulative commanded XY offset O(t) from ``offset_move`` events.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (n,)
+        Query times, s.
+    events : sequence of Event
+        The event log; only ``offset_move`` entries are used, each adding its
+        ``(x_nm, y_nm)`` at its time ``t_s`` (a move at exactly t counts at t).
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        O(t) in nm, zero before the first move.
+    """
+    t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+    moves = [e for e in events if e.kind is EventKind.OFFSET_MOVE]
+    if not moves:
+        return np.zeros((t.size, 2))
+    mt = np.array([e.t_s for e in moves], dtype=np.float64)
+    order = np.argsort(mt, kind="stable")
+    mt = mt[order]
+    cum = np.cumsum(np.array([[e.x_nm, e.y_nm] for e in moves], dtype=np.float64)[order], axis=0)
+    cum = np.vstack([np.zeros((1, 2)), cum])
+    k = np.searchsorted(mt, t, side="right")
+    return np.asarray(cum[k], dtype=np.float64)
+
+
+def drift_from_measurements(
+    t_s: npt.ArrayLike,
+    image_position_nm: npt.ArrayLike,
+    events: Sequence[Event],
+    *,
+    t_ref_s: float | None = None,
+) -> npt.NDArray[np.float64]:
+    """Drift positions p from measured image positions, removing commanded moves.
+
+    Parameters
+    ----------
+    t_s : array_like, shape (n,)
+        Time of each measurement (the frame's mid-scan time), s.
+    image_position_nm : array_like, shape (n, 2)
+        Measured cumulative image position m (x, y) of each frame relative to
+        the reference frame (``TrackStep.position_nm``), nm.
+    events : sequence of Event
+        Event log; ``offset_move`` entries are the commanded moves, including
+        afmdrift's own corrections.
+    t_ref_s : float, optional
+        Time of the reference frame (default: ``t_s[0]``).
+
+    Returns
+    -------
+    ndarray, shape (n, 2)
+        p = m + O(t) − O(t_ref), nm.
+
+    Raises
+    ------
+    ValueError
+        If the shapes disagree.
+    """
+    t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+    m = np.asarray(image_position_nm, dtype=np.float64).reshape(-1, 2)
+    if m.shape[0] != t.size:
+        raise ValueError(
+            f"image_position_nm has {m.shape[0]} rows for {t.size} times; need one per time"
+        )
+    if t.size == 0:
+        return m.copy()
+    ref = float(t[0]) if t_ref_s is None else float(t_ref_s)
+    offset = commanded_offset_nm(t, events) - commanded_offset_nm([ref], events)[0]
+    return np.asarray(m + offset, dtype=np.float64)
+
+
+def truth_frame_mean(
+    frame: Frame,
+    truth_t_s: npt.ArrayLike,
+    truth_nm: npt.ArrayLike,
+) -> npt.NDArray[np.float64]:
+    """Mean of the true drift over a frame's row times, shape (2,).
+
+    This is what an ideal block-averaged measurement of the frame sees
+    (see the module docstring), exactly, for any drift curve.
+
+    Parameters
+    ----------
+    frame : Frame
+        The frame (its timing and direction give the row times).
+    truth_t_s : array_like, shape (m,)
+        Times of the true drift samples, increasing, s.
+    truth_nm : array_like, shape (m, 2)
+        True drift p (x, y), nm.
+    """
+    tt = np.asarray(truth_t_s, dtype=np.float64)
+    tv = np.asarray(truth_nm, dtype=np.float64).reshape(-1, 2)
+    rows = frame.row_times_s()
+    x = np.interp(rows, tt, tv[:, 0]).mean()
+    y = np.interp(rows, tt, tv[:, 1]).mean()
+    return np.array([x, y])
