@@ -1,1 +1,29 @@
-"""The simulated AFM: physics, sample, raster scanner, and protocol server."""
+"""The simulated AFM: physics, sample, raster scanner, and protocol server.
+
+The physics (each drift effect with its equation and sources) is documented in
+``docs/physics.md``. Runtime code (``afmdrift.service``) never imports this
+package.
+"""
+
+from afmdrift.drivers.sim._instrument import SimulatedAFM
+from afmdrift.drivers.sim._physics import COMPONENTS, DriftPhysics
+from afmdrift.drivers.sim._sample import Sample
+from afmdrift.drivers.sim._scenario import (
+    SCENARIO_DIR,
+    Scenario,
+    load_scenario,
+    parse_scenario,
+    resolve_scenario_path,
+)
+
+__all__ = [
+    "COMPONENTS",
+    "SCENARIO_DIR",
+    "DriftPhysics",
+    "Sample",
+    "Scenario",
+    "SimulatedAFM",
+    "load_scenario",
+    "parse_scenario",
+    "resolve_scenario_path",
+]

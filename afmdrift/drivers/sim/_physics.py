@@ -1,0 +1,393 @@
+"""The drift physics of the simulated AFM: p(t) as a sum of documented effects.
+
+Sign convention (the registration engine's): a feature at image position u at
+time 0 appears at ``u + p(t)``. A commanded offset move of ``+Δ`` moves the scan
+window by ``+Δ`` over the sample, so features appear at ``u − Δ``; commanded
+moves are *not* drift and are not part of p(t). Their uncommanded side effects
+(creep, hysteresis) are.
+
+Effects (equations, magnitudes and sources in ``docs/physics.md``), each a
+function of time since power-on ``t`` and each zero at ``t = 0``:
+
+* thermal expansion ``p_th = α (T_s(t) − T_s(0))``, with the scanner temperature
+  ``T_s`` lagging the head temperature ``T_h`` by a first-order time constant
+  ``τ``: ``dT_s/dt = (T_h − T_s)/τ``;
+* head (room) temperature ``T_h = T_0 + k t + AC(t) + OU(t)``: slow trend, an
+  air-conditioning cycle (sine or triangle) and an Ornstein–Uhlenbeck
+  fluctuation;
+* warm-up ``p_w = A (1 − exp(−t/τ_w))``;
+* logarithmic piezo creep after each commanded move ``Δ_m`` at ``t_m``:
+  ``p_c = −γ Δ_m log10(1 + (t − t_m)/t_0)`` for ``t > t_m``;
+* hysteresis of the commanded offset ``c``: a play operator of half-width ``r``
+  gives the actual offset ``a = P_r[c]``; ``p_hy = −(a − c)``;
+* humidity ``p_h = β (RH(t) − RH(0))`` with RH its own trend, slow sine and OU;
+* tip changes: a step ``s_k`` at each tip change time ``t_k``;
+* a Wiener process with ``σ`` nm/√s per axis.
+
+The stochastic processes live on a regular grid of step ``dt_s``, generated in
+fixed-size chunks from their own random streams, so a given seed gives the same
+p(t) however the time axis is queried. Between grid points they are linearly
+interpolated; the event-driven terms are evaluated exactly.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy.signal import lfilter
+
+from afmdrift.drivers.sim._scenario import PhysicsConfig
+
+__all__ = ["COMPONENTS", "DriftPhysics", "OffsetMove", "TipChange"]
+
+#: Names of the drift components, in the order of ``truth_components.csv``.
+COMPONENTS: tuple[str, ...] = (
+    "thermal",
+    "warmup",
+    "creep",
+    "hysteresis",
+    "humidity",
+    "tip_change",
+    "random_walk",
+)
+
+_CHUNK = 8192  # grid samples generated at a time (fixed, for determinism)
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class OffsetMove:
+    """A commanded offset change at ``t_s`` to the absolute offset ``(x_nm, y_nm)``.
+
+    ``dx_nm, dy_nm`` is the commanded step, ``ex_nm, ey_nm`` the hysteresis error
+    ``a − c`` of the actual offset after the move.
+    """
+
+    t_s: float
+    x_nm: float
+    y_nm: float
+    dx_nm: float
+    dy_nm: float
+    ex_nm: float
+    ey_nm: float
+
+
+@dataclass(frozen=True, slots=True)
+class TipChange:
+    """A tip change at ``t_s`` shifting the apparent position by ``(dx_nm, dy_nm)``."""
+
+    t_s: float
+    dx_nm: float
+    dy_nm: float
+
+
+class _Grid:
+    """Growable regular-grid store of the stochastic processes."""
+
+    def __init__(self, dt_s: float, names: tuple[str, ...]) -> None:
+        self.dt_s = dt_s
+        self.n = 0
+        self.data: dict[str, FloatArray] = {k: np.zeros(0) for k in names}
+
+    def append(self, chunk: dict[str, FloatArray]) -> None:
+        m = len(next(iter(chunk.values())))
+        for k, v in chunk.items():
+            arr = self.data[k]
+            if self.n + m > arr.size:
+                grown = np.zeros(max(2 * arr.size, self.n + m))
+                grown[: self.n] = arr[: self.n]
+                self.data[k] = arr = grown
+            arr[self.n : self.n + m] = v
+        self.n += m
+
+    def at(self, name: str, t_s: FloatArray) -> FloatArray:
+        """Linear interpolation of ``name`` at times ``t_s`` (must lie on the grid)."""
+        x = t_s / self.dt_s
+        k = np.clip(np.floor(x).astype(np.int64), 0, self.n - 2)
+        f = x - k
+        v = self.data[name]
+        out: FloatArray = v[k] + (v[k + 1] - v[k]) * f
+        return out
+
+
+class DriftPhysics:
+    """Ground-truth drift p(t), the sensors' true values, and the offset actuator.
+
+    Parameters
+    ----------
+    config : PhysicsConfig
+        The ``[physics]`` table of a scenario.
+    seed : int
+        Seed of every random stream (the same seed gives the same p(t)).
+    start_offset_nm : (float, float)
+        Commanded XY offset at power-on.
+    """
+
+    def __init__(
+        self, config: PhysicsConfig, *, seed: int, start_offset_nm: tuple[float, float] = (0, 0)
+    ) -> None:
+        self.config = config
+        self._dt = float(config.dt_s)
+        ss = np.random.SeedSequence([int(seed), 0x5EED])
+        room_ss, rh_ss, rw_ss = ss.spawn(3)
+        self._rng_room = np.random.default_rng(room_ss)
+        self._rng_rh = np.random.default_rng(rh_ss)
+        self._rng_rw = np.random.default_rng(rw_ss)
+        self._grid = _Grid(self._dt, ("t_head", "t_scanner", "rh", "rw_x", "rw_y"))
+        self._ou_room = 0.0
+        self._ou_rh = 0.0
+        self._rw = np.zeros(2)
+        self._t_scanner = 0.0
+        self._t_head_prev = 0.0
+        # First samples of each random stream set the state at t = 0.
+        r = self.config.room
+        if r.fluctuation_k > 0:
+            self._ou_room = float(self._rng_room.normal(0.0, r.fluctuation_k))
+        h = self.config.humidity
+        if h.fluctuation_pct > 0:
+            self._ou_rh = float(self._rng_rh.normal(0.0, h.fluctuation_pct))
+        self._moves: list[OffsetMove] = []
+        self._start_offset = (float(start_offset_nm[0]), float(start_offset_nm[1]))
+        self._play = np.array(self._start_offset, dtype=np.float64)  # play-operator output
+        self._tips: list[TipChange] = []
+        self._generate_first()
+        self._t_scanner_0 = float(self._grid.data["t_scanner"][0])
+        self._rh_0 = float(self._grid.data["rh"][0])
+
+    # ------------------------------------------------------------------ grid processes
+
+    def _head_deterministic(self, t: FloatArray) -> FloatArray:
+        r = self.config.room
+        phase = t / r.ac_period_s
+        if r.ac_shape == "sine":
+            ac = np.sin(2.0 * np.pi * phase)
+        else:  # triangle wave with the sine's phase: 0 -> +1 -> 0 -> -1 -> 0
+            ac = 2.0 / np.pi * np.arcsin(np.sin(2.0 * np.pi * phase))
+        out: FloatArray = r.mean_c + r.trend_k_per_h * t / 3600.0 + r.ac_amplitude_k * ac
+        return out
+
+    def _rh_deterministic(self, t: FloatArray) -> FloatArray:
+        h = self.config.humidity
+        out: FloatArray = (
+            h.mean_pct
+            + h.trend_pct_per_h * t / 3600.0
+            + h.amplitude_pct * np.sin(2.0 * np.pi * t / h.period_s)
+        )
+        return out
+
+    def _ou(
+        self, rng: np.random.Generator, x0: float, std: float, tau_s: float, n: int
+    ) -> FloatArray:
+        """Exact AR(1) discretisation of an Ornstein–Uhlenbeck process; x0 is the last value."""
+        if std <= 0:
+            return np.zeros(n)
+        phi = math.exp(-self._dt / tau_s)
+        eps = rng.normal(0.0, std * math.sqrt(1.0 - phi * phi), n)
+        out, _ = lfilter([1.0], [1.0, -phi], eps, zi=[phi * x0])
+        return np.asarray(out, dtype=np.float64)
+
+    def _lag(self, u_prev: float, y_prev: float, u: FloatArray) -> FloatArray:
+        """Exact first-order lag y' = (u − y)/τ for u linear between grid points."""
+        tau = self.config.thermal.tau_s
+        a = math.exp(-self._dt / tau)
+        u0 = np.concatenate([[u_prev], u[:-1]])
+        m_tau = (u - u0) / self._dt * tau
+        b = u - m_tau - a * (u0 - m_tau)
+        out, _ = lfilter([1.0], [1.0, -a], b, zi=[a * y_prev])
+        return np.asarray(out, dtype=np.float64)
+
+    def _generate_first(self) -> None:
+        t0 = np.zeros(1)
+        head0 = float(self._head_deterministic(t0)[0] + self._ou_room)
+        self._t_scanner = head0 + self.config.thermal.initial_offset_k
+        self._t_head_prev = head0
+        rh0 = float(self._rh_deterministic(t0)[0] + self._ou_rh)
+        self._grid.append(
+            {
+                "t_head": np.array([head0]),
+                "t_scanner": np.array([self._t_scanner]),
+                "rh": np.array([rh0]),
+                "rw_x": np.zeros(1),
+                "rw_y": np.zeros(1),
+            }
+        )
+
+    def _generate_chunk(self) -> None:
+        n0 = self._grid.n
+        t = (n0 + np.arange(_CHUNK, dtype=np.float64)) * self._dt
+        r = self.config.room
+        ou_room = self._ou(
+            self._rng_room, self._ou_room, r.fluctuation_k, r.fluctuation_tau_s, _CHUNK
+        )
+        if ou_room.size:
+            self._ou_room = float(ou_room[-1])
+        head = self._head_deterministic(t) + ou_room
+        scanner = self._lag(self._t_head_prev, self._t_scanner, head)
+        self._t_head_prev = float(head[-1])
+        self._t_scanner = float(scanner[-1])
+        h = self.config.humidity
+        ou_rh = self._ou(self._rng_rh, self._ou_rh, h.fluctuation_pct, h.fluctuation_tau_s, _CHUNK)
+        if ou_rh.size:
+            self._ou_rh = float(ou_rh[-1])
+        rh = self._rh_deterministic(t) + ou_rh
+        sigma = np.asarray(self.config.random_walk.sigma_nm_per_sqrt_s, dtype=np.float64)
+        steps = self._rng_rw.normal(0.0, 1.0, (_CHUNK, 2)) * sigma * math.sqrt(self._dt)
+        rw = self._rw + np.cumsum(steps, axis=0)
+        self._rw = rw[-1].copy()
+        self._grid.append(
+            {"t_head": head, "t_scanner": scanner, "rh": rh, "rw_x": rw[:, 0], "rw_y": rw[:, 1]}
+        )
+
+    def _ensure(self, t_max_s: float) -> None:
+        while (self._grid.n - 1) * self._dt < t_max_s:
+            self._generate_chunk()
+
+    def _times(self, t_s: npt.ArrayLike) -> FloatArray:
+        t = np.maximum(np.asarray(t_s, dtype=np.float64), 0.0)
+        if t.size:
+            self._ensure(float(t.max()))
+        return t
+
+    # ------------------------------------------------------------------ sensors (true values)
+
+    def head_temperature_c(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Head (room air) temperature T_h at ``t_s``, °C; what the sensor reads."""
+        return self._grid.at("t_head", self._times(t_s))
+
+    def scanner_temperature_c(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Scanner temperature T_s (first-order lag of T_h), °C; not measured."""
+        return self._grid.at("t_scanner", self._times(t_s))
+
+    def humidity_pct(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Relative humidity at ``t_s``, %."""
+        return self._grid.at("rh", self._times(t_s))
+
+    # ------------------------------------------------------------------ actuator and events
+
+    def command_offset(self, t_s: float, x_nm: float, y_nm: float) -> OffsetMove:
+        """Record a commanded absolute offset at ``t_s`` (time order); return the move."""
+        if self._moves and t_s < self._moves[-1].t_s:
+            raise ValueError(f"offset move at t={t_s} s is before the last one")
+        cx, cy = self.commanded_offset_at(t_s)
+        c = np.array([x_nm, y_nm], dtype=np.float64)
+        if self.config.hysteresis.enabled:
+            r = np.asarray(self.config.hysteresis.play_nm, dtype=np.float64)
+            self._play = np.maximum(c - r, np.minimum(c + r, self._play))
+        else:
+            self._play = c.copy()
+        e = self._play - c
+        move = OffsetMove(
+            t_s=float(t_s),
+            x_nm=float(x_nm),
+            y_nm=float(y_nm),
+            dx_nm=float(x_nm - cx),
+            dy_nm=float(y_nm - cy),
+            ex_nm=float(e[0]),
+            ey_nm=float(e[1]),
+        )
+        self._moves.append(move)
+        return move
+
+    def add_tip_change(self, t_s: float, dx_nm: float, dy_nm: float) -> TipChange:
+        """Record a tip change at ``t_s`` with its step in apparent position."""
+        change = TipChange(float(t_s), float(dx_nm), float(dy_nm))
+        self._tips.append(change)
+        return change
+
+    @property
+    def moves(self) -> list[OffsetMove]:
+        return list(self._moves)
+
+    def commanded_offset_at(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Commanded XY offset (piecewise constant), shape (..., 2), nm."""
+        t = np.asarray(t_s, dtype=np.float64)
+        table = np.array([self._start_offset] + [(m.x_nm, m.y_nm) for m in self._moves])
+        times = np.array([m.t_s for m in self._moves])
+        k = np.searchsorted(times, t, side="right")
+        out: FloatArray = table[k]
+        return out
+
+    # ------------------------------------------------------------------ drift components
+
+    def components_at(self, t_s: npt.ArrayLike) -> dict[str, FloatArray]:
+        """Every drift component at ``t_s``, each of shape (..., 2) in nm."""
+        t = self._times(t_s)
+        cfg = self.config
+        zero = np.zeros((*t.shape, 2))
+        out: dict[str, FloatArray] = {}
+        if cfg.thermal.enabled:
+            dts = self._grid.at("t_scanner", t) - self._t_scanner_0
+            out["thermal"] = dts[..., None] * np.asarray(cfg.thermal.alpha_nm_per_k)
+        else:
+            out["thermal"] = zero
+        if cfg.warmup.enabled:
+            w = -np.expm1(-t / cfg.warmup.tau_s)
+            out["warmup"] = w[..., None] * np.asarray(cfg.warmup.amplitude_nm)
+        else:
+            out["warmup"] = zero
+        out["creep"] = self._creep(t) if cfg.creep.enabled else zero
+        out["hysteresis"] = self._hysteresis(t) if cfg.hysteresis.enabled else zero
+        if cfg.humidity.enabled:
+            drh = self._grid.at("rh", t) - self._rh_0
+            out["humidity"] = drh[..., None] * np.asarray(cfg.humidity.beta_nm_per_pct)
+        else:
+            out["humidity"] = zero
+        out["tip_change"] = self._tip_steps(t)
+        if cfg.random_walk.enabled:
+            out["random_walk"] = np.stack(
+                [self._grid.at("rw_x", t), self._grid.at("rw_y", t)], axis=-1
+            )
+        else:
+            out["random_walk"] = zero
+        return out
+
+    def drift_at(self, t_s: npt.ArrayLike) -> FloatArray:
+        """True drift p(t), shape (..., 2) in nm (sum of :meth:`components_at`)."""
+        comps = self.components_at(t_s)
+        total = np.zeros_like(comps["thermal"])
+        for v in comps.values():
+            total += v
+        return total
+
+    def z_offset_nm(self, t_s: npt.ArrayLike, *, rate_nm_per_s: float) -> FloatArray:
+        """Slow height offset: ``rate · t + α_z (T_s − T_s(0))``, nm."""
+        t = self._times(t_s)
+        z: FloatArray = rate_nm_per_s * t
+        if self.config.thermal.enabled and self.config.thermal.z_alpha_nm_per_k:
+            z = z + self.config.thermal.z_alpha_nm_per_k * (
+                self._grid.at("t_scanner", t) - self._t_scanner_0
+            )
+        return z
+
+    def _creep(self, t: FloatArray) -> FloatArray:
+        out = np.zeros((*t.shape, 2))
+        gamma = self.config.creep.gamma_per_decade
+        t0 = self.config.creep.t0_s
+        for m in self._moves:
+            if m.dx_nm == 0.0 and m.dy_nm == 0.0:
+                continue
+            el = np.maximum(t - m.t_s, 0.0)
+            decades = np.log10(1.0 + el / t0)
+            out[..., 0] -= gamma * m.dx_nm * decades
+            out[..., 1] -= gamma * m.dy_nm * decades
+        return out
+
+    def _hysteresis(self, t: FloatArray) -> FloatArray:
+        table = np.array([(0.0, 0.0)] + [(-m.ex_nm, -m.ey_nm) for m in self._moves])
+        times = np.array([m.t_s for m in self._moves])
+        out: FloatArray = table[np.searchsorted(times, t, side="right")]
+        return out
+
+    def _tip_steps(self, t: FloatArray) -> FloatArray:
+        if not self._tips:
+            return np.zeros((*t.shape, 2))
+        times = np.array([c.t_s for c in self._tips])
+        cum = np.concatenate(
+            [np.zeros((1, 2)), np.cumsum([(c.dx_nm, c.dy_nm) for c in self._tips], axis=0)]
+        )
+        out: FloatArray = cum[np.searchsorted(times, t, side="right")]
+        return out

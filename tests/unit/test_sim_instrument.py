@@ -1,0 +1,106 @@
+"""SimulatedAFM: clock, frames, geometry, events, determinism."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmdrift.drivers import EventKind, ScanDirection
+from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
+
+
+def small_scenario(**overrides: object) -> Scenario:
+    data: dict[str, object] = {
+        "scan": {"pixels": [64, 48], "size_nm": [256.0, 192.0], "line_rate_hz": 16.0},
+        "sample": {"map_px": 256, "grid_nm": 4.0, "gold": {"density_per_um2": 40.0}},
+        "physics": {"random_walk": {"enabled": True, "sigma_nm_per_sqrt_s": [0.5, 0.5]}},
+    }
+    data.update(overrides)
+    return parse_scenario(data)
+
+
+def test_frames_complete_back_to_back_alternating() -> None:
+    sim = SimulatedAFM(small_scenario(), seed=1)
+    assert sim.latest_frame() is None
+    frames = sim.advance_to(3 * 3.0 + 0.5)  # 48 lines at 16 Hz = 3 s per frame
+    assert [f.index for f in frames] == [0, 1, 2]
+    assert [f.direction for f in frames] == [ScanDirection.UP, ScanDirection.DOWN] * 1 + [
+        ScanDirection.UP
+    ]
+    assert frames[1].t_start_s == pytest.approx(frames[0].t_end_s)
+    f = sim.latest_frame()
+    assert f is frames[-1]
+    assert f.heights_nm.shape == (48, 64)
+    assert f.pixel_size_nm == (4.0, 4.0)
+    assert np.isfinite(f.heights_nm).all()
+
+
+def test_same_seed_same_session_different_seed_differs() -> None:
+    a = SimulatedAFM(small_scenario(), seed=5)
+    b = SimulatedAFM(small_scenario(), seed=5)
+    c = SimulatedAFM(small_scenario(), seed=6)
+    fa = a.advance_to(10.0)
+    # Same time reached in different steps: determinism must not depend on the call pattern.
+    for t in (1.3, 2.9, 7.7, 10.0):
+        fb = b.advance_to(t)
+    fc = c.advance_to(10.0)
+    np.testing.assert_array_equal(fa[-1].heights_nm, b.latest_frame().heights_nm)  # type: ignore[union-attr]
+    assert fb[-1].index == fa[-1].index
+    assert not np.allclose(fa[-1].heights_nm, fc[-1].heights_nm)
+    t = np.linspace(0, 10, 11)
+    np.testing.assert_array_equal(a.truth_at(t)[0], b.truth_at(t)[0])
+
+
+def test_offset_move_is_logged_with_delta_and_not_in_truth() -> None:
+    sim = SimulatedAFM(small_scenario(physics={}), seed=0)
+    sim.advance_to(1.0)
+    sim.set_offset(100.0, -20.0)
+    sim.advance_to(2.0)
+    sim.set_offset(150.0, -20.0)
+    kinds = [e.kind for e in sim.events]
+    assert kinds == [EventKind.POWER_ON, EventKind.OFFSET_MOVE, EventKind.OFFSET_MOVE]
+    assert (sim.events[2].x_nm, sim.events[2].y_nm) == (50.0, 0.0)
+    assert sim.get_offset() == (150.0, -20.0)
+    assert sim.truth_at(5.0) == (0.0, 0.0)
+
+
+def test_configure_scan_rejects_out_of_range_with_message() -> None:
+    sim = SimulatedAFM(small_scenario(), seed=0)
+    with pytest.raises(ValueError, match="pixels cols = 4"):
+        sim.configure_scan(pixels=(4, 64))
+    with pytest.raises(ValueError, match="line_rate_hz = -1"):
+        sim.configure_scan(line_rate_hz=-1.0)
+    sim.configure_scan(pixels=(32, 32), size_nm=(128.0, 128.0), line_rate_hz=32.0)
+    frames = sim.advance_to(1.01)
+    assert frames[-1].heights_nm.shape == (32, 32)
+
+
+def test_time_cannot_go_back() -> None:
+    sim = SimulatedAFM(small_scenario(), seed=0)
+    sim.advance_to(5.0)
+    with pytest.raises(ValueError, match="advance_to"):
+        sim.advance_to(4.0)
+
+
+def test_stop_abandons_frame_and_start_restarts_up() -> None:
+    sim = SimulatedAFM(small_scenario(), seed=0)
+    sim.advance_to(4.0)  # frame 0 done, frame 1 (down) in progress
+    sim.stop()
+    assert not sim.running
+    assert sim.advance_to(20.0) == []
+    sim.start()
+    frames = sim.advance_to(23.5)
+    assert frames[0].index == 1
+    assert frames[0].direction is ScanDirection.UP
+    assert frames[0].t_start_s == pytest.approx(20.0)
+
+
+def test_channels_and_identify() -> None:
+    sim = SimulatedAFM(small_scenario(), seed=0)
+    sim.advance_to(10.0)
+    ch = sim.read_channels()
+    assert ch.t_s == 10.0
+    assert set(ch.values) == {"temperature_c", "humidity_pct"}
+    assert abs(ch.values["temperature_c"] - 22.0) < 1.0
+    info = sim.identify()
+    assert info.model == "SimulatedAFM"
