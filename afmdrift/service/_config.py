@@ -123,7 +123,7 @@ class ServiceConfig(BaseModel):
                     f"{key} {endpoint!r} is not a loopback address; binding it requires "
                     f"ZeroMQ CURVE keys: set service.{' and service.'.join(missing)}"
                 )
-        if self.pub_endpoint == self.control_endpoint:
+        if self.pub_endpoint == self.control_endpoint and not self.pub_endpoint.endswith(":*"):
             raise ValueError(
                 f"pub_endpoint and control_endpoint must differ (both {self.pub_endpoint!r})"
             )

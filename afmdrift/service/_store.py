@@ -140,12 +140,14 @@ class ResumeState:
     last: FrameRecord
     predictor: str
     predictor_state: dict[str, Any] | None
+    curve: dict[str, Any] | None
     reference: npt.NDArray[np.float32] | None
     reference_seq: int | None
     reference_x_nm: float
     reference_y_nm: float
     event_cursor: int
     epoch: int
+    t_ref_s: float | None
 
 
 def _schema() -> list[str]:
@@ -191,9 +193,18 @@ class RunStore:
         Directory of the run (created if needed).
     archive_frames : bool
         Keep every image as ``frames/NNNNNN.npy``.
+    check_same_thread : bool
+        As for :func:`sqlite3.connect`; the daemon opens the store in its main
+        thread and then uses it only from its single worker thread.
     """
 
-    def __init__(self, run_dir: str | Path, *, archive_frames: bool = False) -> None:
+    def __init__(
+        self,
+        run_dir: str | Path,
+        *,
+        archive_frames: bool = False,
+        check_same_thread: bool = True,
+    ) -> None:
         self.run_dir = Path(run_dir)
         try:
             self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -202,7 +213,9 @@ class RunStore:
         self.archive_frames = archive_frames
         self.path = self.run_dir / DB_NAME
         try:
-            self._db = sqlite3.connect(self.path, isolation_level=None)
+            self._db = sqlite3.connect(
+                self.path, isolation_level=None, check_same_thread=check_same_thread
+            )
             self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("PRAGMA synchronous=FULL")
             self._db.execute("PRAGMA foreign_keys=ON")
@@ -373,9 +386,12 @@ class RunStore:
         if not last:
             return None
         row = self._db.execute(
-            "SELECT predictor, state_json FROM model_state ORDER BY seq DESC LIMIT 1"
+            "SELECT predictor, state_json, curve_json FROM model_state ORDER BY seq DESC LIMIT 1"
         ).fetchone()
-        predictor, state = ("", None) if row is None else (str(row[0]), json.loads(row[1]))
+        predictor, state, curve = ("", None, None)
+        if row is not None:
+            predictor, state = str(row[0]), json.loads(row[1])
+            curve = None if row[2] is None else json.loads(row[2])
         meta = self.meta()
         reference = None
         reference_seq = int(meta["reference_seq"]) if "reference_seq" in meta else None
@@ -395,13 +411,22 @@ class RunStore:
             last=last[0],
             predictor=predictor,
             predictor_state=state,
+            curve=curve,
             reference=reference,
             reference_seq=reference_seq if reference is not None else None,
             reference_x_nm=float(meta.get("reference_x_nm", "nan")),
             reference_y_nm=float(meta.get("reference_y_nm", "nan")),
             event_cursor=event_cursor,
             epoch=last[0].epoch,
+            t_ref_s=self._session_reference_time(),
         )
+
+    def _session_reference_time(self) -> float | None:
+        """Mid-scan time of the session reference frame (where p = 0)."""
+        row = self._db.execute(
+            "SELECT t_mid_s FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
+        ).fetchone()
+        return None if row is None else float(row[0])
 
     def check_consistency(self) -> list[str]:
         """Problems found in the store (empty when consistent): integrity, gaps, orphans."""

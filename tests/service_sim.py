@@ -1,0 +1,138 @@
+"""Harness for the drift service's tests: a small simulated AFM served over a real
+transport (loopback TCP or a pseudo-terminal), and a running service.
+
+Used by tests/unit/test_service_daemon.py, tests/integration/test_service_*.py and
+tests/soak/. Only the tests import the simulator; the service never does.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from pathlib import Path
+from typing import Any
+
+import zmq.asyncio
+
+from afmdrift.config import AfmdriftConfig, parse_config
+from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
+from afmdrift.drivers.sim._server import SimulatorServer
+from afmdrift.service import DriftService
+
+
+def small_scenario(
+    *,
+    seed: int = 7,
+    pixels: int = 128,
+    frame_period_s: float = 32.0,
+    line_rate_hz: float = 8.0,
+    drift_nm_per_sqrt_s: float = 0.05,
+    thermal: bool = True,
+    extra: dict[str, Any] | None = None,
+) -> Scenario:
+    """A fast scenario: ``pixels``² frames of a textured gold sample, mild drift.
+
+    4 nm per pixel; a frame's trace takes ``pixels / line_rate_hz`` s of
+    instrument time and frames start every ``frame_period_s``.
+    """
+    data: dict[str, Any] = {
+        "name": "service-test",
+        "seed": seed,
+        "duration_s": 30 * 86400.0,
+        "scan": {
+            "pixels": [pixels, pixels],
+            "size_nm": [4.0 * pixels, 4.0 * pixels],
+            "line_rate_hz": line_rate_hz,
+            "frame_period_s": frame_period_s,
+            "directions": "up",
+        },
+        "sample": {
+            "kind": "gold_on_mica",
+            "grid_nm": 2.0,
+            "map_px": 1024,
+            "roughness_nm": 0.3,
+            "gold": {"density_per_um2": 80.0},
+        },
+        "physics": {
+            "random_walk": {
+                "enabled": True,
+                "sigma_nm_per_sqrt_s": [drift_nm_per_sqrt_s, drift_nm_per_sqrt_s],
+            },
+            "thermal": {"enabled": thermal},
+        },
+    }
+    for key, value in (extra or {}).items():
+        data[key] = value
+    return parse_scenario(data, source="service-test")
+
+
+@contextlib.asynccontextmanager
+async def sim_server(
+    scenario: Scenario, *, speed: float, transport: str = "tcp", port: int = 0
+) -> AsyncIterator[tuple[SimulatorServer, str]]:
+    """A :class:`SimulatorServer` on loopback TCP or a pty, and its client URL."""
+    sim = SimulatedAFM(scenario)
+    server = SimulatorServer(sim, speed=speed)
+    try:
+        if transport == "pty":
+            url = await server.start_pty()
+        else:
+            bound = await server.start_tcp(port, host="127.0.0.1")
+            url = f"socket://127.0.0.1:{bound}"
+        yield server, url
+    finally:
+        await server.stop()
+
+
+def service_config(run_dir: Path, **service: Any) -> AfmdriftConfig:
+    """Configuration for tests: loopback with free ports, fast loops, small blocks."""
+    base: dict[str, Any] = {
+        "pub_endpoint": "tcp://127.0.0.1:*",
+        "control_endpoint": "tcp://127.0.0.1:*",
+        "run_dir": str(run_dir),
+        "frame_poll_interval_s": 0.05,
+        "channel_poll_interval_s": 0.2,
+        "event_poll_interval_s": 0.2,
+        "clock_sync_interval_s": 0.1,
+        "heartbeat_interval_s": 0.1,
+        "reconnect_delay_s": 0.1,
+        "max_offset_rate_nm_s": 1000.0,
+    }
+    base.update(service)
+    return parse_config(
+        {
+            "service": base,
+            "registration": {"block_size": 32, "extended_size": 64},
+            "model": {"predictor": "constant_velocity"},
+        }
+    )
+
+
+def driver(url: str) -> NanoScopeDriver:
+    """The production driver on ``url`` with short timeouts for tests."""
+    return NanoScopeDriver(
+        url, timeout_s=1.0, frame_timeout_s=5.0, reconnect_attempts=2, backoff_initial_s=0.05
+    )
+
+
+@contextlib.asynccontextmanager
+async def running_service(
+    config: AfmdriftConfig, instrument: Any, ctx: zmq.asyncio.Context
+) -> AsyncIterator[DriftService]:
+    """Run a :class:`DriftService` as a task; cancel it and wait for its cleanup on exit."""
+    service = DriftService(config=config, instrument=instrument, ctx=ctx)
+    task = asyncio.create_task(service.run())
+    ready = asyncio.create_task(service.ready.wait())
+    done, _ = await asyncio.wait({task, ready}, return_when=asyncio.FIRST_COMPLETED)
+    if task in done:
+        ready.cancel()
+        await asyncio.gather(ready, return_exceptions=True)
+        task.result()  # raises the startup error
+    try:
+        yield service
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
