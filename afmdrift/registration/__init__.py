@@ -1,5 +1,39 @@
-"""Block phase-correlation drift measurement (Yang et al., IEEE T-NANO 2008)."""
+"""Block phase-correlation drift measurement (Yang et al., IEEE T-NANO 2008).
+
+Sign convention (used everywhere in afmdrift): a feature at image position
+``u`` in the reference appears at ``u + d`` in the current frame. x runs
+along columns (the fast scan axis), y along rows; pixel sizes are ``(x, y)``.
+
+Public API
+----------
+:func:`measure_drift`
+    Drift between two height images, with per-block detail and uncertainty.
+:class:`DriftTracker`
+    Streaming registration with cached reference spectra (consecutive or
+    keyframe references).
+:class:`DriftResult`, :class:`BlockField`, :class:`TrackStep`
+    Result records.
+:class:`RegistrationConfig`
+    The ``[registration]`` configuration section.
+:class:`RegistrationError`, :class:`InvalidFrameError`
+    Typed input errors (both are :class:`afmdrift.errors.InputError`).
+
+See ``docs/registration.md`` for the method, design choices and accuracy.
+"""
 
 from afmdrift.registration._config import RegistrationConfig
+from afmdrift.registration._errors import InvalidFrameError, RegistrationError
+from afmdrift.registration._measure import measure_drift
+from afmdrift.registration._result import BlockField, DriftResult
+from afmdrift.registration._tracker import DriftTracker, TrackStep
 
-__all__ = ["RegistrationConfig"]
+__all__ = [
+    "BlockField",
+    "DriftResult",
+    "DriftTracker",
+    "InvalidFrameError",
+    "RegistrationConfig",
+    "RegistrationError",
+    "TrackStep",
+    "measure_drift",
+]

@@ -33,19 +33,54 @@ class RegistrationConfig(BaseModel):
     )
     epsilon_px: float = Field(2.0, gt=0, le=64, description="Paper rule: distance from mean.")
     mad_threshold: float = Field(3.5, gt=0, le=20, description="Robust z-score cut-off.")
-    min_valid_blocks: int = Field(3, ge=1, le=4096, description="Fewer valid blocks: invalid.")
+    min_valid_blocks: int = Field(
+        3, ge=2, le=4096, description="Fewer valid blocks: invalid (two give an uncertainty)."
+    )
     reference: Literal["consecutive", "keyframe"] = Field(
         "keyframe", description="Measure against the previous frame or against a keyframe."
     )
     keyframe_min_overlap: float = Field(
         0.6, gt=0, lt=1, description="Re-anchor the keyframe when overlap falls below this."
     )
+    subpixel: Literal["dft", "sinc", "parabolic", "gaussian"] = Field(
+        "dft",
+        description="Sub-pixel method: continuous maximum of the DFT-interpolated "
+        "correlation (dft), or a 3-point peak model (see docs/registration.md).",
+    )
+    subpixel_band: float = Field(
+        0.25, gt=0, le=1, description="dft method: frequencies used, as a fraction of Nyquist."
+    )
+    eps_rel: float = Field(
+        1e-6, gt=0, le=1, description="Spectrum magnitude floor relative to each block's max."
+    )
+    coarse: bool = Field(
+        True, description="Whole-frame coarse alignment when no expected drift is known."
+    )
+    refine: bool = Field(
+        True, description="Second block pass when the drift is a pixel or more off the prior."
+    )
+    mse_stride_px: int = Field(
+        2, ge=1, le=8, description="Lattice step of the MSE peak verification."
+    )
     threads: int = Field(1, ge=1, le=64, description="FFTW threads.")
+    fftw_planner: Literal["estimate", "measure", "patient"] = Field(
+        "measure", description="FFTW planner effort (plans are made once per shape)."
+    )
+    fftw_wisdom: str | None = Field(
+        None,
+        description="FFTW wisdom file; default $AFMDRIFT_FFTW_WISDOM or "
+        "$XDG_CACHE_HOME/afmdrift/fftw-wisdom-<pyfftw version>; empty string disables.",
+    )
 
     @model_validator(mode="after")
     def _check_sizes(self) -> Self:
         if self.extended_size < self.block_size:
             raise ValueError(
                 f"extended_size ({self.extended_size}) must be >= block_size ({self.block_size})"
+            )
+        if self.max_shift_px is not None and self.max_shift_px > self.extended_size / 2 - 2:
+            raise ValueError(
+                f"max_shift_px ({self.max_shift_px}) must be <= extended_size / 2 - 2 "
+                f"({self.extended_size / 2 - 2:g})"
             )
         return self

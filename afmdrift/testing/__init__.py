@@ -1,4 +1,39 @@
 """Helpers for tests, demos and benchmarks: synthetic textures and exact shifts.
 
 Runtime code (the service) never imports this package.
+
+* Textures (periodic, nearly band-limited, heights in nm):
+  :func:`particle_texture` (gold-colloid-like bumps on a flat substrate),
+  :func:`terrace_texture` (graphite-like terraces with monatomic steps),
+  :func:`rough_texture` (Gaussian random rough surface), and
+  :class:`Particles` for scenes whose particles tests move or add.
+* Exact shifts: :func:`fourier_shift` (periodic, sub-pixel) and
+  :func:`shifted_crop` (shift a larger texture, cut a frame, so content enters
+  and leaves at the edges as in a real scan).
+* Artefacts: :func:`add_noise` (SNR = std of heights / std of noise),
+  :func:`add_plane` (z offset and tilt), :func:`add_line_offsets`.
 """
+
+from afmdrift.testing._images import (
+    Particles,
+    add_line_offsets,
+    add_noise,
+    add_plane,
+    fourier_shift,
+    particle_texture,
+    rough_texture,
+    shifted_crop,
+    terrace_texture,
+)
+
+__all__ = [
+    "Particles",
+    "add_line_offsets",
+    "add_noise",
+    "add_plane",
+    "fourier_shift",
+    "particle_texture",
+    "rough_texture",
+    "shifted_crop",
+    "terrace_texture",
+]

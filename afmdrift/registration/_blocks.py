@@ -1,0 +1,168 @@
+"""Gradient image (eq. 2), block grid and raised-cosine window (eq. 4).
+
+Border handling
+---------------
+Every extended window lies entirely inside the gradient image: no padding is
+ever invented. Along an axis of length ``G`` (gradient image), with extended
+size ``E`` and block size ``B``, the grid has ``n = ceil(G / B)`` windows
+whose top-left corners are spread evenly (rounded to whole pixels) from ``0``
+to ``G - E``. For ``G`` a multiple of ``B`` this is the paper's tiling up to a
+few pixels; for other sizes (512×256, 200×200) the windows overlap a little
+more, and every pixel lies in at least one window. When ``G < E`` (images
+smaller than the extended window, e.g. 64 px), the extended size is reduced to
+the largest even size that fits and the block size to half of it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["BlockLayout", "gradient_image", "gradient_shape", "raised_cosine"]
+
+Gradient = Literal["x", "y", "both", "none"]
+
+
+def gradient_shape(shape: tuple[int, int], gradient: Gradient) -> tuple[int, int]:
+    """Shape ``(rows, cols)`` of :func:`gradient_image` for an image of ``shape``."""
+    rows, cols = shape
+    return (rows - (gradient in ("y", "both")), cols - (gradient in ("x", "both")))
+
+
+def gradient_offset_px(gradient: Gradient) -> tuple[float, float]:
+    """Position ``(x, y)`` in image pixels of gradient pixel ``[0, 0]``."""
+    return (0.5 if gradient in ("x", "both") else 0.0, 0.5 if gradient in ("y", "both") else 0.0)
+
+
+def gradient_image(
+    heights: npt.NDArray[np.floating], gradient: Gradient
+) -> npt.NDArray[np.float32]:
+    """Gradient image of eq. (2) of Yang et al. (2008), in float32.
+
+    ``"x"``: ``g = h(x, y) - h(x - 1, y)`` along the fast axis (per-line
+    offsets cancel; a tilt becomes a constant that block mean removal
+    cancels). ``"y"``: the same along rows. ``"both"``: the magnitude
+    ``hypot(gx, gy)`` (rotation-symmetric edges, but no longer invariant to
+    line offsets or tilt). ``"none"``: the heights themselves.
+
+    Parameters
+    ----------
+    heights : ndarray, shape (rows, cols)
+    gradient : {"x", "y", "both", "none"}
+
+    Returns
+    -------
+    ndarray, shape :func:`gradient_shape`, float32
+    """
+    h = heights
+    out: npt.NDArray[np.float32]
+    if gradient == "x":
+        out = np.subtract(h[:, 1:], h[:, :-1], dtype=np.float32)
+    elif gradient == "y":
+        out = np.subtract(h[1:, :], h[:-1, :], dtype=np.float32)
+    elif gradient == "both":
+        out = np.subtract(h[:-1, 1:], h[:-1, :-1], dtype=np.float32)
+        gy = np.subtract(h[1:, :-1], h[:-1, :-1], dtype=np.float32)
+        np.hypot(out, gy, out=out)
+    else:
+        out = np.array(h, dtype=np.float32)
+    return out
+
+
+def raised_cosine(rows: int, cols: int) -> npt.NDArray[np.float32]:
+    """2-D raised-cosine window of eq. (4), shape (rows, cols), float32.
+
+    ``w(x, y) = 1/4 [1 - cos(2π(x + ½)/M)] [1 - cos(2π(y + ½)/N)]``. The
+    window is periodic in ``x`` with period ``M``, so its DFT is non-zero
+    only at the frequencies 0 and ±1 along each axis.
+    """
+    wy = 0.5 * (1.0 - np.cos(2.0 * np.pi * (np.arange(rows) + 0.5) / rows))
+    wx = 0.5 * (1.0 - np.cos(2.0 * np.pi * (np.arange(cols) + 0.5) / cols))
+    return np.outer(wy, wx).astype(np.float32)
+
+
+def _axis(length: int, extended: int, block: int) -> tuple[int, int, npt.NDArray[np.intp]]:
+    ext = extended
+    blk = block
+    if length < extended:
+        ext = length - length % 2
+        blk = min(block, ext // 2)
+    n = max(1, min(math.ceil(length / blk), length - ext + 1))
+    if n == 1:
+        starts = np.array([(length - ext) // 2], dtype=np.intp)
+    else:
+        starts = np.rint(np.linspace(0.0, length - ext, n)).astype(np.intp)
+    return ext, blk, starts
+
+
+@dataclass(frozen=True)
+class BlockLayout:
+    """Where the extended windows lie in the gradient image.
+
+    Attributes
+    ----------
+    grad_shape : (int, int)
+        Gradient image ``(rows, cols)``.
+    ext : (int, int)
+        Extended window ``(rows, cols)``.
+    block : (int, int)
+        Inner block ``(rows, cols)``.
+    top : ndarray, shape (n,)
+        Row of each window's top-left corner.
+    left : ndarray, shape (n,)
+        Column of each window's top-left corner.
+    max_shift : (int, int)
+        Largest integer shift searched, ``(rows, cols)``.
+    pitch : (float, float)
+        Mean spacing of window corners ``(rows, cols)`` (block size if one).
+    """
+
+    grad_shape: tuple[int, int]
+    ext: tuple[int, int]
+    block: tuple[int, int]
+    top: npt.NDArray[np.intp]
+    left: npt.NDArray[np.intp]
+    max_shift: tuple[int, int]
+    pitch: tuple[float, float]
+
+    @classmethod
+    def build(
+        cls,
+        grad_shape: tuple[int, int],
+        *,
+        extended_size: int,
+        block_size: int,
+        max_shift_px: float | None,
+    ) -> BlockLayout:
+        rows, cols = grad_shape
+        ey, by, ys = _axis(rows, extended_size, block_size)
+        ex, bx, xs = _axis(cols, extended_size, block_size)
+        shifts = []
+        for e, b in ((ey, by), (ex, bx)):
+            limit = e // 2 - 2  # keep room for the 3×3 sub-pixel neighbourhood
+            want = (e - b) / 2 if max_shift_px is None else max_shift_px
+            shifts.append(int(max(1, min(limit, math.floor(want)))))
+        top, left = np.meshgrid(ys, xs, indexing="ij")
+        pitch_y = float(np.mean(np.diff(ys))) if ys.size > 1 else float(by)
+        pitch_x = float(np.mean(np.diff(xs))) if xs.size > 1 else float(bx)
+        return cls(
+            grad_shape=(rows, cols),
+            ext=(ey, ex),
+            block=(by, bx),
+            top=top.ravel(),
+            left=left.ravel(),
+            max_shift=(shifts[0], shifts[1]),
+            pitch=(pitch_y, pitch_x),
+        )
+
+    @property
+    def n_blocks(self) -> int:
+        return int(self.top.size)
+
+    def overlap_factor(self) -> float:
+        """Fraction of each inner block not shared with its neighbours (≤ 1)."""
+        return min(1.0, self.pitch[0] / self.block[0]) * min(1.0, self.pitch[1] / self.block[1])

@@ -1,0 +1,16 @@
+"""Typed errors of the registration engine."""
+
+from __future__ import annotations
+
+from afmdrift.errors import InputError
+
+__all__ = ["InvalidFrameError", "RegistrationError"]
+
+
+class RegistrationError(InputError):
+    """Two frames cannot be registered: shapes or pixel sizes disagree, or an
+    argument is out of range. The message names the item and its value."""
+
+
+class InvalidFrameError(RegistrationError):
+    """One image is unusable: not 2-D, too small, NaN/Inf pixels, or no texture."""

@@ -1,0 +1,290 @@
+"""Frame-level drift: input checks, block combination and :func:`measure_drift`."""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.registration._coarse import coarse_shift
+from afmdrift.registration._config import RegistrationConfig
+from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
+from afmdrift.registration._errors import InvalidFrameError, RegistrationError
+from afmdrift.registration._outliers import reject_mad, reject_paper
+from afmdrift.registration._result import BlockField, DriftResult
+
+__all__ = [
+    "MIN_IMAGE_PX",
+    "check_image",
+    "check_pixel_size",
+    "check_prior",
+    "check_texture",
+    "combine",
+    "measure_blocks",
+    "measure_drift",
+]
+
+#: Smallest accepted image edge (px).
+MIN_IMAGE_PX = 64
+
+_CACHE_SIZE = 4
+_cache_lock = threading.Lock()
+_engines: OrderedDict[tuple[tuple[int, int], RegistrationConfig], BlockEngine] = OrderedDict()
+
+
+def check_pixel_size(pixel_size_nm: float | tuple[float, float]) -> tuple[float, float]:
+    """Validate a pixel size (scalar or ``(x, y)``) and return ``(px, py)`` in nm."""
+    if isinstance(pixel_size_nm, (int, float, np.floating, np.integer)):
+        pair = (float(pixel_size_nm), float(pixel_size_nm))
+    else:
+        try:
+            px, py = pixel_size_nm
+            pair = (float(px), float(py))
+        except (TypeError, ValueError):
+            raise RegistrationError(
+                f"pixel_size_nm must be a number or an (x, y) pair, got {pixel_size_nm!r}"
+            ) from None
+    for name, v in zip(("x", "y"), pair, strict=True):
+        if not (math.isfinite(v) and v > 0):
+            raise RegistrationError(f"pixel_size_nm {name} must be finite and > 0, got {v!r}")
+    return pair
+
+
+def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
+    """Validate a height image; return it as a floating array (no copy if possible).
+
+    Raises
+    ------
+    InvalidFrameError
+        Not 2-D, not real numeric, smaller than 64 px, NaN/Inf pixels, or
+        constant (no texture to register).
+    """
+    arr = np.asarray(image)
+    if arr.dtype.kind not in "fiu":
+        raise InvalidFrameError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
+    if arr.ndim != 2:
+        raise InvalidFrameError(f"{name} must be 2-D (rows, cols), got shape {arr.shape}")
+    if min(arr.shape) < MIN_IMAGE_PX:
+        raise InvalidFrameError(
+            f"{name} is too small: shape {arr.shape}, need at least "
+            f"{MIN_IMAGE_PX}×{MIN_IMAGE_PX} px"
+        )
+    if arr.dtype.kind != "f":
+        arr = arr.astype(np.float64)
+    finite = np.isfinite(arr)
+    if not finite.all():
+        bad = int(arr.size - np.count_nonzero(finite))
+        r, c = np.argwhere(~finite)[0]
+        raise InvalidFrameError(
+            f"{name} has {bad} NaN/Inf pixel(s), first at [row {r}, col {c}] = {arr[r, c]}"
+        )
+    lo, hi = float(arr.min()), float(arr.max())
+    if lo == hi:
+        raise InvalidFrameError(f"{name} is constant (all pixels = {lo}): nothing to register")
+    return arr
+
+
+def combine(
+    meas: BlockMeasurement,
+    *,
+    engine: BlockEngine,
+    pixel_size_nm: tuple[float, float],
+    dtype: np.dtype[np.floating],
+) -> DriftResult:
+    """Reject outlier blocks and reduce the block vectors to one drift."""
+    cfg = engine.config
+    vec = meas.vectors_px
+    measured = meas.measured
+    if cfg.outlier_rule == "paper":
+        valid = reject_paper(vec, measured, epsilon_px=cfg.epsilon_px)
+    else:
+        valid = reject_mad(vec, measured, threshold=cfg.mad_threshold)
+    n_valid = int(valid.sum())
+    total = int(vec.shape[0])
+    field = BlockField(
+        centres_px=meas.centres_px.astype(dtype),
+        vectors_px=vec.astype(dtype),
+        confidence=meas.confidence.astype(dtype),
+        mse=meas.mse.astype(dtype),
+        measured=measured.copy(),
+        valid=valid,
+    )
+    px, py = pixel_size_nm
+    if n_valid < cfg.min_valid_blocks:
+        reason = (
+            f"only {n_valid} of {total} blocks valid (need {cfg.min_valid_blocks}; "
+            f"{int(measured.sum())} had a usable peak)"
+        )
+        nan = math.nan
+        return DriftResult(
+            dx_px=nan,
+            dy_px=nan,
+            dx_nm=nan,
+            dy_nm=nan,
+            sigma_x_nm=nan,
+            sigma_y_nm=nan,
+            sigma_nm=nan,
+            valid=False,
+            valid_blocks=n_valid,
+            total_blocks=total,
+            reason=reason,
+            field=field,
+        )
+    sel = vec[valid]
+    mean = sel.mean(axis=0)
+    # Blocks whose inner areas overlap are not independent: count each only
+    # by its unshared fraction (never fewer than two blocks).
+    n_eff = max(2.0, n_valid * engine.layout.overlap_factor())
+    sem = sel.std(axis=0, ddof=1) / math.sqrt(n_eff)
+    sx_nm, sy_nm = float(sem[0]) * px, float(sem[1]) * py
+    return DriftResult(
+        dx_px=float(mean[0]),
+        dy_px=float(mean[1]),
+        dx_nm=float(mean[0]) * px,
+        dy_nm=float(mean[1]) * py,
+        sigma_x_nm=sx_nm,
+        sigma_y_nm=sy_nm,
+        sigma_nm=math.sqrt(0.5 * (sx_nm**2 + sy_nm**2)),
+        valid=True,
+        valid_blocks=n_valid,
+        total_blocks=total,
+        reason=None,
+        field=field,
+    )
+
+
+def _take_engine(shape: tuple[int, int], config: RegistrationConfig) -> BlockEngine:
+    with _cache_lock:
+        engine = _engines.pop((shape, config), None)
+    return engine if engine is not None else BlockEngine(shape, config)
+
+
+def _give_engine(engine: BlockEngine) -> None:
+    with _cache_lock:
+        _engines[(engine.image_shape, engine.config)] = engine
+        while len(_engines) > _CACHE_SIZE:
+            _engines.popitem(last=False)
+
+
+def result_dtype(*images: npt.NDArray[np.floating]) -> np.dtype[np.floating]:
+    """Floating dtype of the per-block arrays: that of the inputs."""
+    dt: np.dtype[np.floating] = np.result_type(*images)
+    return dt if dt.kind == "f" else np.dtype(np.float64)
+
+
+def measure_drift(
+    reference: npt.ArrayLike,
+    current: npt.ArrayLike,
+    *,
+    pixel_size_nm: float | tuple[float, float],
+    config: RegistrationConfig | None = None,
+    prior_px: tuple[float, float] | None = None,
+) -> DriftResult:
+    """Drift of ``current`` relative to ``reference`` by block phase correlation.
+
+    A feature at image position ``u`` in ``reference`` appears at ``u + d``
+    in ``current``; x runs along columns, y along rows.
+
+    Parameters
+    ----------
+    reference, current : array_like, shape (rows, cols)
+        Height images in nm, both at least 64×64 and of equal shape.
+    pixel_size_nm : float or (float, float)
+        Pixel size, or ``(x, y)`` pixel sizes, in nm.
+    config : RegistrationConfig, optional
+        Engine parameters (default: ``RegistrationConfig()``).
+    prior_px : (float, float), optional
+        Expected drift ``(dx, dy)`` in px. Windows in ``current`` are moved by
+        its rounded value, so drifts up to ``prior ± max shift`` are measured.
+        Default: a whole-frame coarse alignment (``config.coarse``), or zero.
+
+    Returns
+    -------
+    DriftResult
+        ``valid`` False (with ``reason``) when too few blocks agree.
+
+    Raises
+    ------
+    InvalidFrameError
+        Either image is not 2-D, too small, has NaN/Inf pixels, or is constant.
+    RegistrationError
+        Shapes differ, or the pixel size is not positive and finite.
+
+    References
+    ----------
+    Yang, Jagannathan & Bohannan, IEEE Trans. Nanotechnology 7(2), 2008.
+    """
+    cfg = config if config is not None else RegistrationConfig()
+    pixel = check_pixel_size(pixel_size_nm)
+    ref = check_image(reference, "reference")
+    cur = check_image(current, "current")
+    if ref.shape != cur.shape:
+        raise RegistrationError(
+            f"reference shape {ref.shape} differs from current shape {cur.shape}"
+        )
+    prior = check_prior(prior_px)
+    shape = (int(ref.shape[0]), int(ref.shape[1]))
+    engine = _take_engine(shape, cfg)
+    try:
+        g_ref = engine.gradient(ref)
+        g_cur = engine.gradient(cur)
+        check_texture(g_ref, "reference")
+        check_texture(g_cur, "current")
+        if prior is None:
+            prior = (0.0, 0.0)
+            if cfg.coarse:
+                cx, cy = coarse_shift(g_ref, g_cur, eps_rel=cfg.eps_rel)
+                prior = (float(cx), float(cy))
+        ref_spec = engine.reference(g_ref)
+        meas, _, _ = measure_blocks(engine, ref_spec, g_cur, prior_px=prior)
+    finally:
+        _give_engine(engine)
+    return combine(meas, engine=engine, pixel_size_nm=pixel, dtype=result_dtype(ref, cur))
+
+
+def check_prior(prior_px: tuple[float, float] | None) -> tuple[float, float] | None:
+    """Validate an expected drift ``(dx, dy)`` in px."""
+    if prior_px is None:
+        return None
+    try:
+        prior = (float(prior_px[0]), float(prior_px[1]))
+    except (TypeError, ValueError, IndexError):
+        raise RegistrationError(f"prior_px must be an (dx, dy) pair, got {prior_px!r}") from None
+    if not all(math.isfinite(v) for v in prior):
+        raise RegistrationError(f"prior_px must be finite, got {prior_px!r}")
+    return prior
+
+
+def measure_blocks(
+    engine: BlockEngine,
+    ref: ReferenceSpectra,
+    grad: npt.NDArray[np.float32],
+    *,
+    prior_px: tuple[float, float],
+) -> tuple[BlockMeasurement, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
+    """Block pass around ``prior_px``, repeated once around the measured
+    drift when that is a pixel or more away (``config.refine``): windows then
+    sit within half a pixel of their content, where the window-induced bias
+    of the sub-pixel estimate is smallest."""
+    meas, top, left = engine.measure(ref, grad, prior_px=prior_px)
+    if not engine.config.refine:
+        return meas, top, left
+    ok = meas.measured
+    if int(ok.sum()) < engine.config.min_valid_blocks:
+        return meas, top, left
+    est = np.median(meas.vectors_px[ok], axis=0)
+    if np.any(np.rint(est) != np.rint(np.asarray(prior_px))):
+        again = (float(est[0]), float(est[1]))
+        meas, top, left = engine.measure(ref, grad, prior_px=again)
+    return meas, top, left
+
+
+def check_texture(grad: npt.NDArray[np.float32], name: str) -> None:
+    if float(grad.max()) == float(grad.min()):
+        raise InvalidFrameError(
+            f"{name} has no texture in its gradient image (a plane or constant): "
+            "nothing to register"
+        )

@@ -1,0 +1,104 @@
+"""Result records of the registration engine."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+__all__ = ["BlockField", "DriftResult"]
+
+
+@dataclass(frozen=True, eq=False)
+class BlockField:
+    """Per-block motion field of one registration.
+
+    Attributes
+    ----------
+    centres_px : ndarray, shape (n, 2)
+        Block centres ``(x, y)`` in reference image pixels.
+    vectors_px : ndarray, shape (n, 2)
+        Motion ``(dx, dy)`` of each block in pixels (same sign convention as
+        the frame drift). Meaningless where ``measured`` is False.
+    confidence : ndarray, shape (n,)
+        Height of the normalised phase-correlation peak (1 for a perfect
+        match, about ``1/sqrt(N)`` for noise).
+    mse : ndarray, shape (n,)
+        Mean squared difference of the gradient blocks at the chosen integer
+        shift (gradient units², NaN if no candidate could be checked).
+    measured : ndarray of bool, shape (n,)
+        A usable peak was found inside the search range and overlap.
+    valid : ndarray of bool, shape (n,)
+        Measured and kept by the outlier rule: these blocks make the drift.
+    """
+
+    centres_px: npt.NDArray[np.floating]
+    vectors_px: npt.NDArray[np.floating]
+    confidence: npt.NDArray[np.floating]
+    mse: npt.NDArray[np.floating]
+    measured: npt.NDArray[np.bool_]
+    valid: npt.NDArray[np.bool_]
+
+
+def _json_float(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+@dataclass(frozen=True, eq=False)
+class DriftResult:
+    """Drift between two frames.
+
+    Sign convention: a feature at ``u`` in the reference appears at
+    ``u + d`` in the current frame; x is along columns, y along rows.
+
+    Attributes
+    ----------
+    dx_px, dy_px : float
+        Mean motion of the valid blocks, px (NaN when ``valid`` is False).
+    dx_nm, dy_nm : float
+        The same in nm (x and y pixel sizes applied separately).
+    sigma_x_nm, sigma_y_nm : float
+        Standard uncertainty of the mean from the spread of the valid blocks
+        (see docs/registration.md for the effective block count).
+    sigma_nm : float
+        RMS of the two axes' uncertainties.
+    valid : bool
+        At least ``min_valid_blocks`` blocks survived.
+    valid_blocks, total_blocks : int
+    reason : str or None
+        Why the result is invalid.
+    field : BlockField
+        Per-block detail.
+    """
+
+    dx_px: float
+    dy_px: float
+    dx_nm: float
+    dy_nm: float
+    sigma_x_nm: float
+    sigma_y_nm: float
+    sigma_nm: float
+    valid: bool
+    valid_blocks: int
+    total_blocks: int
+    reason: str | None
+    field: BlockField
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary (non-finite numbers become None)."""
+        return {
+            "dx_px": _json_float(self.dx_px),
+            "dy_px": _json_float(self.dy_px),
+            "dx_nm": _json_float(self.dx_nm),
+            "dy_nm": _json_float(self.dy_nm),
+            "sigma_x_nm": _json_float(self.sigma_x_nm),
+            "sigma_y_nm": _json_float(self.sigma_y_nm),
+            "sigma_nm": _json_float(self.sigma_nm),
+            "valid": self.valid,
+            "valid_blocks": self.valid_blocks,
+            "total_blocks": self.total_blocks,
+            "reason": self.reason,
+        }

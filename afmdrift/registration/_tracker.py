@@ -1,0 +1,316 @@
+"""Streaming registration: :class:`DriftTracker` and :class:`TrackStep`.
+
+Reference modes (``RegistrationConfig.reference``)
+--------------------------------------------------
+``"consecutive"``
+    Each frame is measured against the previous accepted frame, whose block
+    spectra are reused (no extra FFT when its windows sat on the grid).
+    Cumulative drift is a sum of increments, so its error random-walks.
+``"keyframe"`` (default)
+    Frames are measured against a keyframe until the overlap between the
+    keyframe and the current frame, ``(1 - |dx|/W)(1 - |dy|/H)``, falls below
+    ``keyframe_min_overlap``; the current frame then becomes the keyframe.
+    Errors only accumulate at re-anchoring, not at every frame.
+
+In both modes the block windows of the new frame are placed at the expected
+drift (last position plus the last increment per frame), so a steady drift
+does not eat into the search range.
+
+Invalid input and invalid measurements
+--------------------------------------
+A frame that raises a typed error (NaN pixels, wrong shape, different pixel
+size, no texture) leaves the tracker exactly as it was. A measurement that
+comes out invalid (too few agreeing blocks) is reported in the returned
+:class:`TrackStep` with ``accepted=False``; the reference, the position and
+the prediction are kept, the frame is skipped, and the next frame is
+measured against the same reference with the prediction extrapolated over
+the skipped frame. Before giving up on a frame, the tracker retries once
+from a whole-frame coarse alignment (``config.coarse``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.registration._coarse import coarse_shift
+from afmdrift.registration._config import RegistrationConfig
+from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
+from afmdrift.registration._errors import RegistrationError
+from afmdrift.registration._measure import (
+    check_image,
+    check_pixel_size,
+    check_texture,
+    combine,
+    measure_blocks,
+    result_dtype,
+)
+from afmdrift.registration._result import BlockField, DriftResult
+
+if TYPE_CHECKING:
+    from afmdrift.drivers import Frame
+
+__all__ = ["DriftTracker", "TrackStep"]
+
+
+@dataclass(frozen=True, eq=False)
+class TrackStep:
+    """What :meth:`DriftTracker.update` learnt from one frame.
+
+    Attributes
+    ----------
+    frame_index : int
+        Number of the frame among those given to the tracker (first is 0).
+    increment : DriftResult
+        Drift since the previous accepted frame (its ``field`` vectors are
+        relative to that frame too).
+    measurement : DriftResult
+        The raw measurement against the reference frame ``reference_index``.
+    reference_index : int
+        Frame the measurement was made against.
+    keyframe_index : int
+        Current keyframe after this step (consecutive mode: the reference).
+    position_px, position_nm : (float, float)
+        Cumulative drift ``(x, y)`` since the first frame of the last accepted
+        frame (unchanged when this frame was not accepted).
+    accepted : bool
+        The measurement was valid and moved the tracker on.
+    reanchored : bool
+        This frame became the new keyframe.
+    """
+
+    frame_index: int
+    increment: DriftResult
+    measurement: DriftResult
+    reference_index: int
+    keyframe_index: int
+    position_px: tuple[float, float]
+    position_nm: tuple[float, float]
+    accepted: bool
+    reanchored: bool
+
+
+class DriftTracker:
+    """Measure drift frame after frame with cached reference spectra.
+
+    Parameters
+    ----------
+    pixel_size_nm : float or (float, float)
+        Pixel size, or ``(x, y)`` pixel sizes, in nm; every frame must match.
+    config : RegistrationConfig, optional
+
+    Examples
+    --------
+    >>> tracker = DriftTracker(pixel_size_nm=2.0)          # doctest: +SKIP
+    >>> for image in images:                              # doctest: +SKIP
+    ...     step = tracker.update(image)
+    ...     if step is not None and step.accepted:
+    ...         print(step.position_nm)
+    """
+
+    def __init__(
+        self,
+        *,
+        pixel_size_nm: float | tuple[float, float],
+        config: RegistrationConfig | None = None,
+    ) -> None:
+        self.config = config if config is not None else RegistrationConfig()
+        self.pixel_size_nm = check_pixel_size(pixel_size_nm)
+        self._engine: BlockEngine | None = None
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all frames; the next frame becomes the first reference.
+
+        The FFT plans of the current frame shape are kept.
+        """
+        self._ref: ReferenceSpectra | None = None
+        self._count = 0
+        self._ref_index = 0
+        self._ref_pos = np.zeros(2)  # cumulative position of the reference, px
+        self._rel = np.zeros(2)  # last accepted frame relative to the reference, px
+        self._rel_sigma_nm = (0.0, 0.0)
+        self._velocity = np.zeros(2)  # last increment per frame, px
+        self._last_index = 0
+
+    @property
+    def frames_seen(self) -> int:
+        """Frames given to :meth:`update` that passed the input checks."""
+        return self._count
+
+    @property
+    def position_px(self) -> tuple[float, float]:
+        """Cumulative drift ``(x, y)`` of the last accepted frame, px."""
+        p = self._ref_pos + self._rel
+        return float(p[0]), float(p[1])
+
+    def update(self, image: npt.ArrayLike | Frame) -> TrackStep | None:
+        """Register a new frame.
+
+        Parameters
+        ----------
+        image : array_like, shape (rows, cols), or Frame
+            Height image in nm. A :class:`~afmdrift.drivers.Frame` is checked
+            for the tracker's pixel size.
+
+        Returns
+        -------
+        TrackStep or None
+            None for the first frame, which becomes the reference.
+
+        Raises
+        ------
+        InvalidFrameError, RegistrationError
+            Unusable image, or shape/pixel size different from the first
+            frame; the tracker state is unchanged.
+        """
+        heights = self._heights(image)
+        shape = (int(heights.shape[0]), int(heights.shape[1]))
+        if (
+            self._ref is not None
+            and self._engine is not None
+            and (shape != self._engine.image_shape)
+        ):
+            raise RegistrationError(
+                f"frame shape {shape} differs from the tracked shape "
+                f"{self._engine.image_shape}; call reset() to start over"
+            )
+        engine = self._engine_for(shape)
+        grad = engine.gradient(heights)
+        check_texture(grad, "frame")
+        if self._ref is None:
+            self._ref = engine.reference(grad)
+            self._ref_index = self._count
+            self._last_index = self._count
+            self._count += 1
+            return None
+        return self._step(engine, self._ref, grad, result_dtype(heights))
+
+    # -- internals ---------------------------------------------------------------
+
+    def _heights(self, image: Any) -> npt.NDArray[np.floating]:
+        if hasattr(image, "heights_nm") and hasattr(image, "pixel_size_nm"):
+            frame_px = check_pixel_size(image.pixel_size_nm)
+            if not np.allclose(frame_px, self.pixel_size_nm, rtol=1e-9, atol=0.0):
+                raise RegistrationError(
+                    f"frame pixel size {frame_px} nm differs from the tracker's "
+                    f"{self.pixel_size_nm} nm"
+                )
+            image = image.heights_nm
+        return check_image(image, "frame")
+
+    def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
+        if self._engine is None or self._engine.image_shape != shape:
+            self._engine = BlockEngine(shape, self.config)
+        return self._engine
+
+    def _step(
+        self,
+        engine: BlockEngine,
+        ref: ReferenceSpectra,
+        grad: npt.NDArray[np.float32],
+        dtype: np.dtype[np.floating],
+    ) -> TrackStep:
+        cfg = self.config
+        index = self._count
+        gap = index - self._last_index
+        prior = self._rel + self._velocity * gap
+        meas_blocks, top, left = measure_blocks(
+            engine, ref, grad, prior_px=(float(prior[0]), float(prior[1]))
+        )
+        meas = combine(meas_blocks, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
+        if not meas.valid and cfg.coarse:
+            cx, cy = coarse_shift(ref.grad, grad, eps_rel=cfg.eps_rel)
+            if (cx, cy) != (round(prior[0]), round(prior[1])):
+                retry, top2, left2 = measure_blocks(
+                    engine, ref, grad, prior_px=(float(cx), float(cy))
+                )
+                again = combine(retry, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
+                if again.valid:
+                    meas, top, left = again, top2, left2
+        self._count += 1
+        ref_index = self._ref_index
+        increment = self._increment(meas)
+        if not meas.valid:
+            pos = self.position_px
+            return TrackStep(
+                frame_index=index,
+                increment=increment,
+                measurement=meas,
+                reference_index=ref_index,
+                keyframe_index=self._ref_index,
+                position_px=pos,
+                position_nm=self._to_nm(pos),
+                accepted=False,
+                reanchored=False,
+            )
+        rel = np.array([meas.dx_px, meas.dy_px])
+        self._velocity = (rel - self._rel) / gap
+        self._rel = rel
+        self._rel_sigma_nm = (meas.sigma_x_nm, meas.sigma_y_nm)
+        self._last_index = index
+        pos = self.position_px
+        reanchor = cfg.reference == "consecutive" or self._overlap(engine, rel) < (
+            cfg.keyframe_min_overlap
+        )
+        if reanchor:
+            grid_top, grid_left = engine.grid_positions()
+            if np.array_equal(top, grid_top) and np.array_equal(left, grid_left):
+                self._ref = engine.current_as_reference(grad, top, left)
+            else:
+                self._ref = engine.reference(grad)
+            self._ref_index = index
+            self._ref_pos = self._ref_pos + rel
+            self._rel = np.zeros(2)
+            self._rel_sigma_nm = (0.0, 0.0)
+        return TrackStep(
+            frame_index=index,
+            increment=increment,
+            measurement=meas,
+            reference_index=ref_index,
+            keyframe_index=self._ref_index,
+            position_px=pos,
+            position_nm=self._to_nm(pos),
+            accepted=True,
+            reanchored=reanchor and cfg.reference == "keyframe",
+        )
+
+    def _increment(self, meas: DriftResult) -> DriftResult:
+        """The measurement re-expressed relative to the previous accepted frame."""
+        px, py = self.pixel_size_nm
+        prev = self._rel
+        f = meas.field
+        field = BlockField(
+            centres_px=f.centres_px,
+            vectors_px=(f.vectors_px - prev.astype(f.vectors_px.dtype)),
+            confidence=f.confidence,
+            mse=f.mse,
+            measured=f.measured,
+            valid=f.valid,
+        )
+        sx = math.hypot(meas.sigma_x_nm, self._rel_sigma_nm[0])
+        sy = math.hypot(meas.sigma_y_nm, self._rel_sigma_nm[1])
+        dx = meas.dx_px - float(prev[0])
+        dy = meas.dy_px - float(prev[1])
+        return replace(
+            meas,
+            dx_px=dx,
+            dy_px=dy,
+            dx_nm=dx * px,
+            dy_nm=dy * py,
+            sigma_x_nm=sx,
+            sigma_y_nm=sy,
+            sigma_nm=math.sqrt(0.5 * (sx * sx + sy * sy)),
+            field=field,
+        )
+
+    def _overlap(self, engine: BlockEngine, rel: npt.NDArray[np.float64]) -> float:
+        rows, cols = engine.image_shape
+        return max(0.0, 1.0 - abs(float(rel[0])) / cols) * max(0.0, 1.0 - abs(float(rel[1])) / rows)
+
+    def _to_nm(self, pos: tuple[float, float]) -> tuple[float, float]:
+        return pos[0] * self.pixel_size_nm[0], pos[1] * self.pixel_size_nm[1]
