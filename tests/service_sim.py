@@ -30,9 +30,12 @@ def small_scenario(
     line_rate_hz: float = 8.0,
     drift_nm_per_sqrt_s: float = 0.05,
     thermal: bool = True,
+    warmup_nm: tuple[float, float] | None = None,
+    warmup_tau_s: float = 2000.0,
     extra: dict[str, Any] | None = None,
 ) -> Scenario:
-    """A fast scenario: ``pixels``² frames of a textured gold sample, mild drift.
+    """A fast scenario: ``pixels``² frames of a textured gold sample, mild drift
+    (random walk, thermal, and optionally a power-on settling ``warmup_nm``).
 
     4 nm per pixel; a frame's trace takes ``pixels / line_rate_hz`` s of
     instrument time and frames start every ``frame_period_s``.
@@ -63,6 +66,12 @@ def small_scenario(
             "thermal": {"enabled": thermal},
         },
     }
+    if warmup_nm is not None:
+        data["physics"]["warmup"] = {
+            "enabled": True,
+            "amplitude_nm": list(warmup_nm),
+            "tau_s": warmup_tau_s,
+        }
     for key, value in (extra or {}).items():
         data[key] = value
     return parse_scenario(data, source="service-test")

@@ -153,6 +153,7 @@ class DriftService:
         self._curve_keys: CurveKeys | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._last_offset: OffsetMsg | None = None
+        self._frame_done = asyncio.Event()
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -470,6 +471,7 @@ class DriftService:
     async def _after_frame(self, outcome: FrameOutcome, detected_wall_s: float) -> None:
         r = outcome.record
         self.frames_processed += 1
+        self._frame_done.set()
         self._frame_ends.append(r.t_end_s)
         self._last_frame_t_s = r.t_end_s
         if outcome.low_confidence:
@@ -528,6 +530,12 @@ class DriftService:
                 latency_s=latency,
             )
         )
+
+    async def wait_for_frames(self, n: int) -> None:
+        """Return once this run has processed at least ``n`` frames (bound it with a timeout)."""
+        while self.frames_processed < n:
+            self._frame_done.clear()
+            await self._frame_done.wait()
 
     def _next(self, topic: str) -> int:
         n = self._pub_seq[topic]

@@ -267,19 +267,24 @@ class FramePipeline:
             self._base_nm = m.copy()
             reference_image = np.asarray(image, dtype=np.float32)
         elif step is not None:
-            inc = step.increment
-            dx, dy, sigma = float(inc.dx_nm), float(inc.dy_nm), float(inc.sigma_nm)
-            valid_blocks, total_blocks = int(inc.valid_blocks), int(inc.total_blocks)
+            # increment: since the previous accepted frame; measurement: against
+            # the reference (keyframe), which is what the position rests on.
+            inc, meas = step.increment, step.measurement
+            accepted = bool(step.accepted)
+            dx, dy = float(inc.dx_nm), float(inc.dy_nm)
+            sigma = float(meas.sigma_nm)
+            valid_blocks, total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
             keyframe_index = int(step.keyframe_index)
             reanchored = bool(step.reanchored)
             field = _summarise_field(inc, frame.pixel_size_nm)
-            if inc.valid:
+            if accepted:
                 m = self._base_nm + np.asarray(step.position_nm, dtype=np.float64).reshape(2)
+                if reanchored or self.config.registration.reference == "consecutive":
+                    reference_image = np.asarray(image, dtype=np.float32)
             else:
-                reason = str(inc.reason) or "invalid measurement"
-            if reanchored or self.config.registration.reference == "consecutive":
-                reference_image = np.asarray(image, dtype=np.float32)
-            low = (not inc.valid) or valid_blocks < self.config.service.min_valid_blocks
+                dx = dy = math.nan
+                reason = f"measurement rejected: {meas.reason or 'invalid'}"
+            low = (not accepted) or valid_blocks < self.config.service.min_valid_blocks
             if low and not reason:
                 reason = (
                     f"low confidence: {valid_blocks} valid blocks < "

@@ -1,0 +1,155 @@
+"""End to end over a pseudo-terminal: simulator ⇄ driver ⇄ daemon ⇄ subscriber.
+
+Ground truth comes from the simulator's own drift model (never sent over the
+wire): the measured drift position of each frame is compared with the mean of
+the true drift over that frame's scan lines, relative to the reference frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq.asyncio
+from service_sim import driver, running_service, service_config, sim_server, small_scenario
+
+from afmdrift.client import Subscriber
+from afmdrift.drivers import Frame, ScanDirection
+from afmdrift.model import truth_frame_mean
+from afmdrift.service import FrameMsg, ModelMsg, OffsetMsg, RunStore
+
+pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
+
+
+def _frame_like(t_start_s: float, t_end_s: float, rows: int) -> Frame:
+    return Frame(
+        index=0,
+        heights_nm=np.zeros((rows, 1)),
+        pixel_size_nm=(1.0, 1.0),
+        t_start_s=t_start_s,
+        t_end_s=t_end_s,
+        direction=ScanDirection.UP,
+    )
+
+
+async def test_pty_end_to_end_tracks_truth_and_publishes_every_topic(tmp_path: Path) -> None:
+    ctx = zmq.asyncio.Context()
+    scenario = small_scenario(drift_nm_per_sqrt_s=0.1)
+    frames: list[FrameMsg] = []
+    models: list[ModelMsg] = []
+    offsets: list[OffsetMsg] = []
+    checked_offset_at = 0
+    try:
+        async with sim_server(scenario, speed=100.0, transport="pty") as (server, url):
+            assert url.startswith("/dev/")
+            cfg = service_config(tmp_path / "run", offset_rate_hz=100.0)
+            async with running_service(cfg, driver(url), ctx) as service:
+                sub = Subscriber(service.pub_endpoint, ctx=ctx)
+                try:
+                    async with asyncio.timeout(60):
+                        while len(frames) < 14:
+                            msg = await sub.recv()
+                            if isinstance(msg, FrameMsg):
+                                frames.append(msg)
+                            elif isinstance(msg, ModelMsg):
+                                models.append(msg)
+                            elif isinstance(msg, OffsetMsg):
+                                offsets.append(msg)
+                                model = sub.model
+                                # The subscriber's own evaluation of the latest model
+                                # agrees with the published stream (same curve).
+                                if (
+                                    msg.valid
+                                    and not msg.clamped
+                                    and model is not None
+                                    and model.wall_s < msg.wall_s - 0.05
+                                ):
+                                    x, y = sub.offset_at(msg.t_s)
+                                    assert x == pytest.approx(msg.x_nm, abs=1e-6)
+                                    assert y == pytest.approx(msg.y_nm, abs=1e-6)
+                                    checked_offset_at += 1
+                    assert not sub.is_stale()
+                finally:
+                    sub.close()
+                stored = RunStore(tmp_path / "run").frames()
+            truth = server.sim
+    finally:
+        ctx.term()
+
+    assert checked_offset_at > 50
+    # every frame the daemon saw is in the store, in order, exactly once
+    assert [r.seq for r in stored] == list(range(len(stored)))
+    indices = [r.instrument_frame for r in stored]
+    assert indices == list(range(indices[0], indices[0] + len(indices)))
+    assert len(stored) >= len(frames)
+    # the reference frame, then measurements that follow the true drift
+    assert stored[0].reason == "reference"
+    ref_truth = truth_frame_mean(
+        _frame_like(stored[0].t_start_s, stored[0].t_end_s, stored[0].rows),
+        *_truth_table(truth, stored[0].t_start_s, stored[-1].t_end_s),
+    )
+    errors = []
+    for r in stored[1:]:
+        assert r.fed_model, r.reason
+        true_p = (
+            truth_frame_mean(
+                _frame_like(r.t_start_s, r.t_end_s, r.rows),
+                *_truth_table(truth, stored[0].t_start_s, stored[-1].t_end_s),
+            )
+            - ref_truth
+        )
+        errors.append(math.hypot(r.x_nm - true_p[0], r.y_nm - true_p[1]))
+    assert max(errors) < 1.0, errors  # 4 nm pixels: sub-pixel agreement
+    # one model message per fed frame, prediction errors scored from frame 2 on
+    assert len(models) >= len(frames) - 1
+    assert all(f.pred_error_nm is not None for f in frames if f.frame >= 2)
+    # offset stream: no gap in what this subscriber received, rate near 100 Hz
+    seqs = [o.seq for o in offsets]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    span = offsets[-1].wall_s - offsets[0].wall_s
+    assert 60 < len(offsets) / span < 140
+    # the service closed its store: a reader sees a WAL database with every frame
+    with sqlite3.connect(tmp_path / "run" / "run.sqlite") as db:
+        assert db.execute("SELECT COUNT(*) FROM frames").fetchone()[0] == len(stored)
+
+
+def _truth_table(sim: object, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+    t = np.linspace(t0, t1, int((t1 - t0) / 0.25) + 2)
+    x, y = sim.truth_at(t)  # type: ignore[attr-defined]
+    return t, np.stack([x, y], axis=1)
+
+
+async def test_closed_loop_keeps_the_image_on_the_same_spot(tmp_path: Path) -> None:
+    """With closed_loop the service moves the scan offset by the predicted drift:
+    the image content stays put (small measured image positions) while the drift
+    position p, which adds back the service's own offset moves, follows the truth."""
+    ctx = zmq.asyncio.Context()
+    scenario = small_scenario(drift_nm_per_sqrt_s=0.0, seed=3, warmup_nm=(300.0, -200.0))
+    try:
+        async with sim_server(scenario, speed=100.0, transport="tcp") as (server, url):
+            cfg = service_config(
+                tmp_path / "run",
+                closed_loop=True,
+                closed_loop_interval_s=0.05,
+                closed_loop_min_step_nm=0.0,
+            )
+            async with running_service(cfg, driver(url), ctx) as service:
+                async with asyncio.timeout(90):
+                    await service.wait_for_frames(16)
+                moves = [e for e in server.sim.events if e.kind.value == "offset_move"]
+            stored = RunStore(tmp_path / "run").frames()
+    finally:
+        ctx.term()
+    assert len(moves) > 5
+    late = stored[-6:]
+    p = np.array([[r.x_nm, r.y_nm] for r in late])
+    m = np.array([[r.image_x_nm, r.image_y_nm] for r in late])
+    o = np.array([[r.offset_x_nm, r.offset_y_nm] for r in late])
+    np.testing.assert_allclose(p, m + o, atol=1e-9)
+    # the sample drifted by tens of nm, the compensated image by about 1 nm
+    assert np.abs(p).max() > 20.0
+    assert np.abs(m).max() < 2.0
