@@ -240,48 +240,20 @@ class PhysicsPredictor(_LoggingPredictor):
                     self._missing_logged.add(term.name)
                     _log.info("physics: term %r left out: %s", term.name, why)
                 continue
-            k = max(
-                int(
-                    np.count_nonzero(
-                        np.any(
-                            np.abs(
-                                term.design(
-                                    t,
-                                    history,
-                                    scan_sign=sign,
-                                    params=self.params[term.name],
-                                    axis=axis,
-                                )
-                            )
-                            > 1e-12,
-                            axis=0,
-                        )
-                    )
+            k = 0
+            for axis in (0, 1):
+                block = term.design(
+                    t, history, scan_sign=sign, params=self.params[term.name], axis=axis
                 )
-                for axis in (0, 1)
-            )
+                k = max(k, int(np.count_nonzero(np.any(np.abs(block) > 1e-12, axis=0))))
             extra = 1 if (not chosen and not term.provides_intercept) else 0
-            if n >= self.config.min_points_per_column * (columns + k + extra):
+            # The first term may be exactly determined (two points fix a trend);
+            # later ones need min_points_per_column points per column.
+            ratio = 1.0 if not chosen else self.config.min_points_per_column
+            if n >= ratio * (columns + k + extra):
                 chosen.append(term.name)
                 columns += k + extra
         return chosen
-
-    def _objective(
-        self,
-        t: FloatArray,
-        xy: FloatArray,
-        w: FloatArray,
-        sign: FloatArray,
-        history: History,
-        active: list[str],
-        params: dict[str, dict[str, float]],
-    ) -> float:
-        total = 0.0
-        for axis in (0, 1):
-            blocks = self.design_blocks(t, history, sign, axis, active=active, params=params)
-            x = np.hstack([b for _, b in blocks])
-            total += solve_wls(x, xy[:, axis], w).wrss
-        return total
 
     def _fit(self, history: History) -> None:
         t = self.log.t()
@@ -292,12 +264,25 @@ class PhysicsPredictor(_LoggingPredictor):
         params = {k: dict(v) for k, v in self.params.items()}
         nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]
         if nonlinear and t.size >= 3:
+            # Blocks of every term at the current θ; a scan only rebuilds its own term.
+            blocks = [
+                dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
+                for axis in (0, 1)
+            ]
             for _ in range(self.config.refine_passes):
                 for name, p in nonlinear:
+                    term = self._term(name)
 
-                    def obj(log_v: float, name: str = name, pname: str = p.name) -> float:
-                        params[name][pname] = float(10.0**log_v)
-                        return self._objective(t, xy, w, sign, history, active, params)
+                    def obj(log_v: float, term: EffectTerm = term, pname: str = p.name) -> float:
+                        params[term.name][pname] = float(10.0**log_v)
+                        total = 0.0
+                        for axis in (0, 1):
+                            blocks[axis][term.name] = term.design(
+                                t, history, scan_sign=sign, params=params[term.name], axis=axis
+                            )
+                            x = np.hstack(list(blocks[axis].values()))
+                            total += solve_wls(x, xy[:, axis], w).wrss
+                        return total
 
                     grid = np.log10(p.grid())
                     values = [obj(g) for g in grid]
@@ -308,7 +293,7 @@ class PhysicsPredictor(_LoggingPredictor):
                         obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
                     )
                     best_log = float(res.x) if float(res.fun) <= values[best] else grid[best]
-                    params[name][p.name] = float(10.0**best_log)
+                    obj(best_log)
         self.params = params
         self.active = active
         self.add_intercept = self._needs_intercept(active)
@@ -316,9 +301,9 @@ class PhysicsPredictor(_LoggingPredictor):
         self.columns = []
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
-            blocks = self.design_blocks(t, history, sign, axis)
-            self.columns.append([(name, int(b.shape[1])) for name, b in blocks])
-            x = np.hstack([b for _, b in blocks])
+            blocks_final = self.design_blocks(t, history, sign, axis)
+            self.columns.append([(name, int(b.shape[1])) for name, b in blocks_final])
+            x = np.hstack([b for _, b in blocks_final])
             fit = solve_wls(x, xy[:, axis], w)
             self.fits.append(fit)
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
