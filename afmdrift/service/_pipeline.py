@@ -22,7 +22,6 @@ continuous, and the frame does not feed the model.
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import math
@@ -40,6 +39,7 @@ from afmdrift.drivers._base import ChannelSample, Event, Frame
 from afmdrift.errors import InputError
 from afmdrift.model import History, Observation, OffsetCurve, Predictor
 from afmdrift.model._positions import commanded_offset_nm
+from afmdrift.registration import DriftTracker, TrackStep
 from afmdrift.service._store import FrameRecord, ResumeState, RunStore
 from afmdrift.service._wire import FieldSummary
 
@@ -63,7 +63,7 @@ class FrameOutcome:
     low_confidence: bool
 
 
-TrackerFactory = Callable[[tuple[float, float]], Any]
+TrackerFactory = Callable[[tuple[float, float]], DriftTracker]
 
 
 class FramePipeline:
@@ -97,7 +97,7 @@ class FramePipeline:
         self.history = History()
         self.observations: deque[Observation] = deque(maxlen=config.service.training_window)
         self.n_fed = 0
-        self._tracker: Any = None
+        self._tracker: DriftTracker | None = None
         self._tracker_key: tuple[tuple[int, int], tuple[float, float]] | None = None
         self._base_nm = np.zeros(2)  # image position m of the tracker's reference
         self._t_ref_s: float | None = None  # session reference time (p = 0)
@@ -112,11 +112,8 @@ class FramePipeline:
 
     # ------------------------------------------------------------------ factories
 
-    def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> Any:
-        registration = importlib.import_module("afmdrift.registration")
-        return registration.DriftTracker(
-            pixel_size_nm=pixel_size_nm, config=self.config.registration
-        )
+    def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
+        return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
 
     @staticmethod
     def _make_predictor(config: AfmdriftConfig) -> Predictor:
@@ -220,14 +217,15 @@ class FramePipeline:
         key = (frame.shape, frame.pixel_size_nm)
         new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
         reason = ""
-        step: Any = None
+        step: TrackStep | None = None
         reference_image: npt.NDArray[np.float32] | None = None
-        if new_reference:
-            self._tracker = self._tracker_factory(frame.pixel_size_nm)
+        tracker = self._tracker
+        if tracker is None or new_reference:
+            tracker = self._tracker = self._tracker_factory(frame.pixel_size_nm)
             self._tracker_key = key
             self._reset_requested = False
         try:
-            step = self._tracker.update(image)
+            step = tracker.update(image)
         except InputError as err:
             reason = f"registration failed: {err}"
             log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)

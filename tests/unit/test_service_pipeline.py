@@ -1,0 +1,193 @@
+"""The per-frame pipeline and replay: bad frames, low confidence, reference reset,
+commanded offset moves, reload, and measurements.csv.
+
+Frames come from the simulator (in process, no wire); the expected drift
+positions come from the simulator's truth.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from service_sim import service_config, small_scenario
+
+from afmdrift.drivers import Frame
+from afmdrift.drivers.sim import SimulatedAFM
+from afmdrift.drivers.sim._record import record_session
+from afmdrift.errors import InputError
+from afmdrift.model import make_predictor, truth_frame_mean
+from afmdrift.service import MEASUREMENT_COLUMNS, FramePipeline, RunStore, replay_session
+from afmdrift.session import read_session, write_session
+
+
+def _frames(sim: SimulatedAFM, n: int) -> list[Frame]:
+    out: list[Frame] = []
+    while len(out) < n:
+        for f in sim.advance_to(sim.now_s + 8.0):
+            out.append(f)
+    return out[:n]
+
+
+def _truth(sim: SimulatedAFM, frame: Frame) -> np.ndarray:
+    t = np.linspace(frame.t_start_s, frame.t_end_s, 200)
+    x, y = sim.truth_at(t)
+    return truth_frame_mean(frame, t, np.stack([x, y], axis=1))
+
+
+@pytest.fixture
+def sim() -> SimulatedAFM:
+    return SimulatedAFM(small_scenario(drift_nm_per_sqrt_s=0.1, warmup_nm=(100.0, 60.0)))
+
+
+def test_nan_frame_is_recorded_and_skipped_without_disturbing_the_track(
+    tmp_path: Path, sim: SimulatedAFM
+) -> None:
+    """Regression guard: NaN pixels must never crash the pipeline or reach the model."""
+    pipe = FramePipeline(config=service_config(tmp_path))
+    frames = _frames(sim, 6)
+    bad = frames[3].heights_nm.copy()
+    bad[10:20, 5:9] = np.nan
+    outs = []
+    for k, f in enumerate(frames):
+        if k == 3:
+            f = dataclasses.replace(f, heights_nm=bad)
+        outs.append(pipe.process(f, seq=k))
+    nan_rec = outs[3].record
+    assert not nan_rec.fed_model
+    assert nan_rec.reason.startswith("registration failed")
+    assert math.isnan(nan_rec.x_nm)
+    assert outs[3].low_confidence
+    assert outs[3].predictor_state is None
+    assert all(o.record.fed_model for k, o in enumerate(outs) if k != 3)
+    ref = _truth(sim, frames[0])
+    for k in (4, 5):
+        want = _truth(sim, frames[k]) - ref
+        got = np.array([outs[k].record.x_nm, outs[k].record.y_nm])
+        np.testing.assert_allclose(got, want, atol=1.0)
+
+
+def test_low_confidence_frames_do_not_feed_the_model(tmp_path: Path, sim: SimulatedAFM) -> None:
+    cfg = service_config(tmp_path, min_valid_blocks=1000)
+    pipe = FramePipeline(config=cfg)
+    outs = [pipe.process(f, seq=k) for k, f in enumerate(_frames(sim, 4))]
+    assert outs[0].record.reason == "reference"
+    for o in outs[1:]:
+        assert not o.record.fed_model
+        assert "low confidence" in o.record.reason
+        assert "service.min_valid_blocks=1000" in o.record.reason
+        assert o.low_confidence
+        assert math.isfinite(o.record.x_nm)  # measured, recorded, just not trusted
+
+
+def test_reset_reference_keeps_the_drift_position_continuous(
+    tmp_path: Path, sim: SimulatedAFM
+) -> None:
+    pipe = FramePipeline(config=service_config(tmp_path))
+    frames = _frames(sim, 10)
+    outs = [pipe.process(f, seq=k) for k, f in enumerate(frames[:6])]
+    pipe.request_reset()
+    outs += [pipe.process(f, seq=k + 6) for k, f in enumerate(frames[6:])]
+    reset = outs[6].record
+    assert reset.reason == "new reference (position estimated)"
+    assert not reset.fed_model
+    assert outs[6].reference is not None
+    # the new reference's position is the model's prediction for it
+    assert reset.x_nm == pytest.approx(reset.pred_x_nm)
+    ref = _truth(sim, frames[0])
+    pred_err = math.hypot(*(np.array([reset.x_nm, reset.y_nm]) - (_truth(sim, frames[6]) - ref)))
+    for k in (8, 9):
+        want = _truth(sim, frames[k]) - ref
+        got = np.array([outs[k].record.x_nm, outs[k].record.y_nm])
+        # after the reset, errors are those of the estimate plus a measurement
+        assert math.hypot(*(got - want)) < pred_err + 1.0
+
+
+def test_commanded_offset_moves_are_removed_from_the_drift_position(
+    tmp_path: Path, sim: SimulatedAFM
+) -> None:
+    """A +Δ offset move shifts the image by −Δ; p must not jump with it."""
+    pipe = FramePipeline(config=service_config(tmp_path))
+    frames = _frames(sim, 3)
+    sim.set_offset(40.0, -24.0)
+    frames += _frames(sim, 4)[1:]  # the first frame may straddle the move
+    pipe.ingest([], sim.events)
+    outs = [pipe.process(f, seq=k) for k, f in enumerate(frames)]
+    ref = _truth(sim, frames[0])
+    last = outs[-1].record
+    assert last.offset_x_nm == pytest.approx(40.0)
+    assert last.image_x_nm == pytest.approx(last.x_nm - 40.0)
+    for o, f in zip(outs[1:], frames[1:], strict=True):
+        want = _truth(sim, f) - ref
+        np.testing.assert_allclose([o.record.x_nm, o.record.y_nm], want, atol=1.5)
+
+
+def test_reload_model_refits_on_the_kept_observations(tmp_path: Path, sim: SimulatedAFM) -> None:
+    cfg = service_config(tmp_path, training_window=4)
+    pipe = FramePipeline(config=cfg)
+    for k, f in enumerate(_frames(sim, 7)):
+        pipe.process(f, seq=k)
+    assert len(pipe.observations) == 4
+    n = pipe.reload_model(make_predictor("last_value"))
+    assert n == 4
+    assert pipe.predictor.name == "last_value"
+    assert pipe.curve is not None
+    last = pipe.observations[-1]
+    np.testing.assert_allclose(
+        pipe.predictor.predict([last.t_s + 100.0], pipe.history).mean_nm[0],
+        [last.x_nm, last.y_nm],
+    )
+
+
+def _record(tmp_path: Path, n: int) -> Path:
+    return record_session(
+        small_scenario(drift_nm_per_sqrt_s=0.1, warmup_nm=(80.0, 40.0)),
+        tmp_path / "session",
+        frames=n,
+    ).path
+
+
+def test_replay_writes_store_and_documented_measurements_csv(tmp_path: Path) -> None:
+    session = _record(tmp_path, 8)
+    summary = replay_session(session, tmp_path / "run", config=service_config(tmp_path / "x"))
+    assert summary.frames == 8
+    assert summary.fed_model == 8
+    with summary.measurements_csv.open(newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert tuple(rows[0]) == MEASUREMENT_COLUMNS
+    assert [int(r["frame"]) for r in rows] == list(range(8))
+    s = read_session(session)
+    assert s.truth is not None
+    ref = s.truth_at([float(rows[0]["t_s"])])[0]
+    for r in rows[1:]:
+        assert float(r["t_s"]) == pytest.approx(s.frame(int(r["frame"])).t_mid_s)
+        want = s.truth_at([float(r["t_s"])])[0] - ref
+        assert abs(float(r["x_nm"]) - want[0]) < 1.5
+        assert abs(float(r["y_nm"]) - want[1]) < 1.5
+    assert rows[0]["pred_x_nm"] == ""
+    assert all(r["pred_x_nm"] != "" for r in rows[2:])
+    with RunStore(tmp_path / "run") as store:
+        assert store.check_consistency() == []
+        assert store.frame_count() == 8
+    with pytest.raises(InputError, match="already holds a run"):
+        replay_session(session, tmp_path / "run", config=service_config(tmp_path / "x"))
+
+
+def test_replay_survives_a_nan_frame_in_the_session(tmp_path: Path) -> None:
+    path = _record(tmp_path, 6)
+    s = read_session(path, mmap=False)
+    frames = np.array(s.frames)
+    frames[2, 0, 0] = np.nan
+    write_session(dataclasses.replace(s, frames=frames), tmp_path / "nan-session")
+    summary = replay_session(
+        tmp_path / "nan-session", tmp_path / "run", config=service_config(tmp_path / "x")
+    )
+    assert summary.frames == 6
+    assert summary.fed_model == 5
+    with RunStore(tmp_path / "run") as store:
+        rec = store.frames()[2]
+    assert rec.reason.startswith("registration failed")
