@@ -162,7 +162,19 @@ class Sample:
             )
         else:
             gp = cfg.graphite
-            base += _terraces(shape, gp.terrace_width_nm / g, gp.step_height_nm, rng)
+            angle = (
+                float(rng.uniform(0.0, 180.0))
+                if gp.step_direction_deg is None
+                else gp.step_direction_deg
+            )
+            base += _terraces(
+                shape,
+                gp.terrace_width_nm / g,
+                gp.step_height_nm,
+                rng,
+                direction_deg=angle,
+                meander=gp.meander,
+            )
             base = _smooth_periodic(base, cfg.edge_sigma_px)
             count = int(rng.poisson(gp.debris_density_per_um2 * area_um2))
             diam = np.abs(rng.normal(gp.debris_diameter_nm, 0.3 * gp.debris_diameter_nm, count))
@@ -211,7 +223,9 @@ class Sample:
 
     # ------------------------------------------------------------------ particles
 
-    def _sigma_px(self, diameter_nm: float) -> tuple[float, float]:
+    def particle_sigma_px(self, diameter_nm: float) -> tuple[float, float]:
+        """Gaussian std (x, y) of a particle's footprint in map pixels: √(R_p R_t), at least
+        ``min_sigma_px``."""
         sigma_nm = math.sqrt(0.5 * diameter_nm * self.tip_radius_nm)
         return (
             max(sigma_nm / self.grid_nm[0], self.min_sigma_px),
@@ -221,7 +235,7 @@ class Sample:
     def _stamp(self, k: int, sign: float) -> None:
         """Add (sign=+1) or remove (-1) particle k's footprint in the particle layer."""
         x_nm, y_nm, d_nm = self.particles[k]
-        sx, sy = self._sigma_px(float(d_nm))
+        sx, sy = self.particle_sigma_px(float(d_nm))
         cx, cy = x_nm / self.grid_nm[0], y_nm / self.grid_nm[1]
         hx, hy = math.ceil(5 * sx), math.ceil(5 * sy)
         ix = np.arange(math.floor(cx) - hx, math.floor(cx) + hx + 2)
@@ -310,17 +324,33 @@ class Sample:
 
 
 def _terraces(
-    shape: tuple[int, int], width_px: float, step_nm: float, rng: np.random.Generator
+    shape: tuple[int, int],
+    width_px: float,
+    step_nm: float,
+    rng: np.random.Generator,
+    *,
+    direction_deg: float,
+    meander: float,
 ) -> FloatArray:
-    """Monatomic terraces: level sets of a smooth random field, quantised in steps.
+    """Levelled vicinal surface: monatomic steps of a miscut crystal, as after plane fitting.
 
-    The level spacing is chosen so that the mean terrace width along x equals
-    ``width_px`` (steps per unit length = E|∂f/∂x| / level spacing).
+    The steps are the level lines of ``φ(x, y) + m·f(x, y)``, where φ is a
+    ramp that rises by an integer number of terraces across the periodic map
+    (about one per ``width_px``, perpendicular to ``direction_deg``) and ``f``
+    a smooth random field (correlation two terrace widths) that makes the
+    steps meander. Heights are ``step · (⌊φ + m f⌋ − φ)``: flat-topped
+    terraces with the mean miscut plane removed, periodic by construction.
     """
-    f = gaussian_field(shape, 1.5 * width_px, rng)
-    slope = float(np.mean(np.abs(np.diff(f, axis=1))))
-    spacing = max(width_px * slope, 1e-9)
-    out: FloatArray = step_nm * np.floor(f / spacing)
+    rows, cols = shape
+    theta = math.radians(direction_deg)
+    n_x = round(cols / width_px * math.cos(theta))
+    n_y = round(rows / width_px * math.sin(theta))
+    if n_x == 0 and n_y == 0:
+        n_x = 1
+    yy, xx = np.mgrid[0:rows, 0:cols].astype(np.float64)
+    ramp = n_x * xx / cols + n_y * yy / rows
+    levels = np.floor(ramp + meander * gaussian_field(shape, 2.0 * width_px, rng))
+    out: FloatArray = step_nm * (levels - ramp)
     return out
 
 

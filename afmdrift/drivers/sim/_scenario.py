@@ -121,6 +121,12 @@ class GraphiteParams(_Model):
 
     step_height_nm: float = Field(0.335, gt=0, le=10, description="Interlayer spacing of HOPG.")
     terrace_width_nm: float = Field(250.0, gt=0, le=10000, description="Typical terrace width.")
+    step_direction_deg: float | None = Field(
+        None, ge=0, le=180, description="Direction of the step edges; default random."
+    )
+    meander: float = Field(
+        1.0, ge=0, le=20, description="Meandering of the steps, in terrace widths."
+    )
     debris_density_per_um2: float = Field(
         0.5, ge=0, le=1000, description="Small particles on the terraces."
     )
