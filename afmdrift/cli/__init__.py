@@ -23,6 +23,7 @@ __all__ = ["build_parser", "main"]
 COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._config_cmd",
     "afmdrift.cli._import",
+    "afmdrift.cli._measure",
     "afmdrift.cli._run",
     "afmdrift.cli._replay",
     "afmdrift.cli._watch",

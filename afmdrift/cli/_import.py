@@ -20,15 +20,7 @@ def register(sub: Any) -> None:
     )
     p.add_argument("files", nargs="+", metavar="FILE", help="AFM image files")
     p.add_argument("--out", required=True, metavar="DIR", help="session directory to write")
-    p.add_argument(
-        "--pixel-size-nm",
-        type=float,
-        nargs="+",
-        metavar="PX",
-        help="pixel size in nm: PX, or PX PY (required for .npy/.tif; overrides headers)",
-    )
-    p.add_argument("--channel", default="Height", help="channel to read (default: Height)")
-    p.add_argument("--height-unit", help="unit of heights stored without one (m, um, nm, pm, A)")
+    add_file_options(p)
     p.add_argument(
         "--frame-time-s",
         type=float,
@@ -38,17 +30,37 @@ def register(sub: Any) -> None:
     p.set_defaults(handler=_run)
 
 
+def add_file_options(p: argparse.ArgumentParser) -> None:
+    """``--pixel-size-nm``, ``--channel`` and ``--height-unit`` (shared with ``measure``)."""
+    p.add_argument(
+        "--pixel-size-nm",
+        type=float,
+        nargs="+",
+        metavar="PX",
+        help="pixel size in nm: PX, or PX PY (required for .npy/.tif; overrides headers)",
+    )
+    p.add_argument("--channel", default="Height", help="channel to read (default: Height)")
+    p.add_argument("--height-unit", help="unit of heights stored without one (m, um, nm, pm, A)")
+
+
+def pixel_size_option(values: list[float] | None) -> tuple[float, float] | None:
+    """``--pixel-size-nm`` as ``(x, y)``; one value means square pixels."""
+    if values is None:
+        return None
+    if len(values) > 2:
+        raise InputError(f"--pixel-size-nm takes PX or PX PY, got {values}")
+    return (values[0], values[-1])
+
+
 def _run(args: argparse.Namespace) -> int:
     from afmdrift.session import import_files, write_session
 
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.force:
         raise InputError(f"{out}: exists and is not an empty directory (use --force to write)")
-    if args.pixel_size_nm is not None and len(args.pixel_size_nm) > 2:
-        raise InputError(f"--pixel-size-nm takes PX or PX PY, got {args.pixel_size_nm}")
     session = import_files(
         args.files,
-        pixel_size_nm=args.pixel_size_nm,
+        pixel_size_nm=pixel_size_option(args.pixel_size_nm),
         channel=args.channel,
         height_unit=args.height_unit,
         frame_time_s=args.frame_time_s,

@@ -1,0 +1,208 @@
+"""Drift measurement on the real AFM files: consistency checks (no ground truth exists).
+
+What the files show (``shared/data/real/README.md``):
+
+* NanoScope pair: a lattice (period about 10 px) moved by about 28 px along y
+  (rows) between the two images. We build the truth ourselves by Fourier
+  shifting the real ``.002`` texture.
+* HS-AFM movie: sub-pixel drift per frame; frames decorrelate from about
+  frame 16 on (line artefacts, the coarse correlation peak falls below its
+  significance cut-off) and frame 28 is blank.
+
+Measurements run exactly as ``afmdrift measure`` runs them (coarse
+pre-alignment, ±6 px block search), with 32/64 px blocks for these small
+images (``--block-size 32 --extended-size 64``).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import fourier_shift
+
+from afmdrift.cli import main
+from afmdrift.cli._measure import COARSE_MIN_Z, coarse_shift_px, measure_pair, track_stack
+from afmdrift.cli._measure import measurement_config as _config
+from afmdrift.io import AfmImage, load_image, load_stack
+from afmdrift.registration import InvalidFrameError, RegistrationConfig
+
+pytestmark = pytest.mark.realdata
+
+RealFile = Callable[[str], Path]
+SMALL = _config(RegistrationConfig(), block_size=32, extended_size=64)
+#: Agreement required between a direct and a chained measurement (brief: 0.3 px).
+CLOSURE_PX = 0.3
+#: Border removed after Fourier shifting, so the periodic wrap-around never enters.
+CROP = 24
+
+
+def _shifted(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """A feature at u appears at u + (dx, dy)."""
+    return np.fft.ifft2(fourier_shift(np.fft.fft2(img), (dy, dx))).real
+
+
+def _image(heights: np.ndarray, like: AfmImage, name: str) -> AfmImage:
+    return AfmImage(heights_nm=heights, pixel_size_nm=like.pixel_size_nm, path=Path(name))
+
+
+def _crop(img: np.ndarray) -> np.ndarray:
+    return img[CROP:-CROP, CROP:-CROP]
+
+
+@pytest.fixture(scope="module")
+def nanoscope(real_data_dir: Path) -> tuple[AfmImage, AfmImage]:
+    paths = [real_data_dir / f"nanoscope3a_15um.00{i}" for i in (2, 4)]
+    if not all(p.is_file() for p in paths):
+        pytest.skip(f"NanoScope files not found in {real_data_dir}")
+    return load_image(paths[0]), load_image(paths[1])
+
+
+@pytest.fixture(scope="module")
+def real_data_dir() -> Path:
+    """Module-scoped twin of the conftest fixture, so files load once per module."""
+    path = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
+    if not path.is_dir():
+        pytest.skip(f"real AFM data folder not found at {path}")
+    return path
+
+
+@pytest.mark.parametrize("config", [RegistrationConfig(), SMALL], ids=["64-128", "32-64"])
+@pytest.mark.parametrize("shift", [(0.37, -0.61), (2.3, 1.45), (-0.25, 14.3)])
+def test_known_subpixel_shift_of_real_texture_is_recovered(
+    nanoscope: tuple[AfmImage, AfmImage],
+    config: RegistrationConfig,
+    shift: tuple[float, float],
+) -> None:
+    ref, _ = nanoscope
+    moved = _shifted(ref.heights_nm, *shift)
+    pair = measure_pair(
+        _image(_crop(ref.heights_nm), ref, "ref"),
+        _image(_crop(moved), ref, "moved"),
+        _config(config),
+    )
+    assert pair.result.valid
+    assert pair.result.dx_px == pytest.approx(shift[0], abs=0.05)
+    assert pair.result.dy_px == pytest.approx(shift[1], abs=0.05)
+
+
+@pytest.mark.parametrize("config", [RegistrationConfig(), SMALL], ids=["64-128", "32-64"])
+def test_nanoscope_direct_equals_chain_through_synthetic_intermediate(
+    nanoscope: tuple[AfmImage, AfmImage], config: RegistrationConfig
+) -> None:
+    """0 = .002, 1 = .002 moved partway by a known sub-pixel shift, 2 = .004:
+    measuring 0→2 directly must agree with 0→1 + 1→2."""
+    a, b = nanoscope
+    mid = _shifted(a.heights_nm, -0.25, 14.3)
+    im0, im1, im2 = (
+        _image(_crop(h), a, n) for h, n in ((a.heights_nm, "0"), (mid, "1"), (b.heights_nm, "2"))
+    )
+    cfg = _config(config)
+    r01 = measure_pair(im0, im1, cfg).result
+    r12 = measure_pair(im1, im2, cfg).result
+    r02 = measure_pair(im0, im2, cfg).result
+    assert r01.valid
+    assert r12.valid
+    assert r02.valid
+    assert r01.dx_px + r12.dx_px == pytest.approx(r02.dx_px, abs=CLOSURE_PX)
+    assert r01.dy_px + r12.dy_px == pytest.approx(r02.dy_px, abs=CLOSURE_PX)
+
+
+def test_nanoscope_pair_cli(real_file: RealFile, capsys: pytest.CaptureFixture[str]) -> None:
+    """The pair moved about 28 px along y (README); x is within a pixel of zero."""
+    a, b = real_file("nanoscope3a_15um.002"), real_file("nanoscope3a_15um.004")
+    assert main(["measure", str(a), str(b), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["prior_px"] == [0.0, 28.0]
+    assert doc["dy_px"] == pytest.approx(28.0, abs=1.0)
+    assert doc["dx_px"] == pytest.approx(0.0, abs=1.0)
+    assert doc["dy_nm"] == pytest.approx(doc["dy_px"] * 15000 / 256)
+    assert doc["sigma_nm"] < 30.0  # half a pixel
+
+
+# --------------------------------------------------------------------------- HS-AFM movie
+
+
+@pytest.fixture(scope="module")
+def movie(real_data_dir: Path) -> list[AfmImage]:
+    path = real_data_dir / "hsafm_sample_0.asd"
+    if not path.is_file():
+        pytest.skip(f"{path} not found")
+    return load_stack(path)
+
+
+def _closures(movie: list[AfmImage], last: int) -> list[tuple[int, float, float, float, float]]:
+    """(j, error_x_px, error_y_px, sigma_x_px, sigma_y_px) of direct 0→j minus the chained
+    consecutive track, for every j <= last where both are valid and frame j still
+    correlates with frame 0 (coarse peak above its cut-off). Sigmas combine the
+    engine's reported uncertainties of all measurements involved."""
+    chain: dict[int, tuple[float, float, float, float]] = {}
+    var = np.zeros(2)
+    for d in track_stack(movie[: last + 1], SMALL):
+        if d["valid"]:
+            px, py = movie[0].pixel_size_nm
+            var += np.array([d["sigma_x_nm"] / px, d["sigma_y_nm"] / py]) ** 2
+            chain[d["cur_frame"]] = (d["cumulative_dx_px"], d["cumulative_dy_px"], *var)
+    out = []
+    for j in range(2, last + 1):
+        if j not in chain:
+            continue
+        if coarse_shift_px(movie[0].heights_nm, movie[j].heights_nm).peak_z < COARSE_MIN_Z:
+            continue
+        r = measure_pair(movie[0], movie[j], SMALL).result
+        if not r.valid:
+            continue
+        px, py = movie[0].pixel_size_nm
+        cx, cy, vx, vy = chain[j]
+        sx = float(np.sqrt(vx + (r.sigma_x_nm / px) ** 2))
+        sy = float(np.sqrt(vy + (r.sigma_y_nm / py) ** 2))
+        out.append((j, r.dx_px - cx, r.dy_px - cy, sx, sy))
+    return out
+
+
+@pytest.mark.slow
+def test_hsafm_direct_equals_sum_of_consecutive(movie: list[AfmImage]) -> None:
+    """Frame 0→j measured directly agrees with the sum of consecutive measurements
+    within 0.3 px per axis over the first ten frames.
+
+    Longer chains are checked against their own error budget below: each step
+    adds about 0.15 px of random error (the engine's sigma), so a 0.3 px bound
+    on a 20-step chain would test the noise, not the code."""
+    checked = _closures(movie, last=10)
+    assert len(checked) >= 7, f"too few comparable frames: {[c[0] for c in checked]}"
+    for j, ex, ey, _, _ in checked:
+        assert abs(ex) <= CLOSURE_PX, f"frame {j}: x closure {ex:+.3f} px"
+        assert abs(ey) <= CLOSURE_PX, f"frame {j}: y closure {ey:+.3f} px"
+
+
+@pytest.mark.slow
+def test_hsafm_closure_within_reported_uncertainty(movie: list[AfmImage]) -> None:
+    """Up to frame 21 (later frames are line artefacts or blank), the closure
+    error stays within three combined standard uncertainties plus 0.3 px."""
+    checked = _closures(movie, last=21)
+    assert len(checked) >= 10
+    for j, ex, ey, sx, sy in checked:
+        assert abs(ex) <= CLOSURE_PX + 3 * sx, f"frame {j}: x {ex:+.3f} px, sigma {sx:.3f}"
+        assert abs(ey) <= CLOSURE_PX + 3 * sy, f"frame {j}: y {ey:+.3f} px, sigma {sy:.3f}"
+
+
+def test_hsafm_blank_frame_is_an_error_not_a_number(
+    movie: list[AfmImage], real_file: RealFile, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Frame 28 is blank: measuring against it must refuse, never return a drift."""
+    with pytest.raises(InvalidFrameError, match="constant"):
+        measure_pair(movie[27], movie[28], SMALL)
+    path = real_file("hsafm_sample_0.asd")
+    assert main(["measure", f"{path}:0", f"{path}:28"]) == 2
+    err = capsys.readouterr().err
+    assert "constant" in err
+    assert "Traceback" not in err
+    docs = list(track_stack([movie[0], movie[1], movie[28], movie[2]], SMALL))
+    assert [(d["ref_frame"], d["cur_frame"]) for d in docs] == [(0, 1), (1, 2), (1, 3)]
+    assert docs[1]["valid"] is False
+    assert "constant" in docs[1]["error"]
+    assert "dx_px" not in docs[1]
+    assert docs[2]["valid"] is True  # the track continues past the blank frame

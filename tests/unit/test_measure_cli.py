@@ -1,0 +1,192 @@
+"""``afmdrift measure`` on synthetic images with known shifts (ground truth built here)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.ndimage import fourier_shift, gaussian_filter
+
+from afmdrift.cli import main
+from afmdrift.cli._measure import COARSE_MIN_Z, coarse_shift_px, measurement_config
+from afmdrift.errors import ConfigError
+from afmdrift.registration import RegistrationConfig
+
+SIZE = 256
+
+
+def _texture(seed: int = 0, size: int = SIZE) -> np.ndarray:
+    """Band-limited random surface, heights of a few nm."""
+    rng = np.random.default_rng(seed)
+    return 5.0 * gaussian_filter(rng.normal(size=(size, size)), 2.0, mode="wrap")
+
+
+def _shifted(img: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``img`` moved so that a feature at u appears at u + (dx, dy) (periodic)."""
+    return np.fft.ifft2(fourier_shift(np.fft.fft2(img), (dy, dx))).real
+
+
+def _save(path: Path, arr: np.ndarray) -> str:
+    np.save(path, arr)
+    return str(path)
+
+
+def _json_lines(text: str) -> list[dict]:
+    return [json.loads(line) for line in text.splitlines() if line.strip()]
+
+
+def test_pair_json_recovers_subpixel_shift_in_px_and_nm(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    ref = _texture()
+    a = _save(tmp_path / "a.npy", ref)
+    b = _save(tmp_path / "b.npy", _shifted(ref, 1.37, -2.61))
+    code = main(["measure", a, b, "--pixel-size-nm", "2", "3", "--json"])
+    assert code == 0
+    doc = json.loads(capsys.readouterr().out)
+    for key in ("dx_px", "dy_px", "dx_nm", "dy_nm", "sigma_nm", "valid_blocks", "total_blocks"):
+        assert key in doc
+    assert doc["valid"] is True
+    assert doc["dx_px"] == pytest.approx(1.37, abs=0.05)
+    assert doc["dy_px"] == pytest.approx(-2.61, abs=0.05)
+    assert doc["dx_nm"] == pytest.approx(2 * doc["dx_px"])
+    assert doc["dy_nm"] == pytest.approx(3 * doc["dy_px"])
+    assert doc["pixel_size_nm"] == [2.0, 3.0]
+    assert doc["valid_blocks"] >= 3
+
+
+def test_large_shift_found_through_coarse_prealignment(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Regression: a 40 px drift is beyond the ±32 px block search of 64/128 blocks;
+    the whole-image pre-alignment centres the search on it."""
+    ref = _texture(seed=1)
+    a = _save(tmp_path / "a.npy", ref)
+    b = _save(tmp_path / "b.npy", _shifted(ref, -40.4, 12.2))
+    assert main(["measure", a, b, "--pixel-size-nm", "1", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["prior_px"] == [-40.0, 12.0]
+    assert doc["prior"].startswith("coarse")
+    assert doc["dx_px"] == pytest.approx(-40.4, abs=0.05)
+    assert doc["dy_px"] == pytest.approx(12.2, abs=0.05)
+
+
+def test_text_output_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ref = _texture(seed=2)
+    a = _save(tmp_path / "a.npy", ref)
+    b = _save(tmp_path / "b.npy", _shifted(ref, 0.5, 0.25))
+    png = tmp_path / "field.png"
+    assert main(["measure", a, b, "--pixel-size-nm", "1.5", "--plot", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "dx = +0.5" in out
+    assert "valid" in out
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_stack_json_lines_increments_and_cumulative(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    base = _texture(seed=3)
+    truth = np.array([[0.0, 0.0], [0.4, -0.3], [1.1, -0.2], [0.9, 0.7]])
+    stack = np.stack([_shifted(base, dx, dy) for dx, dy in truth])
+    path = _save(tmp_path / "stack.npy", stack)
+    png = tmp_path / "track.png"
+    assert main(["measure", path, "--pixel-size-nm", "2", "--plot", str(png)]) == 0
+    lines = _json_lines(capsys.readouterr().out)
+    assert [(d["ref_frame"], d["cur_frame"]) for d in lines] == [(0, 1), (1, 2), (2, 3)]
+    for k, d in enumerate(lines, start=1):
+        step = truth[k] - truth[k - 1]
+        assert d["valid"] is True
+        assert d["dx_px"] == pytest.approx(step[0], abs=0.05)
+        assert d["dy_px"] == pytest.approx(step[1], abs=0.05)
+        assert d["cumulative_dx_px"] == pytest.approx(truth[k, 0], abs=0.08)
+        assert d["cumulative_dy_px"] == pytest.approx(truth[k, 1], abs=0.08)
+        assert d["cumulative_dx_nm"] == pytest.approx(2 * d["cumulative_dx_px"])
+    assert png.is_file()
+
+
+def test_stack_blank_frame_is_reported_and_skipped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Regression: a blank frame must give an error entry, not a number, and the
+    next frame is measured against the last good one so the track continues."""
+    base = _texture(seed=4)
+    stack = np.stack(
+        [base, _shifted(base, 0.5, 0.0), np.full_like(base, 3.0), _shifted(base, 1.0, 0.5)]
+    )
+    path = _save(tmp_path / "stack.npy", stack)
+    assert main(["measure", path, "--pixel-size-nm", "1"]) == 1
+    lines = _json_lines(capsys.readouterr().out)
+    assert lines[1]["cur_frame"] == 2
+    assert lines[1]["valid"] is False
+    assert "constant" in lines[1]["error"] or "texture" in lines[1]["error"]
+    assert (lines[2]["ref_frame"], lines[2]["cur_frame"]) == (1, 3)
+    assert lines[2]["cumulative_dx_px"] == pytest.approx(1.0, abs=0.08)
+    assert lines[2]["cumulative_dy_px"] == pytest.approx(0.5, abs=0.08)
+
+
+@pytest.mark.parametrize(
+    ("make_args", "message"),
+    [
+        (lambda a, b, small, missing: [a, missing, "--pixel-size-nm", "1"], "no such file"),
+        (lambda a, b, small, missing: [a, b], "pixel_size_nm"),
+        (lambda a, b, small, missing: [small, small, "--pixel-size-nm", "1"], "too small"),
+        (lambda a, b, small, missing: [a, small, "--pixel-size-nm", "1"], "shape"),
+        (lambda a, b, small, missing: [small, "--pixel-size-nm", "1"], "holds one image"),
+        (
+            lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "--block-size", "4"],
+            "block_size",
+        ),
+        (
+            lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "--search-px", "80"],
+            "max_shift_px",
+        ),
+        (lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "2", "3"], "PX or PX PY"),
+    ],
+)
+def test_bad_input_is_one_clear_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], make_args: object, message: str
+) -> None:
+    a = _save(tmp_path / "a.npy", _texture(seed=5))
+    b = _save(tmp_path / "b.npy", _texture(seed=5))
+    small = _save(tmp_path / "small.npy", _texture(seed=6, size=32))
+    args = make_args(a, b, small, str(tmp_path / "missing.npy"))  # type: ignore[operator]
+    assert main(["measure", *args]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert "Traceback" not in err
+
+
+def test_unrelated_images_are_not_a_confident_drift(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Two unrelated textures: the coarse peak is not trusted (z below the cut-off)."""
+    a = _save(tmp_path / "a.npy", _texture(seed=7))
+    b = _save(tmp_path / "b.npy", _texture(seed=8))
+    main(["measure", a, b, "--pixel-size-nm", "1", "--json"])
+    doc = json.loads(capsys.readouterr().out)
+    assert "not used" in doc["prior"]
+
+
+def test_coarse_shift_integer_and_significance() -> None:
+    ref = _texture(seed=9)
+    c = coarse_shift_px(ref, _shifted(ref, 17.0, -23.0))
+    assert (c.dx_px, c.dy_px) == (17.0, -23.0)
+    assert c.peak_z > 3 * COARSE_MIN_Z
+    noise = coarse_shift_px(_texture(seed=10), _texture(seed=11))
+    assert noise.peak_z < COARSE_MIN_Z
+
+
+def test_measurement_config_search_width() -> None:
+    base = RegistrationConfig()
+    assert measurement_config(base, centred=False) == base
+    assert measurement_config(base).max_shift_px == 6.0
+    small = measurement_config(base, block_size=32, extended_size=48)
+    assert small.max_shift_px == 6.0
+    tiny = measurement_config(base, block_size=8, extended_size=16)
+    assert tiny.max_shift_px == 6.0  # the engine's limit for 16 px is 16 / 2 - 2 = 6
+    assert measurement_config(base, search_px=3.0, centred=False).max_shift_px == 3.0
+    with pytest.raises(ConfigError, match="extended_size"):
+        measurement_config(base, block_size=64, extended_size=32)
