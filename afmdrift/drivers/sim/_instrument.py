@@ -238,9 +238,9 @@ class SimulatedAFM:
         rng = np.random.default_rng(self._frame_ss.spawn(1)[0])
         art = self.scenario.artefacts
         noise = (
-            rng.normal(0.0, art.noise_nm, (rows, cols))
+            art.noise_nm * rng.standard_normal((rows, cols), dtype=np.float32)
             if art.noise_nm > 0
-            else np.zeros((rows, cols))
+            else np.zeros((rows, cols), dtype=np.float32)
         )
         lines = (
             rng.normal(0.0, art.line_offset_nm, rows) if art.line_offset_nm > 0 else np.zeros(rows)

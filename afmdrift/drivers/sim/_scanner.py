@@ -77,7 +77,7 @@ class FrameRaster:
     t_start_s: float
     direction: ScanDirection
     heights_nm: FloatArray
-    noise_nm: FloatArray
+    noise_nm: npt.NDArray[np.floating]
     line_offsets_nm: FloatArray
     lines_done: int = 0
 
@@ -109,22 +109,31 @@ class FrameRaster:
         return out
 
 
-def _drift_per_pixel(physics: DriftPhysics, t: FloatArray, jumps_s: FloatArray) -> FloatArray:
-    """p(t) for every pixel time ``t`` (lines × cols), shape (lines, cols, 2).
+def _window_per_pixel(
+    physics: DriftPhysics, t: FloatArray, jumps_s: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Window displacement ``w = c(t) − p(t)`` for every pixel time ``t`` (lines × cols).
 
     Evaluated at the first and last pixel of each line and interpolated linearly
-    in between (p is smooth on the scale of one trace), except on lines whose
-    trace contains a jump (offset move, tip change), which are evaluated exactly.
+    in between (c is constant and p smooth on the scale of one trace), except on
+    lines whose trace contains a jump (offset move, tip change), which are
+    evaluated exactly. Returns ``(w_x, w_y)``, each of shape (lines, cols), nm.
     """
-    ends = physics.drift_at(t[:, [0, -1]])  # (lines, 2, 2)
+    ends_t = t[:, [0, -1]]
+    w_ends = physics.commanded_offset_at(ends_t) - physics.drift_at(ends_t)  # (lines, 2, 2)
     cols = t.shape[1]
-    frac = (np.arange(cols) / max(cols - 1, 1))[None, :, None]
-    p: FloatArray = ends[:, :1, :] + (ends[:, 1:, :] - ends[:, :1, :]) * frac
+    frac = np.arange(cols) / max(cols - 1, 1)
+    out = []
+    for axis in (0, 1):
+        w0 = w_ends[:, 0, axis]
+        out.append(w0[:, None] + (w_ends[:, 1, axis] - w0)[:, None] * frac[None, :])
     if jumps_s.size:
         inside = (jumps_s[None, :] > t[:, :1]) & (jumps_s[None, :] <= t[:, -1:])
         for i in np.nonzero(inside.any(axis=1))[0]:
-            p[i] = physics.drift_at(t[i])
-    return p
+            exact = physics.commanded_offset_at(t[i]) - physics.drift_at(t[i])
+            out[0][i] = exact[:, 0]
+            out[1][i] = exact[:, 1]
+    return out[0], out[1]
 
 
 def render_lines(
@@ -160,12 +169,11 @@ def render_lines(
     px, py = g.pixel_size_nm
     rows = frame.rows_of_lines(k0, k1)
     t = frame.pixel_times(k0, k1)
-    p = _drift_per_pixel(physics, t, jumps_s)
-    c = physics.commanded_offset_at(t)
-    ux = np.arange(g.pixels[0]) * px
-    uy = rows * py
-    sx = ux[None, :] + c[..., 0] - p[..., 0] - bias_nm[0]
-    sy = uy[:, None] + c[..., 1] - p[..., 1] - bias_nm[1]
+    wx, wy = _window_per_pixel(physics, t, jumps_s)
+    sx = wx
+    sx += np.arange(g.pixels[0])[None, :] * px - bias_nm[0]
+    sy = wy
+    sy += (rows * py - bias_nm[1])[:, None]
     h = sample.heights_at(sx, sy)
     tx, ty = artefacts.tilt
     if tx or ty:
