@@ -244,6 +244,7 @@ class ThermalLag(EffectTerm):
 
     def __init__(self) -> None:
         self._cache: dict[tuple[float, int], tuple[FloatArray, FloatArray]] = {}
+        self._grid: tuple[int, FloatArray, FloatArray] | None = None
 
     def missing(self, history: History) -> str | None:
         return _channel_missing(history, self.channel)
@@ -254,26 +255,35 @@ class ThermalLag(EffectTerm):
         out = np.interp(t_s, tg, yg)
         beyond = t_s > tg[-1]
         if beyond.any():
-            t_last = history.channel_at(self.channel, [tg[-1]])[0] - _first_finite(
-                history, self.channel
-            )
+            t_last = float(self._resampled(history)[1][-1])
             decay = np.exp(-(t_s[beyond] - tg[-1]) / tau_s)
             out[beyond] = t_last + (yg[-1] - t_last) * decay
         return out
 
-    def _filtered(self, history: History, tau_s: float) -> tuple[FloatArray, FloatArray]:
-        key = (float(tau_s), len(history.channel_t_s))
-        hit = self._cache.get(key)
-        if hit is not None:
-            return hit
+    def _resampled(self, history: History) -> tuple[FloatArray, FloatArray]:
+        """Logged temperature − T₀ on a uniform grid (cached per log length)."""
+        key = len(history.channel_t_s)
+        if self._grid is not None and self._grid[0] == key:
+            return self._grid[1], self._grid[2]
         t = np.asarray(history.channel_t_s, dtype=np.float64)
         span = float(t[-1] - t[0]) if t.size > 1 else 0.0
         if span <= 0:
             grid = np.array([t[0], t[0] + 1.0])
         else:
-            step = max(span / 20000.0, min(float(np.median(np.diff(t))), tau_s / 10.0))
+            # At most 20000 points; the smallest τ searched (60 s) spans many of them.
+            step = max(span / 20000.0, float(np.median(np.diff(t))))
             grid = np.arange(t[0], t[-1] + 0.5 * step, step)
         temp = history.channel_at(self.channel, grid) - _first_finite(history, self.channel)
+        self._grid = (key, grid, temp)
+        self._cache.clear()
+        return grid, temp
+
+    def _filtered(self, history: History, tau_s: float) -> tuple[FloatArray, FloatArray]:
+        grid, temp = self._resampled(history)
+        key = (float(tau_s), len(history.channel_t_s))
+        hit = self._cache.get(key)
+        if hit is not None:
+            return hit
         h = float(grid[1] - grid[0])
         a = np.exp(-h / tau_s)
         y, _ = lfilter([1.0 - a], [1.0, -a], temp, zi=np.array([a * temp[0]]))

@@ -47,7 +47,13 @@ from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_time
 from afmdrift.model._config import NNConfig, PhysicsConfig
 from afmdrift.model._effects import EffectTerm, available_terms
 
-__all__ = ["FitResult", "PhysicsNNPredictor", "PhysicsPredictor", "solve_wls"]
+__all__ = [
+    "FitResult",
+    "PhysicsNNPredictor",
+    "PhysicsPredictor",
+    "solve_wls",
+    "weighted_rss",
+]
 
 _log = logging.getLogger(__name__)
 
@@ -66,6 +72,18 @@ class FitResult:
     cov: FloatArray
     keep: npt.NDArray[np.bool_]
     wrss: float
+
+
+def weighted_rss(x: FloatArray, y: FloatArray, w: FloatArray) -> float:
+    """Weighted residual sum of squares of the WLS fit of y on X (the search objective)."""
+    sw = np.sqrt(w)
+    a = x * sw[:, None]
+    norms = np.sqrt(np.sum(a * a, axis=0))
+    a = a[:, norms > 0] / norms[norms > 0]
+    b = y * sw
+    coef, *_ = np.linalg.lstsq(a, b, rcond=1e-10)
+    r = b - a @ coef
+    return float(r @ r)
 
 
 def solve_wls(x: FloatArray, y: FloatArray, w: FloatArray) -> FitResult:
@@ -269,7 +287,8 @@ class PhysicsPredictor(_LoggingPredictor):
                 dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
                 for axis in (0, 1)
             ]
-            for _ in range(self.config.refine_passes):
+            for pass_no in range(self.config.refine_passes):
+                first_pass = pass_no == 0
                 for name, p in nonlinear:
                     term = self._term(name)
 
@@ -281,18 +300,28 @@ class PhysicsPredictor(_LoggingPredictor):
                                 t, history, scan_sign=sign, params=params[term.name], axis=axis
                             )
                             x = np.hstack(list(blocks[axis].values()))
-                            total += solve_wls(x, xy[:, axis], w).wrss
+                            total += weighted_rss(x, xy[:, axis], w)
                         return total
 
                     grid = np.log10(p.grid())
-                    values = [obj(g) for g in grid]
-                    best = int(np.argmin(values))
-                    lo = grid[max(best - 1, 0)]
-                    hi = grid[min(best + 1, grid.size - 1)]
+                    if first_pass:
+                        values = [obj(g) for g in grid]
+                        best = int(np.argmin(values))
+                        best_log, best_val = float(grid[best]), float(values[best])
+                        lo = grid[max(best - 1, 0)]
+                        hi = grid[min(best + 1, grid.size - 1)]
+                    else:
+                        # Later passes: refine around the current value only.
+                        best_log = float(np.log10(params[name][p.name]))
+                        best_val = obj(best_log)
+                        step = float(grid[1] - grid[0]) if grid.size > 1 else 0.1
+                        lo = max(float(grid[0]), best_log - step)
+                        hi = min(float(grid[-1]), best_log + step)
                     res = minimize_scalar(
                         obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
                     )
-                    best_log = float(res.x) if float(res.fun) <= values[best] else grid[best]
+                    if float(res.fun) <= best_val:
+                        best_log = float(res.x)
                     obj(best_log)
         self.params = params
         self.active = active

@@ -1,0 +1,304 @@
+"""Effect terms and the physics model: each term recovers its physical parameters,
+plugins load from a module path and from an entry point."""
+
+from __future__ import annotations
+
+import sys
+import textwrap
+from collections.abc import Mapping
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmdrift.drivers._base import ChannelSample, Event, EventKind, ScanDirection
+from afmdrift.errors import ConfigError
+from afmdrift.model import (
+    LIBRARY,
+    EffectTerm,
+    History,
+    NonlinearParam,
+    Observation,
+    PhysicsConfig,
+    PhysicsPredictor,
+    available_terms,
+    load_term_class,
+)
+from afmdrift.model._synthetic import synthetic_series
+
+PERIOD_S = 256.0
+
+
+def _feed(
+    model: PhysicsPredictor,
+    t: np.ndarray,
+    xy: np.ndarray,
+    history: History,
+    directions: list[ScanDirection] | None = None,
+    sigma_nm: float = 0.2,
+) -> None:
+    for i, ti in enumerate(t):
+        d = directions[i] if directions else ScanDirection.UP
+        model.update(
+            Observation(float(ti), float(xy[i, 0]), float(xy[i, 1]), sigma_nm, d, i), history
+        )
+
+
+def _temperature_history(t_end_s: float, *, period_s: float = 10.0) -> History:
+    h = History()
+    tc = np.arange(0.0, t_end_s + 600.0, period_s)
+    temp = 22.0 + 0.5 * np.sin(2 * np.pi * tc / 7200.0) + 0.2 * np.sin(2 * np.pi * tc / 2500.0)
+    hum = 45.0 + 3.0 * np.sin(2 * np.pi * tc / 9000.0 + 1.0)
+    for a, b, c in zip(tc, temp, hum, strict=True):
+        h.add_channels(
+            ChannelSample(float(a), {"temperature_c": float(b), "humidity_pct": float(c)})
+        )
+    return h
+
+
+def test_library_has_the_canonical_terms() -> None:
+    assert set(LIBRARY) == {
+        "trend",
+        "thermal",
+        "thermal_lag",
+        "humidity",
+        "creep",
+        "warmup",
+        "scan_direction",
+        "hysteresis",
+        "tip_change",
+    }
+    for cls in LIBRARY.values():
+        assert cls.__doc__, cls.name
+        assert "p(t)" in cls.__doc__, cls.name
+
+
+def test_thermal_lag_time_constant_recovered_within_20_percent() -> None:
+    s = synthetic_series(
+        hours=8.0, thermal_tau_s=1500.0, noise_nm=0.3, moves=(), scan_bias_nm=(0.0, 0.0), seed=3
+    )
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "thermal_lag"], residual="none"))
+    for o in s.observations:
+        model.update(o, s.history)
+    tau = model.params["thermal_lag"]["tau_s"]
+    assert abs(tau - 1500.0) / 1500.0 < 0.2, tau
+    k = model.coefficients()["thermal_lag"]
+    assert k["x"][0] == pytest.approx(25.0, rel=0.1)
+    assert k["y"][0] == pytest.approx(12.0, rel=0.1)
+
+
+def test_creep_fraction_and_onset_recovered() -> None:
+    s = synthetic_series(
+        hours=6.0,
+        temperature_amplitude_k=0.0,
+        creep_fraction=0.1,
+        creep_t0_s=30.0,
+        moves=((3000.0, 400.0, -300.0),),
+        scan_bias_nm=(0.0, 0.0),
+        noise_nm=0.1,
+        seed=4,
+    )
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "creep"], residual="none"))
+    for o in s.observations:
+        model.update(o, s.history)
+    c = model.coefficients()["creep"]
+    assert c["x"][0] == pytest.approx(0.1, rel=0.1)
+    assert c["y"][0] == pytest.approx(0.1, rel=0.1)
+    t0 = model.params["creep"]["t0_s"]
+    assert 30.0 / 1.5 < t0 < 30.0 * 1.5, t0
+
+
+def test_warmup_amplitude_and_time_constant_recovered() -> None:
+    t = np.arange(128.0, 8 * 3600.0, PERIOD_S)
+    tau_w, amp = 5000.0, np.array([300.0, -200.0])
+    xy = (1 - np.exp(-t / tau_w))[:, None] * amp[None, :]
+    xy -= xy[0]
+    h = History()
+    h.add_events([Event(0.0, EventKind.POWER_ON)])
+    model = PhysicsPredictor(PhysicsConfig(terms=["warmup"], residual="none"))
+    _feed(model, t, xy, h)
+    assert model.params["warmup"]["tau_w_s"] == pytest.approx(tau_w, rel=0.05)
+    assert model.coefficients()["warmup"]["x"][0] == pytest.approx(300.0, rel=0.05)
+
+
+def test_linear_terms_recovered_together() -> None:
+    """thermal (nm/K), humidity (nm/%RH), scan-direction bias, hysteresis, tip change, trend."""
+    t = np.arange(128.0, 10 * 3600.0, PERIOD_S)
+    h = _temperature_history(float(t[-1]))
+    h.add_events(
+        [
+            Event(9000.0, EventKind.OFFSET_MOVE, 100.0, -50.0),
+            Event(20000.0, EventKind.OFFSET_MOVE, -80.0, 60.0),
+            Event(15000.0, EventKind.TIP_CHANGE),
+        ]
+    )
+    sign = np.where(np.arange(t.size) % 2 == 0, 1.0, -1.0)
+    temp = h.channel_at("temperature_c", t) - 22.0
+    hum = h.channel_at("humidity_pct", t) - h.channel_at("humidity_pct", [0.0])[0]
+    last_sign = np.where(t > 20000, -1.0, np.where(t > 9000, 1.0, 0.0))
+    truth = {
+        "thermal": (30.0, -10.0),
+        "humidity": (2.0, 1.0),
+        "scan_direction": (3.0, -2.0),
+        "hysteresis": (4.0, 2.5),
+        "tip_change": (7.0, -5.0),
+        "velocity": (5.0, -3.0),
+    }
+    xy = np.zeros((t.size, 2))
+    for a in (0, 1):
+        ls = last_sign if a == 0 else -last_sign
+        xy[:, a] = (
+            truth["thermal"][a] * temp
+            + truth["humidity"][a] * hum
+            + truth["scan_direction"][a] * sign / 2
+            + truth["hysteresis"][a] * ls
+            + truth["tip_change"][a] * (t > 15000)
+            + truth["velocity"][a] * t / 3600
+            + 11.0
+        )
+    dirs = [ScanDirection.UP if s > 0 else ScanDirection.DOWN for s in sign]
+    terms = ["trend", "thermal", "humidity", "scan_direction", "hysteresis", "tip_change"]
+    model = PhysicsPredictor(PhysicsConfig(terms=terms, residual="none"))
+    _feed(model, t, xy, h, dirs)
+    c = model.coefficients()
+    for a, axis in enumerate("xy"):
+        assert c["thermal"][axis][0] == pytest.approx(truth["thermal"][a], abs=0.05)
+        assert c["humidity"][axis][0] == pytest.approx(truth["humidity"][a], abs=0.05)
+        assert c["scan_direction"][axis][0] == pytest.approx(truth["scan_direction"][a], abs=0.05)
+        assert c["hysteresis"][axis][0] == pytest.approx(truth["hysteresis"][a], abs=0.05)
+        assert c["tip_change"][axis][0] == pytest.approx(truth["tip_change"][a], abs=0.05)
+        assert c["trend"][axis][1] == pytest.approx(truth["velocity"][a], abs=0.05)
+
+
+def test_missing_channel_leaves_term_out_and_model_still_predicts() -> None:
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "thermal_lag", "humidity"]))
+    h = History()
+    t = np.arange(128.0, 4000.0, PERIOD_S)
+    _feed(model, t, np.column_stack([t * 0.01, -t * 0.02]), h)
+    assert model.active == ["trend"]
+    p = model.predict([t[-1] + PERIOD_S], h).mean_nm[0]
+    assert p == pytest.approx([(t[-1] + PERIOD_S) * 0.01, -(t[-1] + PERIOD_S) * 0.02], abs=1e-6)
+
+
+def test_future_scan_direction_alternates() -> None:
+    """Regression: an alternating up/down series must predict the next frame's bias sign."""
+    t = np.arange(128.0, 30 * PERIOD_S, PERIOD_S)
+    sign = np.where(np.arange(t.size) % 2 == 0, 1.0, -1.0)
+    xy = np.column_stack([2.0 * sign, np.zeros_like(t)])
+    dirs = [ScanDirection.UP if s > 0 else ScanDirection.DOWN for s in sign]
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "scan_direction"], residual="none"))
+    _feed(model, t, xy, History(), dirs)
+    nxt = model.predict([t[-1] + PERIOD_S, t[-1] + 2 * PERIOD_S], History()).mean_nm
+    assert nxt[0, 0] == pytest.approx(-2.0 * sign[-1], abs=1e-6)
+    assert nxt[1, 0] == pytest.approx(2.0 * sign[-1], abs=1e-6)
+
+
+def test_unknown_term_is_a_config_error_naming_it() -> None:
+    with pytest.raises(ConfigError, match="'thermall'"):
+        PhysicsPredictor(PhysicsConfig(terms=["trend", "thermall"]))
+
+
+class Sinusoid(EffectTerm):
+    """A periodic disturbance: p(t) = a·sin(2πt/P) + b·cos(2πt/P), period ``period_s``."""
+
+    name = "test_sinusoid"
+    nonlinear_params = (NonlinearParam("period_s", 600.0, 20000.0, 3000.0, grid_points=25),)
+
+    def design(
+        self,
+        t_s: np.ndarray,
+        history: History,
+        *,
+        scan_sign: np.ndarray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> np.ndarray:
+        w = 2 * np.pi * t_s / params["period_s"]
+        return np.column_stack([np.sin(w), np.cos(w)])
+
+
+def test_plugin_term_from_module_path_is_fitted() -> None:
+    spec = f"{__name__}:Sinusoid"
+    assert load_term_class(spec) is Sinusoid
+    t = np.arange(128.0, 12 * 3600.0, PERIOD_S)
+    xy = np.column_stack([20 * np.sin(2 * np.pi * t / 5400.0), 5 * np.cos(2 * np.pi * t / 5400.0)])
+    model = PhysicsPredictor(
+        PhysicsConfig(terms=["trend", "test_sinusoid"], plugins=[spec], residual="none")
+    )
+    _feed(model, t, xy, History())
+    assert model.params["test_sinusoid"]["period_s"] == pytest.approx(5400.0, rel=0.01)
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("no_colon_here", "expected 'package.module:ClassName'"),
+        ("afmdrift_no_such_module:X", "cannot import"),
+        (f"{__name__}:NotThere", "has no 'NotThere'"),
+        (f"{__name__}:PERIOD_S", "not an EffectTerm subclass"),
+    ],
+)
+def test_bad_plugin_spec_is_a_config_error(spec: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        load_term_class(spec)
+
+
+def test_plugin_may_not_shadow_a_library_term(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    (tmp_path / "shadowing_term.py").write_text(
+        textwrap.dedent('''
+        from afmdrift.model import EffectTerm
+        class Fake(EffectTerm):
+            """p(t) = 0."""
+            name = "thermal"
+            def design(self, t_s, history, *, scan_sign, params, axis):
+                return t_s[:, None] * 0
+    ''')
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match="taken by the built-in library"):
+        available_terms(["shadowing_term:Fake"])
+
+
+def test_entry_point_plugin_is_discovered(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A term registered under the ``afmdrift.effects`` entry-point group by an installed
+    distribution is available by name without any configuration."""
+    pkg = tmp_path / "afmdrift_test_effects"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text(
+        textwrap.dedent('''
+        import numpy as np
+        from afmdrift.model import EffectTerm
+        class Quadratic(EffectTerm):
+            """p(t) = q·(t/3600)², q in nm/h²."""
+            name = "test_quadratic"
+            def design(self, t_s, history, *, scan_sign, params, axis):
+                return (t_s / 3600.0)[:, None] ** 2
+    ''')
+    )
+    dist = tmp_path / "afmdrift_test_effects-1.0.dist-info"
+    dist.mkdir()
+    (dist / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: afmdrift-test-effects\nVersion: 1.0\n"
+    )
+    (dist / "entry_points.txt").write_text(
+        "[afmdrift.effects]\ntest_quadratic = afmdrift_test_effects:Quadratic\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    assert "test_quadratic" in available_terms()
+    t = np.arange(128.0, 6 * 3600.0, PERIOD_S)
+    xy = np.column_stack([3.0 * (t / 3600) ** 2, -((t / 3600) ** 2)])
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "test_quadratic"], residual="none"))
+    _feed(model, t, xy, History())
+    assert model.coefficients()["test_quadratic"]["x"][0] == pytest.approx(3.0, abs=1e-6)
+    sys.modules.pop("afmdrift_test_effects", None)
+
+
+def test_nonlinear_grid_spans_bounds() -> None:
+    term = LIBRARY["thermal_lag"]()
+    grid = [g["tau_s"] for g in term.nonlinear_grid()]
+    p = term.nonlinear_params[0]
+    assert grid[0] == pytest.approx(p.lower)
+    assert grid[-1] == pytest.approx(p.upper)
+    assert LIBRARY["trend"]().nonlinear_grid() == [{}]
