@@ -95,6 +95,8 @@ def _describe_error(error: Any, source: str, root: type[BaseModel]) -> str:
     key = ".".join(str(part) for part in loc)
     kind = error["type"]
     value = error.get("input")
+    if not loc:  # a check across several keys of the root table
+        return f"{source}: {error['msg']}"
     if kind == "extra_forbidden":
         allowed = _allowed_keys(loc[:-1], root)
         hint = f" (allowed keys: {', '.join(allowed)})" if allowed else ""
