@@ -330,6 +330,8 @@ class Scenario(_Model):
 
     @model_validator(mode="after")
     def _check(self) -> Self:
+        if self.sample.kind == "texture":
+            return self  # checked against the texture's own extent when it is loaded
         edge_nm = self.sample.map_px * self.sample.grid_nm
         for axis, size in zip("xy", self.scan.size_nm, strict=True):
             if size > 0.5 * edge_nm:
