@@ -219,7 +219,7 @@ def measure_pair(
         Pixel sizes differ; or the engine's ``RegistrationError`` /
         ``InvalidFrameError`` (shapes differ, image too small, blank, NaN).
     """
-    from afmdrift.registration import measure_drift
+    from afmdrift.registration import RegistrationError, measure_drift
 
     if not all(
         math.isclose(a, b, rel_tol=1e-6)
@@ -239,13 +239,17 @@ def measure_pair(
             prior, how = (0.0, 0.0), f"coarse peak z={c.peak_z:.1f} < {COARSE_MIN_Z:g}: not used"
         else:
             prior, how = (c.dx_px, c.dy_px), f"coarse (peak z={c.peak_z:.1f})"
-    result = measure_drift(
-        ref.heights_nm,
-        cur.heights_nm,
-        pixel_size_nm=ref.pixel_size_nm,
-        config=config,
-        prior_px=prior,
-    )
+    try:
+        result = measure_drift(
+            ref.heights_nm,
+            cur.heights_nm,
+            pixel_size_nm=ref.pixel_size_nm,
+            config=config,
+            prior_px=prior,
+        )
+    except RegistrationError as err:
+        # Name the files: the engine only knows "reference" and "current".
+        raise type(err)(f"reference {ref.source}, current {cur.source}: {err}") from None
     return PairMeasurement(result=result, prior_px=prior, prior=how)
 
 
