@@ -8,8 +8,10 @@ command with another's reply.
 
 Robustness
 ----------
-* Every command carries a fresh tag ``@N``; a reply with another tag or a
-  header that does not answer the command is an :class:`OutOfSequenceError`.
+* Every command carries a fresh, increasing tag ``@N``. A complete late reply
+  to an earlier query (lower tag, e.g. after a timeout) is skipped; a reply
+  with an unknown tag or a header that does not answer the command is an
+  :class:`OutOfSequenceError`.
 * A garbled, partial, late or out-of-sequence reply raises a typed
   :class:`ProtocolError` (or :class:`InstrumentTimeout`) and the input is
   flushed until the line is quiet, so the next query starts clean. Frame
@@ -28,6 +30,7 @@ import asyncio
 import itertools
 import logging
 import threading
+import time
 from collections.abc import Callable
 from types import TracebackType
 from typing import Self, TypeVar
@@ -117,6 +120,7 @@ class NanoScopeDriver:
         self._cached: Frame | None = None
         self.frame_transfers = 0  # frame blocks received (for cache checks and stats)
         self.resyncs = 0  # times the input was flushed after a bad reply
+        self.stale_replies = 0  # late replies to earlier queries, skipped
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -195,7 +199,10 @@ class NanoScopeDriver:
             try:
                 return fn()
             except (ProtocolError, InstrumentTimeout) as err:
-                log.warning("%s: %s; resynchronising", self.transport.name, err)
+                where = (
+                    "" if str(err).startswith(self.transport.name) else f"{self.transport.name}: "
+                )
+                log.warning("%s%s; resynchronising", where, err)
                 self._resync()
                 raise
 
@@ -210,9 +217,27 @@ class NanoScopeDriver:
         self.transport.write(data)
         return tag, data.decode("ascii").strip()
 
+    def _read_tagged(self, tag: int) -> Reply:
+        """The next reply line carrying ``tag``, skipping complete late replies to
+        earlier queries (lower tags, including their frame payloads)."""
+        deadline = time.monotonic() + self.timeout_s
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise InstrumentTimeout(f"{self.transport.name}: timed out waiting for @{tag}")
+            reply = parse_reply(self.transport.read_line(remaining))
+            if reply.tag is None or reply.tag >= tag:
+                check_tag(reply, tag)
+                return reply
+            self.stale_replies += 1
+            log.info("%s: skipping a late reply tagged @%d", self.transport.name, reply.tag)
+            if reply.header == "#FRAME":
+                stale = decode_frame_header(reply)
+                if stale is not None:
+                    self.transport.read_exact(stale.nbytes, self.frame_timeout_s)
+
     def _read_reply(self, tag: int, header: str, command: str) -> Reply:
-        reply = parse_reply(self.transport.read_line(self.timeout_s))
-        check_tag(reply, tag)
+        reply = self._read_tagged(tag)
         check_header(reply, header, command=command)
         return reply
 
@@ -274,9 +299,7 @@ class NanoScopeDriver:
 
     def _frame_sync(self) -> Frame | None:
         tag, text = self._send("FRAME:DATA", query=True)
-        reply = parse_reply(self.transport.read_line(self.timeout_s))
-        check_tag(reply, tag)
-        check_header(reply, "#FRAME", command=text)
+        reply = self._read_reply(tag, "#FRAME", text)
         header = decode_frame_header(reply)
         if header is None:
             return None

@@ -235,11 +235,17 @@ class SerialTransport(Transport):
 
     def _close_raw(self) -> None:
         port, self._port = self._port, None
-        if port is not None:
-            try:
-                port.close()
-            except OSError as err:
-                log.warning("%s: error while closing: %s", self.url, err)
+        if port is None:
+            return
+        # pyserial's socket:// handler skips socket.close() when shutdown() fails (as it
+        # does once the peer has gone), leaking the socket; close it ourselves as well.
+        sock = getattr(port, "_socket", None)
+        try:
+            port.close()
+        except OSError as err:
+            log.warning("%s: error while closing: %s", self.url, err)
+        if sock is not None:
+            sock.close()
 
     def _serial(self) -> Any:
         if self._port is None:
@@ -265,9 +271,13 @@ class SerialTransport(Transport):
 
         port = self._serial()
         try:
+            # Wait for the first byte, then take whatever else is already there
+            # (``in_waiting`` is at most 1 for socket://, so it cannot size the read).
             port.timeout = max(timeout_s, 0.0)
-            waiting = port.in_waiting
-            data: bytes = port.read(min(max_bytes, max(1, waiting)))
+            data: bytes = port.read(1)
+            if data and max_bytes > 1:
+                port.timeout = 0
+                data += port.read(max_bytes - 1)
         except (serial.SerialException, OSError) as err:
             raise InstrumentDisconnected(f"{self.url}: read failed: {err}") from None
         return data

@@ -179,11 +179,32 @@ async def test_controller_error_reply_raises_instrument_error() -> None:
 
 
 @pytest.mark.asyncio
-async def test_out_of_sequence_reply_is_rejected_and_line_resynced() -> None:
-    """A stale reply (an earlier tag) is refused, the line flushed, the next query works."""
+async def test_late_reply_to_an_earlier_query_is_skipped() -> None:
+    """A complete late reply (lower tag, e.g. after a timeout) is dropped, not taken as ours."""
+    frame = _frame(1)
     driver, t = _driver(
         [
-            (b"@1 SYST:TIME?\n", b"@0 SYST:TIME 1.0\n@1 SYST:TIME 2.0\n"),
+            (b"@1 SYST:TIME?\n", b""),
+            (
+                b"@2 SYST:TIME?\n",
+                b"@1 SYST:TIME 1.0\n" + encode_frame_reply(frame, tag=1) + b"@2 SYST:TIME 2.0\n",
+            ),
+        ],
+        timeout_s=0.1,
+    )
+    async with driver:
+        with pytest.raises(InstrumentTimeout):
+            await driver.now_s()
+        assert await driver.now_s() == 2.0
+        assert driver.stale_replies == 2
+    t.assert_done()
+
+
+@pytest.mark.asyncio
+async def test_reply_with_a_future_tag_is_rejected_and_line_resynced() -> None:
+    driver, t = _driver(
+        [
+            (b"@1 SYST:TIME?\n", b"@9 SYST:TIME 1.0\n@1 SYST:TIME 2.0\n"),
             (b"@2 SYST:TIME?\n", b"@2 SYST:TIME 3.0\n"),
         ]
     )
