@@ -112,3 +112,15 @@ def test_gwyddion_file_is_unitless(real_file: RealFile) -> None:
     assert np.all(np.isfinite(im.heights_nm))
     with pytest.raises(ImageFileError, match=r"\(has: Test\)"):
         load_image(path, channel="Phase", height_unit="nm", pixel_size_nm=1.0)
+
+
+def test_afmreader_logging_is_silenced(
+    real_file: RealFile, capfd: pytest.CaptureFixture[str]
+) -> None:
+    """Regression: AFMReader re-enables its loguru logging on import; nothing may
+    reach the terminal when afmdrift reads a file."""
+    load_image(real_file("nanoscope3a_15um.002"))
+    load_image(f"{real_file('hsafm_sample_0.asd')}:0")
+    out, err = capfd.readouterr()
+    assert out == ""
+    assert err == ""
