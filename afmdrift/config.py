@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
 from afmdrift.errors import ConfigError
+from afmdrift.drivers._config import DriverConfig
 from afmdrift.model._config import ModelConfig
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.service._config import ServiceConfig
@@ -42,6 +43,7 @@ class AfmdriftConfig(BaseModel):
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
     model: ModelConfig = Field(default_factory=ModelConfig)
+    driver: DriverConfig = Field(default_factory=DriverConfig)
 
 
 def parse_config(data: dict[str, Any], *, source: str = "<config>") -> AfmdriftConfig:

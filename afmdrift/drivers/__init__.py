@@ -14,13 +14,38 @@ from afmdrift.drivers._base import (
     InstrumentInfo,
     ScanDirection,
 )
+from afmdrift.drivers._config import DriverConfig, instrument_from_config
+from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers._protocol import (
+    ChecksumError,
+    InstrumentDisconnected,
+    InstrumentError,
+    InstrumentTimeout,
+    OutOfSequenceError,
+    ProtocolError,
+)
+from afmdrift.drivers._replay import ReplayInstrument
+from afmdrift.drivers._transport import ScriptedTransport, SerialTransport, Transport
 
 __all__ = [
     "ChannelSample",
+    "ChecksumError",
+    "DriverConfig",
     "Event",
     "EventKind",
     "Frame",
     "Instrument",
+    "InstrumentDisconnected",
+    "InstrumentError",
     "InstrumentInfo",
+    "InstrumentTimeout",
+    "NanoScopeDriver",
+    "OutOfSequenceError",
+    "ProtocolError",
+    "ReplayInstrument",
     "ScanDirection",
+    "ScriptedTransport",
+    "SerialTransport",
+    "Transport",
+    "instrument_from_config",
 ]

@@ -1,0 +1,83 @@
+"""Configuration of the instrument connection (``[driver]``), and opening it."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+if TYPE_CHECKING:
+    from afmdrift.drivers._base import Instrument
+
+__all__ = ["REPLAY_PREFIX", "DriverConfig", "instrument_from_config"]
+
+#: URL prefix that selects :class:`~afmdrift.drivers.ReplayInstrument`.
+REPLAY_PREFIX = "replay:"
+
+
+class DriverConfig(BaseModel):
+    """How to reach the instrument.
+
+    ``url`` is a serial port (``/dev/ttyUSB0``), a pseudo-terminal
+    (``/dev/pts/5``, e.g. from ``afmdrift sim serve --pty``), loopback TCP
+    (``socket://127.0.0.1:5025``, e.g. from ``afmdrift sim serve --port 5025``),
+    or ``replay:PATH`` to replay a recorded session directory.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    url: str = Field(
+        "socket://127.0.0.1:5025",
+        min_length=1,
+        description="Serial port, pty path, socket://HOST:PORT, or replay:SESSION_DIR.",
+    )
+    timeout_s: float = Field(2.0, gt=0, le=600, description="Longest wait for a reply line.")
+    frame_timeout_s: float = Field(
+        60.0, gt=0, le=3600, description="Longest wait for a frame block's payload."
+    )
+    baudrate: int = Field(115200, ge=300, le=4_000_000, description="Serial line speed.")
+    reconnect_attempts: int = Field(
+        5, ge=1, le=1000, description="Attempts to (re)open the line before giving up."
+    )
+    backoff_initial_s: float = Field(
+        0.5, gt=0, le=60, description="Wait before the second attempt; doubles each time."
+    )
+    backoff_max_s: float = Field(30.0, gt=0, le=3600, description="Longest wait between attempts.")
+    replay_speed: float = Field(
+        1.0,
+        ge=0,
+        le=1e6,
+        description="replay: virtual seconds per wall second; 0 = as fast as frames are polled.",
+    )
+
+    @field_validator("url")
+    @classmethod
+    def _check_url(cls, url: str) -> str:
+        if url.startswith(REPLAY_PREFIX) and not url[len(REPLAY_PREFIX) :].strip():
+            raise ValueError("replay: needs a session directory, e.g. replay:runs/session1")
+        return url
+
+
+def instrument_from_config(config: DriverConfig) -> Instrument:
+    """The :class:`Instrument` that ``config`` describes (not yet connected).
+
+    ``replay:PATH`` gives a :class:`~afmdrift.drivers.ReplayInstrument` paced at
+    ``replay_speed``; any other URL a :class:`~afmdrift.drivers.NanoScopeDriver`
+    on a :class:`~afmdrift.drivers.SerialTransport`.
+    """
+    if config.url.startswith(REPLAY_PREFIX):
+        from afmdrift.drivers._replay import ReplayInstrument
+
+        path = config.url[len(REPLAY_PREFIX) :].strip()
+        return ReplayInstrument(path, speed=config.replay_speed or None)
+    from afmdrift.drivers._nanoscope import NanoScopeDriver
+    from afmdrift.drivers._transport import SerialTransport
+
+    return NanoScopeDriver(
+        SerialTransport(config.url, baudrate=config.baudrate),
+        timeout_s=config.timeout_s,
+        frame_timeout_s=config.frame_timeout_s,
+        reconnect_attempts=config.reconnect_attempts,
+        backoff_initial_s=config.backoff_initial_s,
+        backoff_max_s=config.backoff_max_s,
+    )
