@@ -104,3 +104,18 @@ def test_channels_and_identify() -> None:
     assert abs(ch.values["temperature_c"] - 22.0) < 1.0
     info = sim.identify()
     assert info.model == "SimulatedAFM"
+
+
+def test_jumping_ahead_without_rendering_superseded_frames_gives_the_same_latest_frame() -> None:
+    a = SimulatedAFM(small_scenario(), seed=3)
+    b = SimulatedAFM(small_scenario(), seed=3)
+    all_frames = a.advance_to(100.0)
+    few = b.advance_to(100.0, render_all=False)
+    assert len(all_frames) == 33
+    assert [f.index for f in few] == [32]
+    np.testing.assert_array_equal(few[0].heights_nm, all_frames[-1].heights_nm)
+    assert b.latest_frame().index == a.latest_frame().index  # type: ignore[union-attr]
+    # And the next frames stay identical.
+    np.testing.assert_array_equal(
+        a.advance_to(104.0)[0].heights_nm, b.advance_to(104.0)[0].heights_nm
+    )

@@ -236,3 +236,15 @@ def test_real_nanoscope_image_as_texture(real_file: Any, tmp_path: Any) -> None:
     frame = sim.advance_to(96 / 4.0 + 0.1)[0]
     assert np.isfinite(frame.heights_nm).all()
     assert frame.heights_nm.std() > 0.1
+
+
+def test_offset_move_of_plus_delta_shows_features_at_u_minus_delta() -> None:
+    """Sign convention: the window moves by +Δ over the sample; this is not drift."""
+    delta = (10.4, -6.2)
+    sim = SimulatedAFM(gold_scenario(), seed=12)
+    sim.set_offset(*delta)
+    frame = sim.advance_to(2.5)[0]
+    ux, uy = pixel_grid(sim)
+    expected = analytic_heights(sim.sample, ux + delta[0], uy + delta[1])
+    assert np.abs(frame.heights_nm - expected).max() < 0.05
+    assert sim.truth_at(2.5) == (0.0, 0.0)

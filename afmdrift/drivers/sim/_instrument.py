@@ -95,6 +95,7 @@ class SimulatedAFM:
         self._frames_since_start = 0
         self._next_index = 0
         self._latest: Frame | None = None
+        self._skip_before_s = -math.inf
         self._jumps: list[float] = []
         self._schedule: list[tuple[float, int, Callable[[], None]]] = []
         self._order = 0
@@ -179,8 +180,19 @@ class SimulatedAFM:
         """Virtual time since power-on, s."""
         return self._t
 
-    def advance_to(self, t_s: float) -> list[Frame]:
+    def advance_to(self, t_s: float, *, render_all: bool = True) -> list[Frame]:
         """Run the instrument until ``t_s``; return the frames completed on the way.
+
+        Parameters
+        ----------
+        t_s : float
+            Target time (s since power-on), not before :attr:`now_s`.
+        render_all : bool
+            With ``False``, frames that a later frame completed by ``t_s``
+            supersedes are not rendered (nobody can observe them through
+            :meth:`latest_frame`); they still take their index, time and random
+            numbers, so frames that are rendered are the same either way. Use it
+            to jump far ahead cheaply.
 
         Raises
         ------
@@ -190,6 +202,7 @@ class SimulatedAFM:
         t_s = float(t_s)
         if not math.isfinite(t_s) or t_s < self._t:
             raise ValueError(f"advance_to({t_s}): time must be finite and >= now ({self._t} s)")
+        self._skip_before_s = -math.inf if render_all else t_s
         done: list[Frame] = []
         while self._schedule and self._schedule[0][0] <= t_s:
             t_next = max(self._schedule[0][0], self._t)
@@ -210,6 +223,11 @@ class SimulatedAFM:
                     break
                 self._frame = self._new_frame(self._next_frame_start_s)
             f = self._frame
+            g = f.geometry
+            if f.t_start_s + g.frame_period_s + g.scan_time_s <= self._skip_before_s:
+                f.lines_done = g.pixels[1]  # superseded before anyone can see it
+                self._finish_frame(f)
+                continue
             due = f.lines_due(t_s)
             if due > f.lines_done:
                 self._render(f, f.lines_done, due)
@@ -225,11 +243,14 @@ class SimulatedAFM:
             )
             done.append(frame)
             self._latest = frame
-            self._next_index += 1
-            self._frames_since_start += 1
-            self._next_frame_start_s = f.t_start_s + f.geometry.frame_period_s
-            self._frame = None
+            self._finish_frame(f)
         return done
+
+    def _finish_frame(self, f: FrameRaster) -> None:
+        self._next_index += 1
+        self._frames_since_start += 1
+        self._next_frame_start_s = f.t_start_s + f.geometry.frame_period_s
+        self._frame = None
 
     def _new_frame(self, t_start_s: float) -> FrameRaster:
         g = self._geometry
