@@ -24,6 +24,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._config_cmd",
     "afmdrift.cli._import",
     "afmdrift.cli._measure",
+    "afmdrift.cli._sim",
     "afmdrift.cli._evaluate",
     "afmdrift.cli._run",
     "afmdrift.cli._replay",
