@@ -27,7 +27,7 @@ from scipy import ndimage
 from afmdrift.drivers.sim import SimulatedAFM
 from afmdrift.drivers.sim._record import record_session
 
-SCENARIOS = ("graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie")
+SCENARIOS = ("graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie", "default")
 
 
 def frame_times(name: str, n: int = 8) -> list[float]:

@@ -136,7 +136,7 @@ def test_no_complete_frame_is_an_error(
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "name", ["graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie"]
+    "name", ["default", "graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie"]
 )
 def test_built_in_scenarios_record_a_few_frames(name: str, tmp_path: Path) -> None:
     out = tmp_path / name

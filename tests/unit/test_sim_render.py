@@ -248,3 +248,38 @@ def test_offset_move_of_plus_delta_shows_features_at_u_minus_delta() -> None:
     expected = analytic_heights(sim.sample, ux + delta[0], uy + delta[1])
     assert np.abs(frame.heights_nm - expected).max() < 0.05
     assert sim.truth_at(2.5) == (0.0, 0.0)
+
+
+def test_image_artefacts_noise_line_offsets_z_drift_and_tilt() -> None:
+    """On a flat, empty sample every height comes from the artefacts, each with its signature."""
+    sc = parse_scenario(
+        {
+            "scan": {"pixels": [128, 128], "size_nm": [512.0, 512.0], "line_rate_hz": 64.0},
+            "sample": {"map_px": 512, "roughness_nm": 0.0, "gold": {"density_per_um2": 0.0}},
+            "physics": dict(QUIET),
+            "artefacts": {
+                "noise_nm": 0.2,
+                "line_offset_nm": 0.5,
+                "z_drift_nm_per_s": 0.25,
+                "tilt": [0.01, -0.004],
+            },
+        }
+    )
+    sim = SimulatedAFM(sc, seed=1)
+    frames = sim.advance_to(2 * 2.0 + 0.01)
+    h = frames[0].heights_nm
+    ux, uy = pixel_grid(sim)
+    t_mid = frames[0].row_times_s()[:, None]  # z is sampled once per line
+    plane = 0.01 * ux - 0.004 * uy
+    resid = h - plane - 0.25 * t_mid
+    # Line offsets: a constant per row (std 0.5 nm); noise: white within a row (std 0.2 nm).
+    row_means = resid.mean(axis=1)
+    assert row_means.std() == pytest.approx(0.5, rel=0.2)
+    within = resid - row_means[:, None]
+    assert within.std() == pytest.approx(0.2, rel=0.05)
+    # z drift: the mean height rises by rate x frame period from one frame to the next.
+    d_mean = frames[1].heights_nm.mean() - frames[0].heights_nm.mean()
+    assert d_mean == pytest.approx(0.25 * 2.0, abs=0.2)
+    # Tilt: the mean slope along the fast axis is the x tilt.
+    gx = np.polyfit(ux.ravel(), h.mean(axis=0), 1)[0]
+    assert gx == pytest.approx(0.01, abs=5e-4)

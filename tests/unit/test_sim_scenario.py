@@ -9,7 +9,7 @@ import pytest
 from afmdrift.drivers.sim import SCENARIO_DIR, load_scenario, parse_scenario
 from afmdrift.errors import ConfigError
 
-BUILT_IN = ("graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie")
+BUILT_IN = ("default", "graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie")
 
 
 @pytest.mark.parametrize("name", BUILT_IN)
