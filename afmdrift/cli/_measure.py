@@ -13,9 +13,11 @@ reference, so one bad frame does not break the cumulative track.
 
 Coarse pre-alignment: the block engine only finds shifts up to
 ``(extended_size - block_size) / 2`` px around its prior. Unless
-``--no-coarse`` is given, a whole-image phase correlation of the two gradient
-images first finds the integer shift, and the block engine measures around
-it (``prior_px`` in the output) within ``--search-px`` (default 6 px).
+``--no-coarse`` is given, a whole-image phase correlation of the two
+line-levelled images first finds the integer shift; when it is significant
+and the x-gradient images agree (:func:`coarse_shift_px`), the block engine
+measures around it (``prior_px``, ``prior`` in the output) within
+``--search-px`` (default 6 px), else around zero.
 ``--prior-px`` sets the prior by hand. A narrow search matters on periodic
 samples: on the real NanoScope pair (a lattice with a period of about 10 px)
 a ±16 px search lets blocks lock onto neighbouring lattice peaks and the mean
@@ -43,6 +45,8 @@ from afmdrift.errors import ConfigError, InputError
 DEFAULT_SEARCH_PX = 6.0
 #: Smallest coarse correlation peak (in standard deviations of the surface) that is used.
 COARSE_MIN_Z = 6.0
+#: Smallest x-gradient correlation at the coarse shift (one location, so 3 sigma suffices).
+COARSE_MIN_GRADIENT_Z = 3.0
 
 if TYPE_CHECKING:
     import numpy as np
@@ -211,7 +215,7 @@ def measure_pair(
 
     The block search is centred on ``prior_px`` if given, else on the coarse
     whole-image shift (:func:`coarse_shift_px`) when ``coarse`` and its peak is
-    significant, else on zero.
+    trusted (:attr:`CoarseShift.trusted`), else on zero.
 
     Raises
     ------
@@ -235,10 +239,11 @@ def measure_pair(
         prior, how = (0.0, 0.0), "none"
     else:
         c = coarse_shift_px(ref.heights_nm, cur.heights_nm)
-        if c.peak_z < COARSE_MIN_Z:
-            prior, how = (0.0, 0.0), f"coarse peak z={c.peak_z:.1f} < {COARSE_MIN_Z:g}: not used"
+        scores = f"peak z={c.peak_z:.1f}, gradient z={c.gradient_z:.1f}"
+        if c.trusted:
+            prior, how = (c.dx_px, c.dy_px), f"coarse ({scores})"
         else:
-            prior, how = (c.dx_px, c.dy_px), f"coarse (peak z={c.peak_z:.1f})"
+            prior, how = (0.0, 0.0), f"coarse not used ({scores})"
     try:
         result = measure_drift(
             ref.heights_nm,
@@ -327,26 +332,49 @@ class CoarseShift(NamedTuple):
     dx_px: float
     dy_px: float
     peak_z: float
-    """Correlation peak over the standard deviation of the correlation surface."""
+    """Peak of the line-levelled correlation over its surface's standard deviation."""
+    gradient_z: float
+    """The x-gradient correlation at the same shift, in its surface's standard deviations."""
+
+    @property
+    def trusted(self) -> bool:
+        """Both correlations agree that the shift is real (see :func:`coarse_shift_px`)."""
+        return self.peak_z >= COARSE_MIN_Z and self.gradient_z >= COARSE_MIN_GRADIENT_Z
+
+
+def _phase_correlation(
+    reference: npt.NDArray[np.float64], current: npt.NDArray[np.float64]
+) -> npt.NDArray[np.float64]:
+    """Inverse FFT of ``F(cur)·conj(F(ref)) / |…|``: a peak at ``d`` for ``cur(u) = ref(u − d)``."""
+    import numpy as np
+
+    cross = np.fft.rfft2(current) * np.conj(np.fft.rfft2(reference))
+    mag = np.abs(cross)
+    cross /= np.maximum(mag, mag.max() * 1e-12 + np.finfo(np.float64).tiny)
+    corr: npt.NDArray[np.float64] = np.fft.irfft2(cross, s=reference.shape)
+    return corr
 
 
 def coarse_shift_px(
     reference: npt.NDArray[np.floating], current: npt.NDArray[np.floating]
 ) -> CoarseShift:
-    """Integer drift ``(dx, dy)`` in px from a whole-image phase correlation.
+    """Integer drift ``(dx, dy)`` in px from whole-image phase correlations.
 
-    Each image has its per-line median removed (line levelling, which takes
-    out the line-to-line offsets of AFM scans); the two are phase-correlated
-    without a window (a Hann window moved the peak from 28 to 18 px on the
-    real NanoScope pair). The highest peak of the inverse transform of the
-    normalised cross-power spectrum ``F(cur)·conj(F(ref)) / |…|`` sits at
-    ``d`` for ``cur(u) = ref(u − d)``. Shifts beyond half the image wrap
-    around, so the result only centres the block search.
+    The shift is the highest peak of the phase correlation of the two images
+    with their per-line medians removed (line levelling, which takes out the
+    line-to-line offsets of AFM scans), without a window (a Hann window moved
+    the peak from 28 to 18 px on the real NanoScope pair). Shifts beyond half
+    the image wrap around, so the result only centres the block search.
 
-    ``peak_z`` is the peak over the standard deviation of the correlation
-    surface: unrelated images give about ``sqrt(2 ln N)`` (4.1 for 200×200
-    px), registrable ones more (7–12 on consecutive HS-AFM frames, 19 on the
-    NanoScope pair). Below :data:`COARSE_MIN_Z` the peak is not trusted.
+    Two significances, each in standard deviations of its correlation
+    surface: ``peak_z`` of that peak (unrelated images give about
+    ``sqrt(2 ln N)``, 4.1 for 200×200 px; consecutive HS-AFM frames 7–12; the
+    NanoScope pair 19) and ``gradient_z``, the correlation of the two
+    x-gradient images (eq. 2 of Yang et al. 2008, what the block engine sees)
+    at the same shift. Scan-line artefacts (streaks) correlate strongly in
+    the levelled heights at spurious shifts (z 14–37 on HS-AFM frames 22–31)
+    but not in the x-gradient (z about 0 there, 5–10 on good frames), so
+    :attr:`CoarseShift.trusted` requires both.
 
     Parameters
     ----------
@@ -357,7 +385,7 @@ def coarse_shift_px(
     -------
     CoarseShift
         Integer-valued ``dx_px`` in ``(-cols/2, cols/2]``, ``dy_px`` in
-        ``(-rows/2, rows/2]``, and ``peak_z``.
+        ``(-rows/2, rows/2]``, ``peak_z`` and ``gradient_z``.
     """
     import numpy as np
 
@@ -365,18 +393,22 @@ def coarse_shift_px(
         g = np.asarray(h, dtype=np.float64)
         return g - np.median(g, axis=1, keepdims=True)
 
-    ref = levelled(reference)
-    cross = np.fft.rfft2(levelled(current)) * np.conj(np.fft.rfft2(ref))
-    mag = np.abs(cross)
-    cross /= np.maximum(mag, mag.max() * 1e-12 + np.finfo(np.float64).tiny)
-    corr = np.fft.irfft2(cross, s=ref.shape)
+    def gradient(h: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
+        g: npt.NDArray[np.float64] = np.diff(np.asarray(h, dtype=np.float64), axis=1)
+        return g - float(g.mean())
+
+    def z(corr: npt.NDArray[np.float64], r: int, c: int) -> float:
+        spread = float(corr.std())
+        return float(corr[r, c]) / spread if spread > 0 else 0.0
+
+    corr = _phase_correlation(levelled(reference), levelled(current))
     rows, cols = corr.shape
-    r, c = np.unravel_index(int(np.argmax(corr)), corr.shape)
-    spread = float(corr.std())
-    peak_z = float(corr[r, c]) / spread if spread > 0 else 0.0
+    r, c = (int(v) for v in np.unravel_index(int(np.argmax(corr)), corr.shape))
     dy = r - rows if r > rows // 2 else r
     dx = c - cols if c > cols // 2 else c
-    return CoarseShift(float(dx), float(dy), peak_z)
+    g_corr = _phase_correlation(gradient(reference), gradient(current))
+    g_z = z(g_corr, dy % g_corr.shape[0], dx % g_corr.shape[1])
+    return CoarseShift(float(dx), float(dy), z(corr, r, c), g_z)
 
 
 # --------------------------------------------------------------------------- plots
