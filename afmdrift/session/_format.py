@@ -152,7 +152,7 @@ def validate_session(s: Session) -> None:
     """Check shapes and values; raise :class:`SessionError` naming the item."""
     if s.frames.ndim != 3:
         raise SessionError(f"frames.npy: expected (N, rows, cols), got shape {s.frames.shape}")
-    if s.frames.dtype not in (np.float32, np.float64):
+    if s.frames.dtype.kind != "f" or s.frames.dtype.itemsize not in (4, 8):  # either byte order
         raise SessionError(f"frames.npy: dtype must be float32 or float64, got {s.frames.dtype}")
     n = s.frames.shape[0]
     if s.frame_times.shape != (n, 2):

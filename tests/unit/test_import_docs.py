@@ -42,3 +42,20 @@ def test_example_json_and_csv_blocks_parse(tmp_path: Path) -> None:
     assert s.meta.extra["channel"] == "Height"
     assert s.meta.line_time_s == pytest.approx(1 / 1.50498)
     np.testing.assert_allclose(s.frame_times[1], [639.0, 809.1019282648274])
+
+
+def test_big_endian_frames_are_accepted(tmp_path: Path) -> None:
+    """Regression: a big-endian float64 frames.npy (LabVIEW's default byte order)
+    is a valid session; the reader rejected it as 'not float32 or float64'."""
+    root = tmp_path / "be"
+    root.mkdir()
+    frames = np.arange(2 * 4 * 5, dtype=">f8").reshape(2, 4, 5)
+    np.save(root / "frames.npy", frames)
+    (root / "session.json").write_text(
+        '{"format": "afmdrift-session", "version": 1, "pixel_size_nm": 2.0, "line_time_s": 0.1}'
+    )
+    (root / "frames.csv").write_text("frame,t_start_s,t_end_s,direction\n0,0,1,up\n1,1,2,DOWN\n")
+    s = read_session(root)
+    np.testing.assert_array_equal(np.asarray(s.frames), frames)
+    assert s.meta.pixel_size_nm == (2.0, 2.0)
+    assert [d.value for d in s.directions] == ["up", "down"]
