@@ -4,13 +4,16 @@ Border handling
 ---------------
 Every extended window lies entirely inside the gradient image: no padding is
 ever invented. Along an axis of length ``G`` (gradient image), with extended
-size ``E`` and block size ``B``, the grid has ``n = ceil(G / B)`` windows
-whose top-left corners are spread evenly (rounded to whole pixels) from ``0``
-to ``G - E``. For ``G`` a multiple of ``B`` this is the paper's tiling up to a
-few pixels; for other sizes (512×256, 200×200) the windows overlap a little
-more, and every pixel lies in at least one window. When ``G < E`` (images
-smaller than the extended window, e.g. 64 px), the extended size is reduced to
-the largest even size that fits and the block size to half of it.
+size ``E``, block size ``B`` and search radius ``s``, the grid has
+``n = ceil(G / B)`` windows whose top-left corners are spread evenly (rounded
+to whole pixels) from ``m`` to ``G - E - m``, with a margin
+``m = min(s // 2, (G - E) // 4)`` that lets the windows of the current frame
+follow a drift of up to ``m`` pixels without leaving the image. A 512-px axis
+gets 8 windows of 128 px, 50 px apart; for sizes that are not a multiple of
+the block (512×256, 200×200) the windows just overlap more. When
+``G < E + B`` (too short for two windows a block apart, e.g. 100 or 64 px),
+the windows shrink to about two thirds of the axis (even) and the block to
+half of that, so that several windows and some search range remain.
 """
 
 from __future__ import annotations
@@ -59,17 +62,20 @@ def gradient_image(
     ndarray, shape :func:`gradient_shape`, float32
     """
     h = heights
-    out: npt.NDArray[np.float32]
+    rows, cols = gradient_shape((int(h.shape[0]), int(h.shape[1])), gradient)
+    out: npt.NDArray[np.float32] = np.empty((rows, cols), dtype=np.float32)
+    # Differences are taken in the input precision and only then rounded to
+    # float32, so a large z offset does not eat the texture's digits.
     if gradient == "x":
-        out = np.subtract(h[:, 1:], h[:, :-1], dtype=np.float32)
+        np.subtract(h[:, 1:], h[:, :-1], out=out, casting="same_kind")
     elif gradient == "y":
-        out = np.subtract(h[1:, :], h[:-1, :], dtype=np.float32)
+        np.subtract(h[1:, :], h[:-1, :], out=out, casting="same_kind")
     elif gradient == "both":
-        out = np.subtract(h[:-1, 1:], h[:-1, :-1], dtype=np.float32)
-        gy = np.subtract(h[1:, :-1], h[:-1, :-1], dtype=np.float32)
-        np.hypot(out, gy, out=out)
+        gx = np.subtract(h[:-1, 1:], h[:-1, :-1])
+        gy = np.subtract(h[1:, :-1], h[:-1, :-1])
+        np.hypot(gx, gy, out=out, casting="same_kind")
     else:
-        out = np.array(h, dtype=np.float32)
+        out[...] = h
     return out
 
 
@@ -85,18 +91,30 @@ def raised_cosine(rows: int, cols: int) -> npt.NDArray[np.float32]:
     return np.outer(wy, wx).astype(np.float32)
 
 
-def _axis(length: int, extended: int, block: int) -> tuple[int, int, npt.NDArray[np.intp]]:
+def _axis(
+    length: int, extended: int, block: int, max_shift: float | None
+) -> tuple[int, int, int, npt.NDArray[np.intp]]:
+    """Extended size, block size, search radius and window starts on one axis."""
     ext = extended
     blk = block
-    if length < extended:
-        ext = length - length % 2
+    if length < extended + block:
+        # Too short for two windows a block apart: shrink the windows to about
+        # two thirds of the axis (even) so that several still fit.
+        ext = min(extended, 2 * (length // 3))
         blk = min(block, ext // 2)
-    n = max(1, min(math.ceil(length / blk), length - ext + 1))
+    limit = ext // 2 - 2  # keep room for the sub-pixel neighbourhood
+    want = (ext - blk) / 2 if max_shift is None else max_shift
+    shift = int(max(1, min(limit, math.floor(want))))
+    # Leave a margin of half the search radius (at most a quarter of the free
+    # range) so windows can follow a drift of that size without clamping.
+    margin = min(shift // 2, (length - ext) // 4)
+    span = length - ext - 2 * margin
+    n = max(1, min(math.ceil(length / blk), span + 1))
     if n == 1:
         starts = np.array([(length - ext) // 2], dtype=np.intp)
     else:
-        starts = np.rint(np.linspace(0.0, length - ext, n)).astype(np.intp)
-    return ext, blk, starts
+        starts = np.rint(np.linspace(margin, margin + span, n)).astype(np.intp)
+    return ext, blk, shift, starts
 
 
 @dataclass(frozen=True)
@@ -139,13 +157,9 @@ class BlockLayout:
         max_shift_px: float | None,
     ) -> BlockLayout:
         rows, cols = grad_shape
-        ey, by, ys = _axis(rows, extended_size, block_size)
-        ex, bx, xs = _axis(cols, extended_size, block_size)
-        shifts = []
-        for e, b in ((ey, by), (ex, bx)):
-            limit = e // 2 - 2  # keep room for the 3×3 sub-pixel neighbourhood
-            want = (e - b) / 2 if max_shift_px is None else max_shift_px
-            shifts.append(int(max(1, min(limit, math.floor(want)))))
+        ey, by, sy, ys = _axis(rows, extended_size, block_size, max_shift_px)
+        ex, bx, sx, xs = _axis(cols, extended_size, block_size, max_shift_px)
+        shifts = (sy, sx)
         top, left = np.meshgrid(ys, xs, indexing="ij")
         pitch_y = float(np.mean(np.diff(ys))) if ys.size > 1 else float(by)
         pitch_x = float(np.mean(np.diff(xs))) if xs.size > 1 else float(bx)

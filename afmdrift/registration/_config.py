@@ -33,6 +33,20 @@ class RegistrationConfig(BaseModel):
     )
     epsilon_px: float = Field(2.0, gt=0, le=64, description="Paper rule: distance from mean.")
     mad_threshold: float = Field(3.5, gt=0, le=20, description="Robust z-score cut-off.")
+    min_valid_fraction: float = Field(
+        0.25,
+        ge=0,
+        le=1,
+        description="Fewer valid blocks than this fraction of the blocks in the overlap: "
+        "invalid (a few overlapping windows can agree on a false peak).",
+    )
+    max_block_spread_px: float = Field(
+        2.0,
+        gt=0,
+        le=64,
+        description="Valid blocks must agree: a larger per-axis standard deviation makes "
+        "the frame invalid.",
+    )
     min_valid_blocks: int = Field(
         3, ge=2, le=4096, description="Fewer valid blocks: invalid (two give an uncertainty)."
     )
@@ -40,7 +54,11 @@ class RegistrationConfig(BaseModel):
         "keyframe", description="Measure against the previous frame or against a keyframe."
     )
     keyframe_min_overlap: float = Field(
-        0.6, gt=0, lt=1, description="Re-anchor the keyframe when overlap falls below this."
+        0.6,
+        gt=0,
+        lt=1,
+        description="Re-anchor the keyframe when the overlap (shared area, or share of "
+        "blocks whose windows still fit) falls below this.",
     )
     subpixel: Literal["dft", "sinc", "parabolic", "gaussian"] = Field(
         "dft",
@@ -60,7 +78,7 @@ class RegistrationConfig(BaseModel):
         True, description="Second block pass when the drift is a pixel or more off the prior."
     )
     mse_stride_px: int = Field(
-        2, ge=1, le=8, description="Lattice step of the MSE peak verification."
+        4, ge=1, le=8, description="Lattice step of the MSE peak verification."
     )
     threads: int = Field(1, ge=1, le=64, description="FFTW threads.")
     fftw_planner: Literal["estimate", "measure", "patient"] = Field(

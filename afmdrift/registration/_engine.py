@@ -36,11 +36,12 @@ F64 = npt.NDArray[np.float64]
 IArr = npt.NDArray[np.intp]
 BArr = npt.NDArray[np.bool_]
 
-#: Newton iterations of the ``dft`` sub-pixel method.
-_NEWTON_STEPS = 8
+#: Newton iterations of the ``dft`` sub-pixel method after the quadratic start
+#: (quadratic convergence: the second step checks that the first converged).
+_NEWTON_STEPS = 2
 #: Largest Newton step (px) and the last step below which it has converged.
 _MAX_STEP_PX = 1.0
-_CONVERGED_PX = 0.01
+_CONVERGED_PX = 0.02
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
 
@@ -62,7 +63,10 @@ class BlockMeasurement:
     """Per-block result, all arrays of length ``n`` blocks.
 
     ``vectors_px[:, 0]`` is x, ``[:, 1]`` is y. ``measured`` is False for
-    blocks whose window left the overlap or whose peak was unusable.
+    blocks whose window left the overlap or whose peak was unusable;
+    ``placed`` is False where the window had to be clamped into the image,
+    ``in_overlap`` where it had to be clamped by more than half the search
+    radius (see :meth:`BlockEngine.positions_for`).
     """
 
     centres_px: F64
@@ -70,6 +74,8 @@ class BlockMeasurement:
     confidence: F64
     mse: F64
     measured: BArr
+    placed: BArr
+    in_overlap: BArr
 
 
 class BlockEngine:
@@ -115,8 +121,7 @@ class BlockEngine:
         self._mag: F32 = np.empty(spec_shape, dtype=np.float32)
         self._current: npt.NDArray[np.complex64] = np.empty(spec_shape, dtype=np.complex64)
         my, mx = lay.max_shift
-        self._reg_rows = (np.arange(-my, my + 1) % ey).astype(np.intp)
-        self._reg_cols = (np.arange(-mx, mx + 1) % ex).astype(np.intp)
+        self._region: F32 = np.empty((n, 2 * my + 1, 2 * mx + 1), dtype=np.float32)
         stride = config.mse_stride_px
         by, bx = lay.block
         self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
@@ -147,9 +152,10 @@ class BlockEngine:
 
     def _normalised_spectra(
         self, grad: F32, top: IArr, left: IArr, out: npt.NDArray[np.complex64]
-    ) -> None:
+    ) -> F32:
         """Window the blocks at ``(top, left)``, remove each block's
-        window-weighted mean, FFT, and write ``S / (|S| + eps·max|S|)`` to ``out``."""
+        window-weighted mean, FFT, and write ``S / (|S| + eps·max|S|)`` to
+        ``out``. Returns ``|S|`` in the sub-pixel band, shape (n, Ly, Lx)."""
         ey, ex = self.layout.ext
         real = self.fft.real
         win = self.window
@@ -161,9 +167,12 @@ class BlockEngine:
         mean = spec[:, 0, 0].real / self._w_sum
         spec[:, self._w_rows, self._w_cols] -= mean[:, None] * self._w_vals[None, :]
         mag = np.abs(spec, out=self._mag)
+        band_mag = mag[:, self._band_rows[:, None], self._band_cols[None, :]]
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
         mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
-        np.divide(spec, mag, out=out)
+        np.reciprocal(mag, out=mag)
+        np.multiply(spec, mag, out=out)
+        return band_mag
 
     def grid_positions(self) -> tuple[IArr, IArr]:
         """Window corners ``(top, left)`` of the layout (reference positions)."""
@@ -173,15 +182,11 @@ class BlockEngine:
         """Spectra of a new reference at the layout's grid positions."""
         top, left = self.grid_positions()
         spectra = np.empty_like(self._current)
-        self._normalised_spectra(grad, top, left, spectra)
+        band_mag = self._normalised_spectra(grad, top, left, spectra)
         np.conjugate(spectra, out=spectra)
         return ReferenceSpectra(
-            grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=self._band_mag()
+            grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=band_mag
         )
-
-    def _band_mag(self) -> F32:
-        """Spectrum magnitudes of the last transformed blocks in the sub-pixel band."""
-        return self._mag[:, self._band_rows[:, None], self._band_cols[None, :]]
 
     def current_as_reference(self, grad: F32, top: IArr, left: IArr) -> ReferenceSpectra:
         """Turn the spectra of the last :meth:`measure` call into a reference
@@ -195,12 +200,18 @@ class BlockEngine:
 
     def positions_for(
         self, ref: ReferenceSpectra, prior_px: tuple[float, float]
-    ) -> tuple[IArr, IArr, BArr]:
+    ) -> tuple[IArr, IArr, BArr, BArr]:
         """Window corners in the current frame for an expected shift ``prior_px``.
 
-        Windows are moved by the rounded prior and clamped into the image; a
-        block whose clamped window is farther than the search range from where
-        its content is expected is marked as outside the overlap.
+        Windows are moved by the rounded prior. A window that would leave the
+        image is clamped into it; its content then sits off-centre in the
+        window, where the window biases the sub-pixel estimate towards zero
+        shift (by a few per cent of the offset). Such blocks are flagged
+        ``placed=False`` (used only when too few placed blocks exist, e.g.
+        in frames barely larger than one window) and, when clamped by more
+        than half the search radius, ``near=False`` (not measured).
+
+        Returns ``(top, left, placed, near)``.
         """
         lay = self.layout
         ey, ex = lay.ext
@@ -210,10 +221,11 @@ class BlockEngine:
         want_left = ref.left + px
         top = np.clip(want_top, 0, rows - ey)
         left = np.clip(want_left, 0, cols - ex)
-        inside = (np.abs(top - want_top) <= lay.max_shift[0] // 2) & (
+        placed = (top == want_top) & (left == want_left)
+        near = (np.abs(top - want_top) <= lay.max_shift[0] // 2) & (
             np.abs(left - want_left) <= lay.max_shift[1] // 2
         )
-        return top, left, inside
+        return top, left, placed, near
 
     def measure(
         self,
@@ -232,11 +244,10 @@ class BlockEngine:
         n = lay.n_blocks
         ey, ex = lay.ext
         my, mx = lay.max_shift
-        top, left, inside = self.positions_for(ref, prior_px)
-        self._normalised_spectra(grad, top, left, self._current)
+        top, left, placed, near = self.positions_for(ref, prior_px)
+        self._cur_band_mag = self._normalised_spectra(grad, top, left, self._current)
         np.multiply(self._current, ref.conj_spectra, out=self.fft.cross)
         band = None
-        self._cur_band_mag = self._band_mag()
         if cfg.subpixel == "dft":
             # Cross-power weights |S_cur||S_ref| turn the phase-only band back
             # into a matched filter: noise-only frequencies get little weight.
@@ -247,9 +258,9 @@ class BlockEngine:
         scale = 1.0 / (ey * ex)
 
         # Top-K peaks in the search region, with non-maximum suppression.
-        region = corr[:, self._reg_rows[:, None], self._reg_cols[None, :]]
+        region = self._search_region(corr)
         hy, wx = region.shape[1:]
-        flat = region.reshape(n, -1)
+        flat = region.reshape(n, -1)  # a view: suppression below is seen by argmax
         k = cfg.peaks
         cand_y = np.empty((n, k), dtype=np.intp)
         cand_x = np.empty((n, k), dtype=np.intp)
@@ -291,7 +302,7 @@ class BlockEngine:
         vec[:, 0] = (left - ref.left) + sx + fx
         vec[:, 1] = (top - ref.top) + sy + fy
         measured = (
-            inside & np.isfinite(best_mse) & ok_x & ok_y & (np.abs(sy) < my) & (np.abs(sx) < mx)
+            near & np.isfinite(best_mse) & ok_x & ok_y & (np.abs(sy) < my) & (np.abs(sx) < mx)
         )
         cx, cy = self._centre_offset
         centres = np.column_stack([ref.left + cx, ref.top + cy]).astype(np.float64)
@@ -301,8 +312,23 @@ class BlockEngine:
             confidence=peak,
             mse=np.where(np.isfinite(best_mse), best_mse, np.nan),
             measured=measured,
+            placed=placed,
+            in_overlap=near,
         )
         return result, top, left
+
+    def _search_region(self, corr: F32) -> F32:
+        """Correlation at shifts ``-max..+max`` (wrapped), shape (n, 2my+1, 2mx+1).
+
+        Copied by four slices into a work array (element [my, mx] is shift 0).
+        """
+        my, mx = self.layout.max_shift
+        reg = self._region
+        reg[:, :my, :mx] = corr[:, -my:, -mx:]
+        reg[:, :my, mx:] = corr[:, -my:, : mx + 1]
+        reg[:, my:, :mx] = corr[:, : my + 1, -mx:]
+        reg[:, my:, mx:] = corr[:, : my + 1, : mx + 1]
+        return reg
 
     def _dft_peak(
         self, band: npt.NDArray[np.complex64], sx: IArr, sy: IArr
@@ -310,49 +336,73 @@ class BlockEngine:
         """Continuous maximum of the band-limited correlation surface.
 
         ``c(p) = Re Σ_k w_k R_k exp(2πi k·p)`` over the low-frequency band of
-        the normalised cross-power spectrum ``R``, maximised by Newton steps
-        from the integer peak with analytic gradient and Hessian. For a pure
-        translation ``R_k = A_k exp(-2πi k·d)`` with ``A_k ≥ 0`` and
-        symmetric, so the maximum lies exactly at ``d`` whatever the texture's
-        spectrum (no peak-shape model, hence no pixel-locking bias).
+        the cross-power spectrum ``R``. A quadratic through ``c`` around the
+        best of the 5×5 integer shifts centred on the full-band peak gives the
+        start; Newton steps with the analytic gradient and Hessian of ``c``
+        then converge on its maximum.
+        For a pure translation ``R_k = A_k exp(-2πi k·d)`` with ``A_k ≥ 0``
+        symmetric in ``k``, so the maximum lies exactly at ``d`` whatever the
+        texture's spectrum: no peak-shape model, no pixel-locking bias.
 
-        Returns the offsets ``(fx, fy)`` from the integer peak and a validity mask.
+        Returns the offsets ``(fx, fy)`` from the integer peak and a mask of
+        the blocks where the iteration converged within 3 px of it.
         """
         r = band.astype(np.complex128) * self._band_w
-        fy = self._fy
-        fx = self._fx
-        px = sx.astype(np.float64)
-        py = sy.astype(np.float64)
+        two_pi_i = 2j * np.pi
+        # Band-limited c at the 5×5 integer shifts around the full-band peak
+        # (noise can put that peak a pixel or two off); quadratic start at the
+        # best of them.
+        off = np.arange(-2.0, 3.0)
+        ex5 = np.exp(two_pi_i * self._fx[None, :, None] * (sx[:, None, None] + off))
+        ey5 = np.exp(two_pi_i * self._fy[None, :, None] * (sy[:, None, None] + off))
+        c5 = np.einsum("nyi,nyj->nij", ey5, np.matmul(r, ex5)).real  # c5[n, y, x]
+        best = np.argmax(c5.reshape(c5.shape[0], -1), axis=1)
+        by_, bx_ = np.divmod(best, 5)
+        by_ = np.clip(by_, 1, 3)
+        bx_ = np.clip(bx_, 1, 3)
+        d3 = np.arange(-1, 2)
+        c = c5[
+            self._rows[:, None, None],
+            (by_[:, None] + d3)[:, :, None],
+            (bx_[:, None] + d3)[:, None, :],
+        ]
+        gx = 0.5 * (c[:, 1, 2] - c[:, 1, 0])
+        gy = 0.5 * (c[:, 2, 1] - c[:, 0, 1])
+        hxx = c[:, 1, 2] - 2.0 * c[:, 1, 1] + c[:, 1, 0]
+        hyy = c[:, 2, 1] - 2.0 * c[:, 1, 1] + c[:, 0, 1]
+        hxy = 0.25 * (c[:, 2, 2] - c[:, 2, 0] - c[:, 0, 2] + c[:, 0, 0])
+        step_x, step_y = _ascent_step(gx, gy, hxx, hyy, hxy)
+        step_x += bx_ - 2
+        step_y += by_ - 2
+        px = sx + step_x
+        py = sy + step_y
+        fy, fx = self._fy, self._fx
+        fx_pow = np.stack([np.ones_like(fx), fx, fx * fx], axis=1).astype(np.complex128)
+        fy2 = fy * fy
         two_pi = 2.0 * np.pi
-        ok = np.ones(px.shape, dtype=bool)
-        step = np.zeros(px.shape)
+        step = np.full(px.shape, np.inf)
         for _ in range(_NEWTON_STEPS):
-            ey_ = np.exp(1j * two_pi * fy[None, :] * py[:, None])  # (n, Ly)
-            ex_ = np.exp(1j * two_pi * fx[None, :] * px[:, None])  # (n, Lx)
-            z = r * ey_[:, :, None] * ex_[:, None, :]
-            zr, zi = z.real, z.imag
-            gx = -two_pi * np.einsum("nyx,x->n", zi, fx)
-            gy = -two_pi * np.einsum("nyx,y->n", zi, fy)
-            hxx = -(two_pi**2) * np.einsum("nyx,x->n", zr, fx * fx)
-            hyy = -(two_pi**2) * np.einsum("nyx,y->n", zr, fy * fy)
-            hxy = -(two_pi**2) * np.einsum("nyx,y,x->n", zr, fy, fx)
-            det = hxx * hyy - hxy * hxy
-            concave = (hxx < 0) & (det > 0)
-            safe = np.where(concave, det, 1.0)
-            # Newton step where the surface is concave, else a bounded
-            # gradient-ascent step towards the peak.
-            newton_x = -(hyy * gx - hxy * gy) / safe
-            newton_y = -(hxx * gy - hxy * gx) / safe
-            step_x = np.where(concave, newton_x, np.sign(gx) * _MAX_STEP_PX)
-            step_y = np.where(concave, newton_y, np.sign(gy) * _MAX_STEP_PX)
-            step_x = np.clip(step_x, -_MAX_STEP_PX, _MAX_STEP_PX)
-            step_y = np.clip(step_y, -_MAX_STEP_PX, _MAX_STEP_PX)
+            ey_ = np.exp(two_pi_i * fy[None, :] * py[:, None])  # (n, Ly)
+            ex_ = np.exp(two_pi_i * fx[None, :] * px[:, None])  # (n, Lx)
+            # a[n, y, j] = Σ_x R · exp(2πi fx px) · fx^j, times the y phase.
+            a = np.matmul(r, ex_[:, :, None] * fx_pow[None, :, :])
+            a *= ey_[:, :, None]
+            s0 = a.sum(axis=1)  # (n, 3): Σ z, Σ z fx, Σ z fx²
+            s_y = np.einsum("nyj,y->nj", a[:, :, :2], fy)  # Σ z fy, Σ z fy fx
+            s_yy = np.einsum("ny,y->n", a[:, :, 0], fy2)
+            step_x, step_y = _ascent_step(
+                -two_pi * s0[:, 1].imag,
+                -two_pi * s_y[:, 0].imag,
+                -(two_pi**2) * s0[:, 2].real,
+                -(two_pi**2) * s_yy.real,
+                -(two_pi**2) * s_y[:, 1].real,
+            )
             px += step_x
             py += step_y
             step = np.hypot(step_x, step_y)
         off_x = px - sx
         off_y = py - sy
-        ok &= (step < _CONVERGED_PX) & (np.abs(off_x) <= 3.0) & (np.abs(off_y) <= 3.0)
+        ok = (step < _CONVERGED_PX) & (np.abs(off_x) <= 3.0) & (np.abs(off_y) <= 3.0)
         return np.where(ok, off_x, 0.0), np.where(ok, off_y, 0.0), ok
 
     def _candidate_mse(
@@ -381,19 +431,38 @@ class BlockEngine:
         cx = rx[:, None, :] + tx[:, :, None]  # (n, K, Lx)
         vy = (cy >= 0) & (cy < rows_img)
         vx = (cx >= 0) & (cx < cols_img)
+        total = self._mse_rows.size * self._mse_cols.size
+        if bool(vy.all() and vx.all()):  # the usual case: every sample overlaps
+            diff = grad[cy[:, :, :, None], cx[:, :, None, :]]
+            diff -= ref.grad[ry[:, None, :, None], rx[:, None, None, :]]
+            mse: F64 = diff.var(axis=(2, 3), dtype=np.float64)
+            return mse
         np.clip(cy, 0, rows_img - 1, out=cy)
         np.clip(cx, 0, cols_img - 1, out=cx)
-        cur = grad[cy[:, :, :, None], cx[:, :, None, :]]
-        refb = ref.grad[ry[:, None, :, None], rx[:, None, None, :]]
-        diff = (cur - refb).astype(np.float64)
-        w = (vy[:, :, :, None] & vx[:, :, None, :]).astype(np.float64)
-        cnt = w.sum(axis=(2, 3))
-        total = self._mse_rows.size * self._mse_cols.size
+        diff = grad[cy[:, :, :, None], cx[:, :, None, :]]
+        diff -= ref.grad[ry[:, None, :, None], rx[:, None, None, :]]
+        w = (vy[:, :, :, None] & vx[:, :, None, :]).astype(np.float32)
+        cnt = w.sum(axis=(2, 3), dtype=np.float64)
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = (diff * w).sum(axis=(2, 3)) / cnt
-            mse: F64 = (((diff - mean[:, :, None, None]) ** 2) * w).sum(axis=(2, 3)) / cnt
+            mean = (diff * w).sum(axis=(2, 3), dtype=np.float64) / cnt
+            sq = np.square(diff - mean[:, :, None, None].astype(np.float32)) * w
+            mse = sq.sum(axis=(2, 3), dtype=np.float64) / cnt
         mse[cnt < 0.25 * total] = np.inf
         return mse
+
+
+def _ascent_step(gx: F64, gy: F64, hxx: F64, hyy: F64, hxy: F64) -> tuple[F64, F64]:
+    """Newton step towards a maximum where the Hessian is negative definite,
+    else a unit gradient-ascent step; both bounded by ``_MAX_STEP_PX``."""
+    det = hxx * hyy - hxy * hxy
+    concave = (hxx < 0) & (det > 0)
+    safe = np.where(concave, det, 1.0)
+    step_x = np.where(concave, -(hyy * gx - hxy * gy) / safe, np.sign(gx))
+    step_y = np.where(concave, -(hxx * gy - hxy * gx) / safe, np.sign(gy))
+    return (
+        np.clip(step_x, -_MAX_STEP_PX, _MAX_STEP_PX),
+        np.clip(step_y, -_MAX_STEP_PX, _MAX_STEP_PX),
+    )
 
 
 def _subpixel(c: F64, method: str) -> tuple[F64, BArr]:

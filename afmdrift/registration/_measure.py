@@ -98,10 +98,17 @@ def combine(
     cfg = engine.config
     vec = meas.vectors_px
     measured = meas.measured
+    # Prefer blocks whose windows sit where their content is expected; fall
+    # back to clamped windows only when too few are left (tiny frames).
+    usable = measured & meas.placed
+    available = int(meas.placed.sum())
+    if int(usable.sum()) < cfg.min_valid_blocks:
+        usable = measured
+        available = int(meas.in_overlap.sum())
     if cfg.outlier_rule == "paper":
-        valid = reject_paper(vec, measured, epsilon_px=cfg.epsilon_px)
+        valid = reject_paper(vec, usable, epsilon_px=cfg.epsilon_px)
     else:
-        valid = reject_mad(vec, measured, threshold=cfg.mad_threshold)
+        valid = reject_mad(vec, usable, threshold=cfg.mad_threshold)
     n_valid = int(valid.sum())
     total = int(vec.shape[0])
     field = BlockField(
@@ -113,11 +120,21 @@ def combine(
         valid=valid,
     )
     px, py = pixel_size_nm
-    if n_valid < cfg.min_valid_blocks:
+    reason = None
+    need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
+    if n_valid < need:
         reason = (
-            f"only {n_valid} of {total} blocks valid (need {cfg.min_valid_blocks}; "
-            f"{int(measured.sum())} had a usable peak)"
+            f"only {n_valid} of {total} blocks valid (need {need}: {available} in the "
+            f"overlap, {int(measured.sum())} with a usable peak)"
         )
+    else:
+        spread = vec[valid].std(axis=0, ddof=1)
+        if float(spread.max()) > cfg.max_block_spread_px:
+            reason = (
+                f"the {n_valid} valid blocks disagree: spread ({spread[0]:.2f}, "
+                f"{spread[1]:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
+            )
+    if reason is not None:
         nan = math.nan
         return DriftResult(
             dx_px=nan,

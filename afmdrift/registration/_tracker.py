@@ -8,8 +8,11 @@ Reference modes (``RegistrationConfig.reference``)
     Cumulative drift is a sum of increments, so its error random-walks.
 ``"keyframe"`` (default)
     Frames are measured against a keyframe until the overlap between the
-    keyframe and the current frame, ``(1 - |dx|/W)(1 - |dy|/H)``, falls below
-    ``keyframe_min_overlap``; the current frame then becomes the keyframe.
+    keyframe and the current frame falls below ``keyframe_min_overlap``; the
+    current frame then becomes the keyframe. The overlap is the smaller of the
+    shared area ``(1 - |dx|/W)(1 - |dy|/H)`` and the share of blocks whose
+    windows still fit the frame at that drift (in small frames the windows,
+    half the frame wide, run out long before the area does).
     Errors only accumulate at re-anchoring, not at every frame.
 
 In both modes the block windows of the new frame are placed at the expected
@@ -254,7 +257,7 @@ class DriftTracker:
         self._rel_sigma_nm = (meas.sigma_x_nm, meas.sigma_y_nm)
         self._last_index = index
         pos = self.position_px
-        reanchor = cfg.reference == "consecutive" or self._overlap(engine, rel) < (
+        reanchor = cfg.reference == "consecutive" or self._overlap(engine, ref, rel) < (
             cfg.keyframe_min_overlap
         )
         if reanchor:
@@ -308,9 +311,15 @@ class DriftTracker:
             field=field,
         )
 
-    def _overlap(self, engine: BlockEngine, rel: npt.NDArray[np.float64]) -> float:
+    def _overlap(
+        self, engine: BlockEngine, ref: ReferenceSpectra, rel: npt.NDArray[np.float64]
+    ) -> float:
+        """Smaller of the shared area fraction and the fraction of blocks whose
+        windows still fit the frame at drift ``rel`` from the keyframe."""
         rows, cols = engine.image_shape
-        return max(0.0, 1.0 - abs(float(rel[0])) / cols) * max(0.0, 1.0 - abs(float(rel[1])) / rows)
+        area = max(0.0, 1.0 - abs(float(rel[0])) / cols) * max(0.0, 1.0 - abs(float(rel[1])) / rows)
+        _, _, placed, _ = engine.positions_for(ref, (float(rel[0]), float(rel[1])))
+        return min(area, float(placed.mean()))
 
     def _to_nm(self, pos: tuple[float, float]) -> tuple[float, float]:
         return pos[0] * self.pixel_size_nm[0], pos[1] * self.pixel_size_nm[1]

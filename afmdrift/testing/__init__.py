@@ -7,7 +7,8 @@ Runtime code (the service) never imports this package.
   :func:`terrace_texture` (graphite-like terraces with monatomic steps),
   :func:`rough_texture` (Gaussian random rough surface), and
   :class:`Particles` for scenes whose particles tests move or add.
-* Exact shifts: :func:`fourier_shift` (periodic, sub-pixel) and
+* Exact shifts: :func:`fourier_shift` (periodic, sub-pixel; exact after
+  :func:`band_limit`, which every texture applies) and
   :func:`shifted_crop` (shift a larger texture, cut a frame, so content enters
   and leaves at the edges as in a real scan).
 * Artefacts: :func:`add_noise` (SNR = std of heights / std of noise),
@@ -19,6 +20,7 @@ from afmdrift.testing._images import (
     add_line_offsets,
     add_noise,
     add_plane,
+    band_limit,
     fourier_shift,
     particle_texture,
     rough_texture,
@@ -31,6 +33,7 @@ __all__ = [
     "add_line_offsets",
     "add_noise",
     "add_plane",
+    "band_limit",
     "fourier_shift",
     "particle_texture",
     "rough_texture",

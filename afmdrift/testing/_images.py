@@ -24,6 +24,7 @@ __all__ = [
     "add_line_offsets",
     "add_noise",
     "add_plane",
+    "band_limit",
     "fourier_shift",
     "particle_texture",
     "rough_texture",
@@ -42,6 +43,24 @@ def _check_shape(shape: tuple[int, int]) -> tuple[int, int]:
     if rows < 2 or cols < 2:
         raise ValueError(f"shape must be at least (2, 2), got {shape!r}")
     return rows, cols
+
+
+def band_limit(image: npt.ArrayLike) -> FloatArray:
+    """Remove the Nyquist row and column of a periodic image.
+
+    Those are the only components whose sub-pixel shift is ambiguous for a
+    real image, so afterwards :func:`fourier_shift` is exact. Every texture
+    of this module is returned band-limited this way.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    rows, cols = img.shape
+    spec = np.fft.rfft2(img)
+    if rows % 2 == 0:
+        spec[rows // 2, :] = 0.0
+    if cols % 2 == 0:
+        spec[:, cols // 2] = 0.0
+    out: FloatArray = np.fft.irfft2(spec, s=(rows, cols))
+    return out
 
 
 def fourier_shift(image: npt.ArrayLike, *, dx_px: float, dy_px: float) -> FloatArray:
@@ -191,7 +210,7 @@ def rough_texture(
     # Gaussian autocorrelation exp(-r²/ℓ²) has power spectrum ∝ exp(-(π ℓ k)²).
     filt = np.exp(-0.5 * (np.pi * ell_px) ** 2 * (kx**2 + ky**2))
     spec = np.fft.rfft2(rng.standard_normal((rows, cols))) * filt
-    h: FloatArray = np.fft.irfft2(spec, s=(rows, cols))
+    h = band_limit(np.fft.irfft2(spec, s=(rows, cols)))
     h -= h.mean()
     h *= rms_nm / h.std()
     return h
@@ -239,6 +258,7 @@ def terrace_texture(
         rms_nm=roughness_nm,
         correlation_length_nm=3.0 * pixel_size_nm,
     )
+    h = band_limit(h)
     h -= h.mean()
     return h
 
@@ -267,7 +287,7 @@ def particle_texture(
         rms_nm=substrate_rms_nm,
         correlation_length_nm=2.0 * pixel_size_nm,
     )
-    return parts.render(shape) + substrate
+    return band_limit(parts.render(shape)) + substrate
 
 
 def add_noise(image: npt.ArrayLike, *, snr: float, rng: np.random.Generator) -> FloatArray:

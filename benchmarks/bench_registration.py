@@ -1,0 +1,162 @@
+"""Speed and memory of the block phase-correlation engine on a 512×512 stream.
+
+Run: ``.venv/bin/python benchmarks/bench_registration.py [--frames N] [--threads T]``
+
+Prints, all measured in this one run:
+
+* median time of :meth:`DriftTracker.update` per new frame (target ≤ 5 ms);
+* median time of the bare FFTW work one frame needs (one forward and one
+  inverse batched real FFT of the same sizes, on separately planned arrays)
+  and the ratio of the two (target ≤ 2×);
+* the time of a loop of scikit-image ``phase_cross_correlation`` over the same
+  windowed blocks (upsample factor 20) and our speed-up over it;
+* resident memory (psutil RSS) at the start and end of the stream (flat).
+
+The stream is a particle texture at SNR 10 drifting on a smooth closed path;
+a pool of frames is rendered once and replayed in order, so the path stays
+continuous however many frames are run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import statistics
+import time
+
+import numpy as np
+import psutil
+
+from afmdrift.registration import DriftTracker, RegistrationConfig
+from afmdrift.registration._blocks import raised_cosine
+from afmdrift.registration._engine import BlockEngine
+from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
+from afmdrift.testing import add_noise, particle_texture, shifted_crop
+
+SHAPE = (512, 512)
+POOL = 64
+PIXEL_NM = 2.0
+
+
+def make_pool(rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
+    """Frames along a closed path ``d(i)`` (px), one period per pool."""
+    tex = particle_texture((640, 640), pixel_size_nm=PIXEL_NM, rng=rng)
+    phase = 2.0 * np.pi * np.arange(POOL) / POOL
+    path = np.column_stack([6.0 * np.sin(phase), 4.0 * np.sin(2.0 * phase)])
+    frames = [
+        add_noise(shifted_crop(tex, shape=SHAPE, dx_px=dx, dy_px=dy), snr=10.0, rng=rng).astype(
+            np.float32
+        )
+        for dx, dy in path
+    ]
+    return frames, path
+
+
+def bare_fft_ms(engine: BlockEngine, cfg: RegistrationConfig, repeats: int) -> float:
+    """Median time of one forward plus one inverse batched FFT (same sizes)."""
+    n = engine.layout.n_blocks
+    fft = BatchedRealFFT(
+        n,
+        engine.layout.ext,
+        threads=cfg.threads,
+        planner=cfg.fftw_planner,
+        wisdom_path=resolve_wisdom_path(cfg.fftw_wisdom),
+    )
+    fft.real[:] = np.random.default_rng(0).standard_normal(fft.real.shape)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fft.forward()
+        fft.cross[:] = fft.spectrum
+        t1 = time.perf_counter()
+        fft.inverse()
+        t2 = time.perf_counter()
+        # The copy between the transforms is not FFT work: leave it out.
+        times.append((t1 - t0) + (t2 - t1) - 0.0)
+    return 1e3 * statistics.median(times)
+
+
+def skimage_ms(engine: BlockEngine, ref: np.ndarray, cur: np.ndarray, repeats: int) -> float:
+    """One frame's worth of scikit-image phase_cross_correlation on the blocks."""
+    from skimage.registration import phase_cross_correlation
+
+    lay = engine.layout
+    ey, ex = lay.ext
+    win = raised_cosine(ey, ex)
+    g_ref = engine.gradient(ref)
+    g_cur = engine.gradient(cur)
+    blocks = [
+        (g_ref[t : t + ey, le : le + ex] * win, g_cur[t : t + ey, le : le + ex] * win)
+        for t, le in zip(lay.top, lay.left, strict=True)
+    ]
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for a, b in blocks:
+            phase_cross_correlation(a, b, upsample_factor=20, normalization="phase")
+        times.append(time.perf_counter() - t0)
+    return 1e3 * statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=1000, help="frames in the stream (1000)")
+    ap.add_argument("--threads", type=int, default=1, help="FFTW threads (1)")
+    ap.add_argument("--skimage-repeats", type=int, default=3, help="skimage frames timed (3)")
+    args = ap.parse_args()
+
+    rng = np.random.default_rng(2008)
+    frames, path = make_pool(rng)
+    cfg = RegistrationConfig(threads=args.threads)
+    proc = psutil.Process()
+
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg)
+    tracker.update(frames[0])
+    for i in range(1, 11):  # warm-up (plans, caches)
+        tracker.update(frames[i % POOL])
+    tracker.reset()
+    tracker.update(frames[0])
+    gc.collect()
+    rss_start = proc.memory_info().rss
+    times = []
+    errors = []
+    for i in range(1, args.frames + 1):
+        frame = frames[i % POOL]
+        t0 = time.perf_counter()
+        step = tracker.update(frame)
+        times.append(time.perf_counter() - t0)
+        if step is not None and step.accepted:
+            errors.append(np.subtract(step.position_px, path[i % POOL] - path[0]))
+    rss_end = proc.memory_info().rss
+
+    engine = BlockEngine(SHAPE, cfg)
+    n_fft = max(50, min(args.frames, 300))
+    bare = bare_fft_ms(engine, cfg, n_fft)
+    ours = 1e3 * statistics.median(times)
+    sk = skimage_ms(engine, frames[0], frames[1], args.skimage_repeats)
+    err = np.asarray(errors)
+    lay = engine.layout
+
+    print(
+        f"frames: {args.frames} of {SHAPE[1]}x{SHAPE[0]} px, {lay.n_blocks} blocks of "
+        f"{lay.ext[1]}x{lay.ext[0]}, FFTW threads {args.threads}, CPUs {psutil.cpu_count()}, "
+        f"load average {psutil.getloadavg()[0]:.2f}"
+    )
+    print(f"DriftTracker.update median:          {ours:8.2f} ms/frame   (target <= 5 ms)")
+    print(f"bare FFTW forward+inverse batch:     {bare:8.2f} ms/frame")
+    print(f"ratio to bare FFT:                   {ours / bare:8.2f} x        (target <= 2x)")
+    print(f"skimage phase_cross_correlation x{lay.n_blocks}: {sk:8.2f} ms/frame")
+    print(f"speed-up over skimage loop:          {sk / ours:8.1f} x")
+    print(
+        f"RSS start / end / growth:            {rss_start / 2**20:.1f} / "
+        f"{rss_end / 2**20:.1f} / {(rss_end - rss_start) / 2**20:+.2f} MiB"
+    )
+    if err.size:
+        print(
+            f"position error vs truth: RMS {np.sqrt(np.mean(err**2)):.4f} px, "
+            f"max {np.max(np.abs(err)):.4f} px over {len(err)} accepted frames"
+        )
+
+
+if __name__ == "__main__":
+    main()

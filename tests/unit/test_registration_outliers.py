@@ -1,0 +1,62 @@
+"""The two outlier rules on hand-made block vectors."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from afmdrift.registration._outliers import MAD_FLOOR_PX, reject_mad, reject_paper
+
+
+def _vectors(rng: np.random.Generator, n_good: int = 40) -> np.ndarray:
+    good = np.array([3.0, -2.0]) + rng.normal(0.0, 0.05, (n_good, 2))
+    return good
+
+
+def test_paper_rule_keeps_blocks_within_epsilon_of_the_mean() -> None:
+    v = np.array([[0.0, 0.0], [0.2, 0.0], [-0.2, 0.0], [0.0, 0.3], [1.6, 0.0]])
+    keep = np.ones(5, dtype=bool)
+    # mean = (0.32, 0.06): block 4 is 1.28 px away.
+    out = reject_paper(v, keep, epsilon_px=1.0)
+    assert out.tolist() == [True, True, True, True, False]
+    # Blocks already excluded stay excluded and do not enter the mean.
+    keep[1] = False
+    assert not reject_paper(v, keep, epsilon_px=10.0)[1]
+
+
+def test_paper_rule_is_dragged_by_a_gross_outlier_while_mad_is_not() -> None:
+    """Documented weakness of the paper's rule: one wild block moves the mean
+    so that good blocks fall outside epsilon."""
+    rng = np.random.default_rng(0)
+    v = np.vstack([_vectors(rng), [[40.0, 30.0]]])
+    keep = np.ones(len(v), dtype=bool)
+    paper = reject_paper(v, keep, epsilon_px=0.5)
+    mad = reject_mad(v, keep, threshold=3.5)
+    assert paper[:-1].sum() < 10  # most good blocks lost
+    assert mad[:-1].all()
+    assert not mad[-1]
+
+
+def test_mad_rule_iterates_and_rejects_a_cluster_of_outliers() -> None:
+    rng = np.random.default_rng(1)
+    good = _vectors(rng, 48)
+    pushed = np.array([5.0, -3.0]) + rng.normal(0.0, 0.05, (16, 2))  # 25 % moved together
+    v = np.vstack([good, pushed])
+    out = reject_mad(v, np.ones(len(v), dtype=bool), threshold=3.5)
+    assert out[:48].sum() >= 46
+    assert not out[48:].any()
+
+
+def test_mad_floor_keeps_identical_vectors() -> None:
+    """Regression guard: noise-free blocks agree to 1e-6 px; a zero MAD must
+    not turn rounding noise into outliers."""
+    v = np.tile([1.0, 2.0], (20, 1)) + np.linspace(0, 1e-6, 20)[:, None]
+    v[3] += MAD_FLOOR_PX  # a twentieth of a pixel off: still the same motion
+    out = reject_mad(v, np.ones(20, dtype=bool), threshold=3.5)
+    assert out.all()
+
+
+def test_too_few_blocks_are_left_alone() -> None:
+    v = np.array([[0.0, 0.0], [5.0, 5.0]])
+    keep = np.array([True, True])
+    assert reject_mad(v, keep, threshold=3.5).tolist() == [True, True]
+    assert not reject_paper(v, np.zeros(2, dtype=bool), epsilon_px=1.0).any()

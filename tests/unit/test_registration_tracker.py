@@ -1,0 +1,200 @@
+"""DriftTracker: streaming registration, reference modes and state safety."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmdrift.drivers import Frame
+from afmdrift.registration import (
+    DriftTracker,
+    InvalidFrameError,
+    RegistrationConfig,
+    RegistrationError,
+)
+from afmdrift.testing import add_noise, particle_texture, rough_texture, shifted_crop
+
+PIXEL_NM = 2.0
+
+
+def _sequence(
+    path: np.ndarray, *, shape: tuple[int, int], seed: int, snr: float = 10.0
+) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    margin = int(np.ceil(np.abs(path).max())) + 8
+    tex = particle_texture(
+        (shape[0] + 2 * margin, shape[1] + 2 * margin), pixel_size_nm=PIXEL_NM, rng=rng
+    )
+    return [
+        add_noise(shifted_crop(tex, shape=shape, dx_px=dx, dy_px=dy), snr=snr, rng=rng)
+        for dx, dy in path
+    ]
+
+
+@pytest.fixture(scope="module")
+def wander() -> tuple[np.ndarray, list[np.ndarray]]:
+    """80 frames of 256×256 drifting out to 90 px and back (two re-anchors)."""
+    t = np.arange(80)
+    path = np.column_stack([90.0 * np.sin(np.pi * t / 79.0), 30.0 * np.sin(2 * np.pi * t / 79)])
+    path += np.random.default_rng(0).normal(0.0, 0.3, path.shape)
+    return path, _sequence(path, shape=(256, 256), seed=1)
+
+
+@pytest.mark.slow
+def test_keyframe_mode_stays_bounded_and_reanchors(
+    wander: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    path, frames = wander
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=RegistrationConfig(reference="keyframe"))
+    assert tracker.update(frames[0]) is None
+    errors = []
+    reanchors = 0
+    for i, frame in enumerate(frames[1:], start=1):
+        step = tracker.update(frame)
+        assert step is not None
+        assert step.accepted, step.measurement.reason
+        reanchors += step.reanchored
+        errors.append(np.subtract(step.position_px, path[i] - path[0]))
+        nm = np.multiply(step.position_px, PIXEL_NM)
+        np.testing.assert_allclose(step.position_nm, nm)
+    err = np.abs(np.asarray(errors))
+    assert reanchors >= 2
+    # Bounded: errors only accumulate at re-anchoring, never per frame.
+    assert err.max() < 0.15, err.max()
+    # Back at the start after a wide excursion, still within a few hundredths.
+    assert np.hypot(*errors[-1]) < 0.1
+
+
+@pytest.mark.slow
+def test_consecutive_mode_tracks_and_increments_sum_to_position(
+    wander: tuple[np.ndarray, list[np.ndarray]],
+) -> None:
+    path, frames = wander
+    tracker = DriftTracker(
+        pixel_size_nm=PIXEL_NM, config=RegistrationConfig(reference="consecutive")
+    )
+    tracker.update(frames[0])
+    total = np.zeros(2)
+    for i, frame in enumerate(frames[1:40], start=1):
+        step = tracker.update(frame)
+        assert step is not None
+        assert step.accepted
+        assert step.reference_index == i - 1  # always the previous frame
+        assert not step.reanchored
+        inc = step.increment
+        assert inc.dx_px == pytest.approx(path[i, 0] - path[i - 1, 0], abs=0.05)
+        total += (inc.dx_px, inc.dy_px)
+        np.testing.assert_allclose(step.position_px, total, atol=1e-9)
+    assert abs(total[0] - (path[39, 0] - path[0, 0])) < 0.3
+
+
+def test_keyframe_increments_are_relative_to_the_previous_frame() -> None:
+    path = np.array([[0.0, 0.0], [1.5, -0.5], [3.2, -0.9], [4.1, -2.0]])
+    frames = _sequence(path, shape=(256, 256), seed=3)
+    tracker = DriftTracker(pixel_size_nm=(2.0, 3.0))
+    tracker.update(frames[0])
+    prev = np.zeros(2)
+    for i in range(1, 4):
+        step = tracker.update(frames[i])
+        assert step is not None
+        assert step.accepted
+        assert step.reference_index == 0
+        assert step.keyframe_index == 0
+        assert step.measurement.dx_px == pytest.approx(path[i, 0], abs=0.05)
+        assert step.increment.dx_px == pytest.approx(path[i, 0] - path[i - 1, 0], abs=0.05)
+        assert step.increment.dy_nm == pytest.approx(3.0 * (path[i, 1] - path[i - 1, 1]), abs=0.15)
+        # Field vectors of the increment are relative to the previous frame too.
+        v = step.increment.field.vectors_px[step.increment.field.valid]
+        assert np.median(v[:, 0]) == pytest.approx(path[i, 0] - prev[0], abs=0.05)
+        assert step.increment.sigma_nm >= step.measurement.sigma_nm * 0.999
+        prev = path[i]
+
+
+def test_invalid_input_leaves_the_tracker_unchanged() -> None:
+    path = np.array([[0.0, 0.0], [2.0, 1.0], [4.0, 2.0]])
+    frames = _sequence(path, shape=(128, 128), seed=4)
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM)
+    tracker.update(frames[0])
+    first = tracker.update(frames[1])
+    assert first is not None
+    before = (tracker.frames_seen, tracker.position_px)
+    bad = frames[2].copy()
+    bad[10, 10] = np.nan
+    with pytest.raises(InvalidFrameError, match="NaN"):
+        tracker.update(bad)
+    with pytest.raises(RegistrationError, match="shape"):
+        tracker.update(frames[2][:100, :])
+    with pytest.raises(InvalidFrameError, match="constant"):
+        tracker.update(np.zeros((128, 128)))
+    assert (tracker.frames_seen, tracker.position_px) == before
+    step = tracker.update(frames[2])
+    assert step is not None
+    assert step.accepted
+    assert step.frame_index == 2
+    assert step.position_px[0] == pytest.approx(4.0, abs=0.05)
+
+
+def test_an_invalid_measurement_does_not_break_the_reference_chain() -> None:
+    """A frame of unrelated content is reported invalid; the tracker keeps its
+    reference and prediction, and the next good frame is measured correctly."""
+    path = np.array([[0.0, 0.0], [1.0, 0.5], [2.0, 1.0], [3.0, 1.5]])
+    frames = _sequence(path, shape=(256, 256), seed=5)
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM)
+    tracker.update(frames[0])
+    tracker.update(frames[1])
+    junk = rough_texture((256, 256), pixel_size_nm=PIXEL_NM, rng=np.random.default_rng(9))
+    step = tracker.update(junk)
+    assert step is not None
+    assert not step.accepted
+    assert not step.increment.valid
+    assert step.increment.reason
+    assert step.position_px[0] == pytest.approx(1.0, abs=0.05)  # unchanged
+    step = tracker.update(frames[3])
+    assert step is not None
+    assert step.accepted
+    assert step.reference_index == 0
+    assert step.position_px[0] == pytest.approx(3.0, abs=0.05)
+    assert step.increment.dx_px == pytest.approx(2.0, abs=0.05)  # since frame 1
+
+
+def test_frames_are_checked_for_the_pixel_size() -> None:
+    path = np.array([[0.0, 0.0], [1.0, 1.0]])
+    frames = _sequence(path, shape=(128, 128), seed=6)
+    tracker = DriftTracker(pixel_size_nm=(2.0, 2.0))
+
+    def frame(i: int, pixel: tuple[float, float]) -> Frame:
+        return Frame(index=i, heights_nm=frames[i], pixel_size_nm=pixel, t_start_s=0.0, t_end_s=1.0)
+
+    assert tracker.update(frame(0, (2.0, 2.0))) is None
+    with pytest.raises(RegistrationError, match="pixel size"):
+        tracker.update(frame(1, (2.0, 2.5)))
+    step = tracker.update(frame(1, (2.0, 2.0)))
+    assert step is not None
+    assert step.accepted
+
+
+def test_reset_starts_over_with_a_new_reference() -> None:
+    path = np.array([[0.0, 0.0], [3.0, 0.0], [6.0, 0.0]])
+    frames = _sequence(path, shape=(128, 128), seed=7)
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM)
+    tracker.update(frames[0])
+    tracker.update(frames[1])
+    tracker.reset()
+    assert tracker.frames_seen == 0
+    assert tracker.position_px == (0.0, 0.0)
+    assert tracker.update(frames[1]) is None
+    step = tracker.update(frames[2])
+    assert step is not None
+    assert step.position_px[0] == pytest.approx(3.0, abs=0.05)
+    # A different frame shape is fine after reset.
+    tracker.reset()
+    assert tracker.update(frames[0][:100, :120]) is None
+
+
+def test_tracker_rejects_bad_pixel_size() -> None:
+    with pytest.raises(RegistrationError, match="pixel_size_nm"):
+        DriftTracker(pixel_size_nm=-2.0)
+    with pytest.raises(RegistrationError, match="pixel_size_nm"):
+        DriftTracker(pixel_size_nm=(1.0, math.nan))
