@@ -30,6 +30,7 @@ import math
 import re
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -247,9 +248,9 @@ def _read_tiff(
     return _read_array(path, data, pixel_size_nm or calibration, height_unit, "TIFF image")
 
 
-def _tiff_pixel_size(tif: object, path: Path) -> tuple[float, float] | None:
+def _tiff_pixel_size(tif: Any, path: Path) -> tuple[float, float] | None:
     """Pixel size from TIFF resolution tags (see the module docstring), or ``None``."""
-    page = tif.pages[0]  # type: ignore[attr-defined]
+    page = tif.pages[0]
     tags = page.tags
     if "XResolution" not in tags or "YResolution" not in tags:
         return None
@@ -259,7 +260,7 @@ def _tiff_pixel_size(tif: object, path: Path) -> tuple[float, float] | None:
         if num <= 0 or den <= 0:
             return None
         per_unit.append(num / den)
-    imagej = tif.imagej_metadata or {}  # type: ignore[attr-defined]
+    imagej = tif.imagej_metadata or {}
     unit_name = str(imagej.get("unit", "")).replace("\\u00B5", "µ")
     if unit_name:
         try:
