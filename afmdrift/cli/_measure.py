@@ -81,7 +81,7 @@ def register(sub: Any) -> None:
         type=float,
         nargs=2,
         metavar=("DX", "DY"),
-        help="expected drift in px; the block search is centred on it (disables --coarse)",
+        help="expected drift in px; the block search is centred on it (no coarse step)",
     )
     p.add_argument(
         "--search-px",
