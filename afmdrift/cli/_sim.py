@@ -27,6 +27,9 @@ from typing import Any
 #: Modules that add subcommands to ``afmdrift sim`` via ``register_sim_subcommand(ssub)``.
 SIM_SUBCOMMAND_MODULES: tuple[str, ...] = ("afmdrift.cli._sim_record",)
 
+#: Built-in scenario served when ``--scenario`` is not given (the paper's setting).
+DEFAULT_SCENARIO = "graphite-paper"
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -72,7 +75,7 @@ def _register_serve(ssub: Any) -> None:
         "--scenario",
         default=None,
         help="Scenario TOML file or built-in name from config/scenarios "
-        "(default: the built-in 'default' scenario if present, else the scenario defaults).",
+        f"(default: {DEFAULT_SCENARIO}).",
     )
     p.add_argument(
         "--speed",
@@ -104,7 +107,7 @@ def _scenario(name: str | None) -> Any:
 
     if name is not None:
         return name
-    default = SCENARIO_DIR / "default.toml"
+    default = SCENARIO_DIR / f"{DEFAULT_SCENARIO}.toml"
     return default if default.is_file() else Scenario()
 
 

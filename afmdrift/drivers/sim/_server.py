@@ -8,9 +8,12 @@ controller (``socket://127.0.0.1:N`` or ``/dev/pts/N``).
 Virtual clock
 -------------
 Simulated time runs ``speed`` times faster than wall time:
-``t_virtual = t0 + speed · (t_wall − t_wall0)``. Before each command and on a
-periodic tick the simulator is advanced to the current virtual time, so frames
-complete while nobody asks and a client sees a continuously running instrument.
+``t_virtual = t0 + speed · (t_wall − t_wall0)``. A periodic tick advances the
+simulator to the current virtual time in worker threads, so frames complete
+while nobody asks and a client sees a continuously running instrument; each
+command first advances by at most one step (:attr:`SimulatorServer.step_s`).
+When the physics cannot keep up with ``speed`` the instrument's clock
+(``SYST:TIME?``) falls behind the nominal virtual clock rather than skipping.
 
 Fault injection
 ---------------
@@ -444,23 +447,28 @@ class SimulatorServer:
     def advance(self) -> None:
         """Run the simulation up to the virtual clock's now (thread-safe).
 
-        Advances in steps of ``tick_s · speed`` virtual seconds, releasing the
-        lock between steps, so commands are answered and :meth:`stop` returns
+        Advances in steps of :attr:`step_s` virtual seconds, releasing the lock
+        between steps, so commands are answered and :meth:`stop` returns
         promptly even when the physics lags behind a high speed.
         """
         target = self.clock.now_s()
-        step = max(self.tick_s * self.clock.speed, 1e-3)
         while not self._stopping.is_set():
             with self._sim_lock:
-                now = self.sim.now_s
-                if now >= target:
+                if not self._advance_step_locked(target):
                     return
-                self.sim.advance_to(min(now + step, target))
 
-    def _advance_locked(self) -> None:
-        t = self.clock.now_s()
-        if t > self.sim.now_s:
-            self.sim.advance_to(t)
+    @property
+    def step_s(self) -> float:
+        """Largest virtual time one physics step covers: a quarter of a tick."""
+        return max(0.25 * self.tick_s * self.clock.speed, 1e-3)
+
+    def _advance_step_locked(self, target_s: float) -> bool:
+        """Advance by at most one step towards ``target_s``; ``False`` once there."""
+        now = self.sim.now_s
+        if now >= target_s:
+            return False
+        self.sim.advance_to(min(now + self.step_s, target_s))
+        return True
 
     async def start_tcp(self, port: int = 0, *, host: str = "127.0.0.1") -> int:
         """Listen on ``host:port`` (0 picks a free port); returns the bound port.
@@ -606,7 +614,9 @@ class SimulatorServer:
         if bad is not None:
             return self._push_error(bad[0], bad[1], tag), cmd.header
         try:
-            self._advance_locked()
+            # One bounded step keeps the answer fresh at low speed without making a
+            # query wait for a long render at high speed (the ticker does the rest).
+            self._advance_step_locked(self.clock.now_s())
             return handler(cmd), cmd.header
         except CommandError as err:
             return self._push_error(err.code, str(err), tag), cmd.header
