@@ -104,7 +104,7 @@ def register(sub: Any) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.io import load_image, load_stack
+    from afmdrift.io import load_image, load_stack, parse_spec
 
     given = (float(args.prior_px[0]), float(args.prior_px[1])) if args.prior_px else None
     config = measurement_config(
@@ -118,6 +118,8 @@ def _run(args: argparse.Namespace) -> int:
     read = {"pixel_size_nm": pixel, "channel": args.channel, "height_unit": args.height_unit}
     coarse = not args.no_coarse
     if args.cur is None:
+        if parse_spec(args.ref)[1] is not None:
+            raise InputError(f"{args.ref}: one frame; give REF CUR, or the whole stack/movie")
         frames = load_stack(args.ref, **read)
         if len(frames) < 2:
             raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")

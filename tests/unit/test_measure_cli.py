@@ -140,6 +140,7 @@ def test_stack_blank_frame_is_reported_and_skipped(
         (lambda a, b, small, missing: [small, small, "--pixel-size-nm", "1"], "too small"),
         (lambda a, b, small, missing: [a, small, "--pixel-size-nm", "1"], "shape"),
         (lambda a, b, small, missing: [small, "--pixel-size-nm", "1"], "holds one image"),
+        (lambda a, b, small, missing: [f"{a}:0", "--pixel-size-nm", "1"], "one frame"),
         (
             lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "--block-size", "4"],
             "block_size",
