@@ -124,3 +124,12 @@ def test_afmreader_logging_is_silenced(
     out, err = capfd.readouterr()
     assert out == ""
     assert err == ""
+
+
+@pytest.mark.parametrize("suffix", [".spm", ".SPM", ".000"])
+def test_nanoscope_any_suffix(real_file: RealFile, tmp_path: Path, suffix: str) -> None:
+    """A NanoScope file reads the same under .spm and any numbered suffix."""
+    src = real_file("nanoscope3a_15um.002")
+    copy = tmp_path / f"scan{suffix}"
+    copy.write_bytes(src.read_bytes())
+    np.testing.assert_array_equal(load_image(copy).heights_nm, load_image(src).heights_nm)
