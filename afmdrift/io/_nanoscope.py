@@ -12,9 +12,12 @@ Units and orientation (verified on the NanoScope IIIa v5.31 files in
   times ``@Sens. Zscan`` (nm/V), i.e. nm; e.g. 0.10116 nm/LSB for
   ``nanoscope3a_15um.002``. ``tests/integration/test_realdata_io.py`` checks this.
 * AFMReader flips the rows for display (first row = top of the image). We undo
-  that flip and keep the order in which the lines are stored in the file,
-  which is the order of acquisition for a ``Frame direction: Up`` frame; the
-  header's frame direction is then our :class:`ScanDirection` directly.
+  that flip and keep the order in which the lines are stored in the file. The
+  first stored line is the bottom of the displayed image (hence the display
+  flip), and an ``Up`` frame scans bottom to top, so stored order is the order
+  of acquisition for ``Frame direction: Up`` and the header's direction maps
+  to :class:`ScanDirection` directly. This rests on that display convention;
+  the sample files carry no independent check of the scan order.
 * ``\\Scan rate`` is lines per second (trace + retrace), so
   ``line_time_s = 1 / scan rate`` and ``frame_time_s = lines / scan rate``.
 * ``\\Date`` is taken as the moment the capture completed (the file is written
