@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from afmdrift.drivers import EventKind, Frame, Instrument, ScanDirection
 from afmdrift.drivers._nanoscope import NanoScopeDriver
@@ -404,3 +407,37 @@ def test_driver_rejects_bad_options() -> None:
         NanoScopeDriver(ScriptedTransport([]), timeout_s=0)
     with pytest.raises(ValueError, match="reconnect_attempts"):
         NanoScopeDriver(ScriptedTransport([]), reconnect_attempts=0)
+
+
+# --------------------------------------------------------------------------- fuzzing
+
+
+_GOOD_FRAME = encode_frame_reply(_frame(3), tag=1)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.one_of(
+        st.binary(max_size=200).map(lambda b: b + b"\n"),
+        st.tuples(st.integers(0, len(_GOOD_FRAME) - 1), st.integers(1, 255)).map(
+            lambda p: (
+                _GOOD_FRAME[: p[0]] + bytes([_GOOD_FRAME[p[0]] ^ p[1]]) + _GOOD_FRAME[p[0] + 1 :]
+            )
+        ),
+    )
+)
+def test_fuzz_driver_frame_query_raises_only_typed_errors(reply: bytes) -> None:
+    """Random or bit-flipped bytes in answer to FRAME:DATA? give a typed error or the
+    exact original frame, never another exception and never a wrong frame."""
+
+    async def run() -> Frame | None:
+        driver, _ = _driver([(b"@1 FRAME:DATA?\n", reply)], timeout_s=0.02)
+        return await driver.fetch_frame()
+
+    try:
+        frame = asyncio.run(run())
+    except (ProtocolError, InstrumentTimeout, InstrumentError):
+        return
+    if frame is not None:
+        np.testing.assert_array_equal(frame.heights_nm, _frame(3).heights_nm)
+        assert frame.t_start_s == _frame(3).t_start_s
