@@ -29,6 +29,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._run",
     "afmdrift.cli._replay",
     "afmdrift.cli._watch",
+    "afmdrift.cli._diagnose",
 )
 
 

@@ -1,0 +1,542 @@
+"""Which effect is missing: added-variable tests of every library term.
+
+The model (terms M, nonlinear parameters θ_M fitted on the whole run) leaves
+level residuals r_a(t_k) = p_a(t_k) − X_M(t_k)β̂_a per axis a. Drift residuals
+are strongly autocorrelated (a random walk, slow unmodelled effects), and a
+regression of an autocorrelated series on smooth candidates in levels finds
+"significant" fits by chance (spurious regression, Granger & Newbold 1974).
+So the tests run on AR(1) quasi-differences (Cochrane & Orcutt 1949)::
+
+    ỹ_k = y_k − φ_a·y_{k−1},    Z_k = X_k − φ_a·X_{k−1}
+
+with φ_a the lag-1 autocorrelation of r_a clipped to [0, 1] (φ → 1 is first
+differencing). ỹ − Z β̂ is, up to the fit, the one-step prediction error of
+an AR(1)-corrected model, the quantity the user cares about.
+
+For each candidate term C not in the model, for each θ of its
+:meth:`~afmdrift.model.EffectTerm.nonlinear_grid`, the candidate's basis is
+partialled on the model's (Frisch–Waugh–Lovell; the added-variable or partial
+regression of Mosteller & Tukey 1977)::
+
+    ε₀ = (I − H_M) ỹ,    Z̃_C = (I − H_M) Z_C(θ),    ε₀ ≈ Z̃_C γ + ε₁
+
+and three pieces of evidence are computed at the θ with the smallest residual
+sum of squares over both axes:
+
+1. **ΔAICc** = AICc(M) − AICc(M + C) (Hurvich & Tsai 1989), Gaussian
+   likelihood per axis with its own variance, N = 2n points, the candidate
+   counted with its linear coefficients on both axes **plus one parameter
+   per scanned nonlinear parameter**.
+2. **Wald test of γ = 0** with autocorrelation-robust covariance: Newey–West
+   (1987) HAC with the Bartlett kernel and ⌊4(n/100)^{2/9}⌋ lags; to be
+   conservative the larger of the HAC and the ordinary covariance is used
+   (the HAC estimate collapses for a regressor with a single non-zero row,
+   e.g. a step at one event). χ² over both axes; its p-value is multiplied
+   by the number of (candidate, θ) pairs tried (Bonferroni).
+3. **Blocked cross-validation** (contiguous time blocks dealt out to the
+   folds in turn, Bergmeir & Benítez 2012): θ and γ are refitted on the
+   other folds, the held-out blocks' RMS error is compared with the
+   model's. A term whose columns have no support in some training set
+   (e.g. the only offset move falls in the held-out
+   block) cannot be cross-validated; it then needs stronger ΔAICc and Wald
+   evidence (see :class:`Thresholds`).
+
+A candidate is **significant** when all of its evidence passes; candidates
+are ranked significant first, then by ΔAICc (the score).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+from afmdrift.model import EffectTerm, History
+
+__all__ = [
+    "CandidateResult",
+    "ModelDesign",
+    "Thresholds",
+    "base_basis",
+    "cv_folds",
+    "evaluate_candidate",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+@dataclass(frozen=True, slots=True)
+class Thresholds:
+    """Decision rule for calling a candidate significant.
+
+    Attributes
+    ----------
+    min_delta_aicc : float
+        ΔAICc above which the candidate is preferred (10: "essentially no
+        support" for the smaller model, Burnham & Anderson 2002).
+    alpha : float
+        Family-wise false-alarm level of the HAC Wald test (Bonferroni over
+        every candidate and grid point).
+    min_cv_drop : float
+        Fractional drop of the blocked-CV RMS error required.
+    folds : int
+        Contiguous CV blocks.
+    no_cv_factor : float
+        When a term cannot be cross-validated, ΔAICc must exceed
+        ``no_cv_factor × min_delta_aicc`` and the Wald p-value
+        ``alpha / no_cv_factor``.
+    """
+
+    min_delta_aicc: float = 10.0
+    alpha: float = 0.01
+    min_cv_drop: float = 0.05
+    folds: int = 5
+    no_cv_factor: float = 3.0
+
+
+@dataclass(frozen=True, slots=True)
+class ModelDesign:
+    """The model's basis at the observation times, per axis.
+
+    ``builder(params)`` returns the level basis (x, y), each (n, K_a), for
+    the model's nonlinear parameters ``params`` (term → name → value);
+    ``params`` are the fitted ones; ``grids`` lists (term, parameter, grid)
+    of every nonlinear parameter of the model. ``y`` (n, 2) holds the
+    measured positions and ``phi`` (2,) the AR(1) coefficients of the
+    quasi-differences.
+    """
+
+    t_s: FloatArray
+    y: FloatArray
+    scan_sign: FloatArray
+    phi: FloatArray
+    builder: Callable[[dict[str, dict[str, float]]], tuple[FloatArray, FloatArray]]
+    params: dict[str, dict[str, float]]
+    grids: list[tuple[str, str, FloatArray]]
+
+    @property
+    def n_nonlinear(self) -> int:
+        return len(self.grids)
+
+    def qd(self, a: FloatArray, axis: int) -> FloatArray:
+        """Quasi-difference rows: a[1:] − φ_axis·a[:−1]."""
+        return np.asarray(a[1:] - self.phi[axis] * a[:-1], dtype=np.float64)
+
+
+@dataclass(slots=True)
+class CandidateResult:
+    """Evidence for adding one effect term.
+
+    ``params`` holds the fitted nonlinear parameters and the linear
+    coefficients per axis (``<coefficient>_x``, ``<coefficient>_y``) in the
+    units named by the term. ``profile`` is (θ value, ΔAICc) over the scanned
+    grid of the first nonlinear parameter. ``av`` holds the added-variable
+    plot data per axis: (partialled candidate column, partialled response).
+    """
+
+    effect: str
+    testable: bool
+    reason: str = ""
+    significant: bool = False
+    score: float = math.nan
+    delta_aicc: float = math.nan
+    wald: float = math.nan
+    df: int = 0
+    p_value: float = math.nan
+    p_bonferroni: float = math.nan
+    cv_rmse_base_nm: float = math.nan
+    cv_rmse_nm: float = math.nan
+    cv_drop: float | None = None
+    params: dict[str, float] = field(default_factory=dict)
+    nonlinear: dict[str, float] = field(default_factory=dict)
+    rmse_after_nm: float | None = None
+    rmse_after_kind: str | None = None
+    profile: list[tuple[float, float]] = field(default_factory=list)
+    av: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
+
+    def evidence(self) -> str:
+        """One line summarising the evidence."""
+        if not self.testable:
+            return f"not testable: {self.reason}"
+        cv = (
+            f"blocked-CV error {100 * self.cv_drop:+.0f}% lower"
+            if self.cv_drop is not None
+            else "not cross-validatable"
+        )
+        return (
+            f"ΔAICc = {self.delta_aicc:.1f}, HAC Wald χ²({self.df}) = {self.wald:.1f} "
+            f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}"
+        )
+
+
+def newey_west_lags(n: int) -> int:
+    """⌊4(n/100)^{2/9}⌋, Newey & West (1994) rule of thumb for the Bartlett kernel."""
+    return max(1, math.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))  # type: ignore[no-any-return]
+
+
+def _nonzero_cols(z: FloatArray, ref: float) -> npt.NDArray[np.bool_]:
+    out: npt.NDArray[np.bool_] = np.sqrt(np.sum(z * z, axis=0)) > 1e-9 * max(ref, 1e-30)
+    return out
+
+
+def _residual_maker(z: FloatArray) -> FloatArray:
+    """Orthonormal basis Q (n, r) of the column space of ``z``."""
+    if z.shape[1] == 0:
+        return np.zeros((z.shape[0], 0))
+    u, s, _ = np.linalg.svd(z, full_matrices=False)
+    tol = s.max() * max(z.shape) * np.finfo(float).eps if s.size else 0.0
+    return np.asarray(u[:, s > tol], dtype=np.float64)
+
+
+def _partial(q: FloatArray, a: FloatArray) -> FloatArray:
+    return np.asarray(a - q @ (q.T @ a), dtype=np.float64)
+
+
+def _aicc(rss: Sequence[float], n: int, k: int) -> float:
+    total_n = n * len(rss)
+    ll = sum(-0.5 * n * (math.log(2 * math.pi * max(r, 1e-300) / n) + 1.0) for r in rss)
+    if total_n - k - 1 <= 0:
+        return math.inf
+    return -2.0 * ll + 2.0 * k + 2.0 * k * (k + 1) / (total_n - k - 1)
+
+
+def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatArray]:
+    """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance)."""
+    from statsmodels.regression.linear_model import OLS
+
+    n, k = z.shape
+    if k == 0 or n <= k + 1:
+        return 0.0, 0, np.zeros(0)
+    fit = OLS(e0, z).fit()
+    gamma = np.asarray(fit.params, dtype=np.float64)
+    v_ols = np.asarray(fit.cov_params(), dtype=np.float64)
+    hac = fit.get_robustcov_results(cov_type="HAC", maxlags=lags, use_correction=True)
+    v_hac = np.asarray(hac.cov_params(), dtype=np.float64)
+    w_ols = float(gamma @ np.linalg.pinv(v_ols) @ gamma)
+    w_hac = float(gamma @ np.linalg.pinv(v_hac) @ gamma)
+    return min(w_ols, w_hac), k, gamma
+
+
+def _cand_block(
+    term: EffectTerm, t_s: FloatArray, history: History, sign: FloatArray, params: dict[str, float]
+) -> tuple[FloatArray, FloatArray]:
+    return (
+        term.design(t_s, history, scan_sign=sign, params=params, axis=0),
+        term.design(t_s, history, scan_sign=sign, params=params, axis=1),
+    )
+
+
+def cv_folds(m: int, folds: int) -> npt.NDArray[np.int64]:
+    """Fold label of each of ``m`` rows: contiguous blocks dealt out in turn.
+
+    Blocks are ``max(3, m // (4·folds))`` rows long and block j goes to fold
+    j mod ``folds``, so every training set spans the whole record (no
+    extrapolation to an unseen start or end, which would fail transient
+    effects such as warm-up for the wrong reason) while each held-out block
+    is contiguous.
+    """
+    length = max(3, m // (4 * folds))
+    return np.asarray((np.arange(m) // length) % folds, dtype=np.int64)
+
+
+def _ls_predict(z_train: FloatArray, y_train: FloatArray, z_test: FloatArray) -> FloatArray:
+    if z_train.shape[1] == 0:
+        return np.zeros(z_test.shape[0])
+    coef, *_ = np.linalg.lstsq(z_train, y_train, rcond=1e-10)
+    return np.asarray(z_test @ coef, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class _Basis:
+    """Quasi-differenced model basis for one θ_M: columns, projector, residuals."""
+
+    params: dict[str, dict[str, float]]
+    zm: list[FloatArray]
+    qm: list[FloatArray]
+    e0: list[FloatArray]
+
+    @property
+    def rss(self) -> float:
+        return float(sum(e @ e for e in self.e0))
+
+
+def _basis(design: ModelDesign, params: dict[str, dict[str, float]]) -> _Basis:
+    x = design.builder(params)
+    zm, qm, e0 = [], [], []
+    for a in (0, 1):
+        z = design.qd(x[a], a)
+        z = z[:, _nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)]
+        q = _residual_maker(z)
+        zm.append(z)
+        qm.append(q)
+        e0.append(_partial(q, design.qd(design.y[:, a], a)))
+    return _Basis(params, zm, qm, e0)
+
+
+def _rss_with(basis: _Basis, zc: Sequence[FloatArray]) -> float:
+    total = 0.0
+    for a in (0, 1):
+        z = _partial(basis.qm[a], zc[a]) if zc[a].size else zc[a]
+        r = basis.e0[a]
+        if z.size and z.shape[1]:
+            coef, *_ = np.linalg.lstsq(z, r, rcond=1e-10)
+            r = r - z @ coef
+        total += float(r @ r)
+    return total
+
+
+def optimise_model(design: ModelDesign, zc: Sequence[FloatArray] | None = None) -> _Basis:
+    """One coordinate pass over the model's θ grids minimising the quasi-
+    differenced RSS (with candidate columns ``zc`` per axis, if given)."""
+    extra = list(zc) if zc is not None else [np.zeros((design.t_s.size - 1, 0))] * 2
+    params = {k: dict(v) for k, v in design.params.items()}
+    best = _basis(design, params)
+    best_rss = _rss_with(best, extra)
+    for term_name, pname, grid in design.grids:
+        for v in grid:
+            trial = {k: dict(vv) for k, vv in params.items()}
+            trial[term_name][pname] = float(v)
+            b = _basis(design, trial)
+            rss = _rss_with(b, extra)
+            if rss < best_rss:
+                best, best_rss, params = b, rss, trial
+    return best
+
+
+def base_basis(design: ModelDesign) -> _Basis:
+    """The model's basis with θ_M refitted on the quasi-differences."""
+    return optimise_model(design)
+
+
+def _scan(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    basis: _Basis,
+    grid: list[dict[str, float]],
+) -> list[tuple[dict[str, float], list[FloatArray], list[float]]]:
+    """Per θ_C: partialled candidate columns and per-axis RSS."""
+    out = []
+    for params in grid:
+        blocks = _cand_block(term, design.t_s, history, design.scan_sign, params)
+        zc, rss1 = [], []
+        for a in (0, 1):
+            raw = design.qd(np.asarray(blocks[a], dtype=np.float64), a)
+            z = _partial(basis.qm[a], raw)
+            ref = float(np.abs(raw).max()) if raw.size else 0.0
+            z = z[:, _nonzero_cols(z, ref)] if z.size else z
+            zc.append(z)
+            r = basis.e0[a]
+            if z.shape[1]:
+                coef, *_ = np.linalg.lstsq(z, r, rcond=1e-10)
+                r = r - z @ coef
+            rss1.append(float(r @ r))
+        out.append((params, zc, rss1))
+    return out
+
+
+def evaluate_candidate(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    *,
+    n_tests: int,
+    thresholds: Thresholds | None = None,
+    base: _Basis | None = None,
+) -> CandidateResult:
+    """Added-variable evidence for adding ``term`` to the model.
+
+    The model's nonlinear parameters θ_M are refitted (one coordinate pass
+    over their grids) with the candidate in place, so a model term that
+    bent itself to absorb the missing effect gets to straighten out.
+
+    Parameters
+    ----------
+    term : EffectTerm
+        The candidate.
+    design : ModelDesign
+        The model's basis builder, response and AR(1) coefficients.
+    history : History
+        Channels and events of the whole run.
+    n_tests : int
+        Total (candidate, θ) pairs tried in this diagnosis (Bonferroni).
+    thresholds : Thresholds
+        Decision rule.
+    base : _Basis, optional
+        :func:`base_basis` of ``design`` (computed if not given).
+    """
+    why = term.missing(history)
+    if why is not None:
+        return CandidateResult(effect=term.name, testable=False, reason=why)
+    t = design.t_s
+    n = t.size - 1
+    if n < 10:
+        return CandidateResult(
+            effect=term.name, testable=False, reason=f"only {n + 1} measured frames"
+        )
+    thresholds = thresholds or Thresholds()
+    b0 = base if base is not None else base_basis(design)
+    k_model = sum(q.shape[1] for q in b0.qm) + 2 + design.n_nonlinear
+    aicc0 = _aicc([float(e @ e) for e in b0.e0], n, k_model)
+    grid = term.nonlinear_grid()
+    n_theta = len(term.nonlinear_params)
+    scan = _scan(term, design, history, b0, grid)
+    totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
+    if not np.isfinite(totals).any():
+        return CandidateResult(
+            effect=term.name,
+            testable=False,
+            reason="its basis is constant or already spanned by the model on this run",
+        )
+    basis = b0
+    if design.grids:
+        best_params = scan[int(np.argmin(totals))][0]
+        blocks = _cand_block(term, t, history, design.scan_sign, best_params)
+        raw = [design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)]
+        basis = optimise_model(design, raw)
+        scan = _scan(term, design, history, basis, grid)
+        totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
+    per_theta = []
+    for params, zc, rss1 in scan:
+        k_c = sum(z.shape[1] for z in zc)
+        d = aicc0 - _aicc(rss1, n, k_model + k_c + n_theta) if k_c else math.nan
+        per_theta.append((params, zc, rss1, d))
+    i_best = int(np.argmin(totals))
+    params, zc, rss1, d_aicc = per_theta[i_best]
+    lags = newey_west_lags(n)
+    wald = 0.0
+    df = 0
+    for a in (0, 1):
+        w, k, _ = _wald(zc[a], basis.e0[a], lags)
+        wald += w
+        df += k
+    p = float(stats.chi2.sf(wald, df)) if df else 1.0
+    p_bonf = min(1.0, p * max(n_tests, 1))
+    ytil = [design.qd(design.y[:, a], a) for a in (0, 1)]
+    cv_base, cv_cand, cv_ok = _blocked_cv(
+        term, design, history, b0.zm, basis.zm, ytil, grid, thresholds.folds
+    )
+    cv_drop = (1.0 - cv_cand / cv_base) if (cv_ok and cv_base > 0) else None
+    if cv_drop is not None:
+        significant = (
+            d_aicc > thresholds.min_delta_aicc
+            and p_bonf < thresholds.alpha
+            and cv_drop >= thresholds.min_cv_drop
+        )
+    else:
+        significant = (
+            d_aicc > thresholds.no_cv_factor * thresholds.min_delta_aicc
+            and p_bonf < thresholds.alpha / thresholds.no_cv_factor
+        )
+    # Linear coefficients in the term's units, from the partialled fit on each axis
+    # (by Frisch–Waugh–Lovell equal to the full quasi-differenced regression's).
+    blocks = _cand_block(term, t, history, design.scan_sign, params)
+    named: dict[str, float] = dict(params)
+    units = term.coefficient_units
+    for a, axis in enumerate("xy"):
+        raw_a = design.qd(np.asarray(blocks[a], dtype=np.float64), a)
+        z_full = _partial(basis.qm[a], raw_a)
+        keep = _nonzero_cols(z_full, float(np.abs(raw_a).max()) if raw_a.size else 0.0)
+        coef_full = np.full(z_full.shape[1], math.nan)
+        if keep.any():
+            c, *_ = np.linalg.lstsq(z_full[:, keep], basis.e0[a], rcond=1e-10)
+            coef_full[keep] = c
+        for j, v in enumerate(coef_full):
+            base_name = units[j] if j < len(units) else (units[0] if units else "coef")
+            label = base_name if coef_full.size == 1 else f"{base_name}[{j}]"
+            named[f"{label}_{axis}"] = float(v)
+    for term_name, pname, _ in design.grids:
+        named[f"model.{term_name}.{pname}"] = float(basis.params[term_name][pname])
+    profile = []
+    if n_theta:
+        pname = term.nonlinear_params[0].name
+        profile = [(float(pp[pname]), float(d)) for pp, _, _, d in per_theta]
+    av = []
+    for a in (0, 1):
+        z = zc[a]
+        col = z[:, 0] if z.shape[1] else np.zeros(n)
+        av.append((col, basis.e0[a]))
+    return CandidateResult(
+        effect=term.name,
+        testable=True,
+        significant=bool(significant),
+        score=float(d_aicc),
+        delta_aicc=float(d_aicc),
+        wald=float(wald),
+        df=int(df),
+        p_value=p,
+        p_bonferroni=p_bonf,
+        cv_rmse_base_nm=float(cv_base),
+        cv_rmse_nm=float(cv_cand),
+        cv_drop=None if cv_drop is None else float(cv_drop),
+        params=named,
+        nonlinear=dict(params),
+        profile=profile,
+        av=av,
+    )
+
+
+def _blocked_cv(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    zm_base: list[FloatArray],
+    zm: list[FloatArray],
+    ytil: list[FloatArray],
+    grid: list[dict[str, float]],
+    folds: int,
+) -> tuple[float, float, bool]:
+    """Blocked-CV RMS error (Euclidean) of the model and of model + term.
+
+    θ_C is chosen on each training set; the model's columns are ``zm_base``
+    for the model alone and ``zm`` (θ_M refitted with the candidate) with
+    it. Returns (base, candidate, evaluable); not evaluable when some fold's
+    training data carries none of a column that its test block uses.
+    """
+    t, sign = design.t_s, design.scan_sign
+    m = ytil[0].size
+    labels = cv_folds(m, folds)
+    zc_grid = []
+    for params in grid:
+        blocks = _cand_block(term, t, history, sign, params)
+        zc_grid.append([design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)])
+    se_base = 0.0
+    se_cand = 0.0
+    evaluable = True
+    for f in range(folds):
+        test = labels == f
+        train = ~test
+        if not test.any():
+            continue
+        best_rss = math.inf
+        best_pred: list[FloatArray] | None = None
+        for zc in zc_grid:
+            rss = 0.0
+            preds = []
+            for a in (0, 1):
+                full = np.hstack([zm[a], zc[a]])
+                supp_train = np.abs(full[train]).max(axis=0) > 0 if full.shape[1] else None
+                supp_test = np.abs(full[test]).max(axis=0) > 0 if full.shape[1] else None
+                if supp_train is not None and supp_test is not None:
+                    if np.any(supp_test & ~supp_train):
+                        evaluable = False
+                    cols = supp_train
+                else:
+                    cols = np.zeros(0, dtype=bool)
+                ztr = full[train][:, cols]
+                coef, *_ = np.linalg.lstsq(ztr, ytil[a][train], rcond=1e-10)
+                r = ytil[a][train] - ztr @ coef
+                rss += float(r @ r)
+                preds.append(full[test][:, cols] @ coef)
+            if rss < best_rss:
+                best_rss, best_pred = rss, preds
+        assert best_pred is not None
+        for a in (0, 1):
+            base_pred = _ls_predict(zm_base[a][train], ytil[a][train], zm_base[a][test])
+            se_base += float(np.sum((ytil[a][test] - base_pred) ** 2))
+            se_cand += float(np.sum((ytil[a][test] - best_pred[a]) ** 2))
+    return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable

@@ -1,0 +1,620 @@
+"""Model against measurement: compare, locate failures, find the missing effect.
+
+:func:`diagnose` takes the per-frame measurements of a run (:class:`RunData`)
+and a physics model (a list of effect terms) and
+
+1. **compares**: re-runs the model online over the measured positions exactly
+   as the drift service does (fit on the frames so far, predict the next
+   frame, with the channels and events logged up to the end of that frame)
+   and summarises the one-step errors; where the session has the true drift,
+   also the error of the model's continuous prediction between frames;
+2. **locates failures**: episodes of large or persistently biased errors,
+   each linked to what was logged then; Ljung–Box, periodogram, CUSUM and
+   the up/down frame difference (:mod:`afmdrift.diagnostics._stats`);
+3. **finds the missing effect**: tests every library term not in the model
+   (:mod:`afmdrift.diagnostics._candidates`), ranks them, and for the top
+   candidates re-runs the model online with the term added to measure the
+   new one-step error ("add it and watch the error fall").
+
+The statistics and the JSON object are documented in ``docs/diagnostics.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.diagnostics._candidates import (
+    CandidateResult,
+    ModelDesign,
+    Thresholds,
+    base_basis,
+    evaluate_candidate,
+)
+from afmdrift.diagnostics._data import RunData
+from afmdrift.diagnostics._stats import (
+    Failure,
+    error_summary,
+    find_episodes,
+    ljung_box,
+    lomb_scargle,
+    up_down_difference,
+)
+from afmdrift.errors import ConfigError, InputError
+from afmdrift.model import History, PhysicsConfig, PhysicsPredictor, available_terms
+
+__all__ = [
+    "DiagnoseOptions",
+    "Diagnosis",
+    "ModelRun",
+    "diagnose",
+    "model_design",
+    "run_from_store",
+    "run_model",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Version of the JSON object (docs/diagnostics.md).
+SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True, slots=True)
+class DiagnoseOptions:
+    """Options of :func:`diagnose`.
+
+    Attributes
+    ----------
+    burn_in_frames : int
+        Fed frames at the start whose one-step errors are left out of the
+        statistics (every model is poor while it has few points).
+    thresholds : Thresholds
+        Significance rule of the candidate tests.
+    verify : int
+        How many top-ranked testable candidates are re-run online with the
+        term added (their ``rmse_after_nm`` is then measured, not estimated).
+    """
+
+    burn_in_frames: int = 10
+    thresholds: Thresholds = field(default_factory=Thresholds)
+    verify: int = 1
+
+
+@dataclass(slots=True)
+class ModelRun:
+    """One online run of a physics model over the measured frames.
+
+    ``t_s`` (m,), ``frames`` (m,), ``measured_nm`` (m, 2), ``predicted_nm``
+    (m, 2) and ``errors_nm`` (m, 2) are per fed frame (NaN where no
+    prediction was made yet); ``predictor`` is the model after the last
+    frame; ``truth_errors_nm`` (q, 2) the continuous prediction error against
+    the true drift at ``truth_t_s`` (q,) between frames, when truth exists.
+    """
+
+    effects: list[str]
+    t_s: FloatArray
+    frames: npt.NDArray[np.int64]
+    scan_sign: FloatArray
+    measured_nm: FloatArray
+    predicted_nm: FloatArray
+    errors_nm: FloatArray
+    predictor: PhysicsPredictor
+    history: History
+    truth_t_s: FloatArray | None = None
+    truth_errors_nm: FloatArray | None = None
+
+    def summary(self, burn_in: int) -> dict[str, float]:
+        return error_summary(self.errors_nm[burn_in:])
+
+
+def run_model(data: RunData, physics: PhysicsConfig, *, truth: bool = True) -> ModelRun:
+    """Re-run the physics model online over the fed frames of ``data``.
+
+    Each frame is predicted from the model fitted on the earlier frames, with
+    the channels and events logged up to the end of that frame, then added.
+
+    Raises
+    ------
+    InputError
+        If fewer than three frames fed the model.
+    ConfigError
+        If a term name is unknown.
+    """
+    obs = data.observations()
+    if len(obs) < 3:
+        raise InputError(f"only {len(obs)} frames fed the model; need at least 3 to diagnose")
+    fed = np.flatnonzero(data.fed)
+    predictor = PhysicsPredictor(physics)
+    history = History()
+    ci = ei = 0
+    channels, events = data.channels, data.events
+    truth_t_all = data.truth_t_s if truth else None
+    tt: list[FloatArray] = []
+    te: list[FloatArray] = []
+    t_end = data.t_end_s[fed]
+    for j, o in enumerate(obs):
+        upto = float(t_end[j])
+        while ci < len(channels) and channels[ci].t_s <= upto:
+            if not history.channel_t_s or channels[ci].t_s >= history.channel_t_s[-1]:
+                history.add_channels(channels[ci])
+            ci += 1
+        new_events = []
+        while ei < len(events) and events[ei].t_s <= upto:
+            new_events.append(events[ei])
+            ei += 1
+        if new_events:
+            history.add_events(new_events)
+        predictor.update(o, history)
+        if truth_t_all is not None and j + 1 < len(obs) and j >= 1:
+            sel = (truth_t_all > upto) & (truth_t_all <= float(t_end[j + 1]))
+            if sel.any():
+                tq = truth_t_all[sel]
+                tt.append(tq)
+                te.append(np.asarray(predictor.predict(tq, history).mean_nm, dtype=np.float64))
+    errors = np.asarray(predictor.log.errors, dtype=np.float64).reshape(-1, 2)
+    measured = predictor.log.xy()
+    truth_t = truth_e = None
+    if tt:
+        truth_t = np.concatenate(tt)
+        truth_e = _truth_error(data, truth_t, np.vstack(te), measured, fed)
+    return ModelRun(
+        effects=list(physics.terms),
+        t_s=data.t_s[fed],
+        frames=data.frame[fed],
+        scan_sign=data.scan_sign[fed],
+        measured_nm=measured,
+        predicted_nm=measured - errors,
+        errors_nm=errors,
+        predictor=predictor,
+        history=history,
+        truth_t_s=truth_t,
+        truth_errors_nm=truth_e,
+    )
+
+
+def run_from_store(data: RunData, physics: PhysicsConfig) -> ModelRun | None:
+    """The run's own one-step predictions and final model, if it ran ``physics``.
+
+    A run written by ``afmdrift replay`` or the daemon stores the prediction
+    it made for every frame and the predictor state after the last one; when
+    that predictor is the physics model with exactly this configuration, the
+    online re-run of :func:`run_model` would repeat the same computation.
+    The continuous error against truth then uses the published curves d(t).
+    Returns None when the run cannot be reused.
+    """
+    state = data.predictor_state
+    if data.pred_nm is None or state is None or state.get("name") != PhysicsPredictor.name:
+        return None
+    try:
+        stored = PhysicsConfig.model_validate(state["config"])
+    except (KeyError, ValueError):
+        return None
+    if stored.model_dump() != physics.model_dump():
+        return None
+    predictor = PhysicsPredictor(physics)
+    predictor.load_state_dict(state)
+    fed = np.flatnonzero(data.fed)
+    measured = data.xy_nm[fed]
+    errors = measured - data.pred_nm[fed]
+    truth_t = truth_e = None
+    if data.truth_t_s is not None and data.curves:
+        from afmdrift.model import OffsetCurve
+
+        tt: list[FloatArray] = []
+        te: list[FloatArray] = []
+        for j in range(1, fed.size - 1):
+            doc = data.curves.get(int(data.frame[fed[j]]))
+            if doc is None:
+                continue
+            lo, hi = float(data.t_end_s[fed[j]]), float(data.t_end_s[fed[j + 1]])
+            sel = (data.truth_t_s > lo) & (data.truth_t_s <= hi)
+            if sel.any():
+                tq = data.truth_t_s[sel]
+                tt.append(tq)
+                te.append(np.asarray(OffsetCurve.from_dict(doc).at(tq), dtype=np.float64))
+        if tt:
+            truth_t = np.concatenate(tt)
+            truth_e = _truth_error(data, truth_t, np.vstack(te), measured, fed)
+    return ModelRun(
+        effects=list(physics.terms),
+        t_s=data.t_s[fed],
+        frames=data.frame[fed],
+        scan_sign=data.scan_sign[fed],
+        measured_nm=measured,
+        predicted_nm=data.pred_nm[fed],
+        errors_nm=errors,
+        predictor=predictor,
+        history=data.history(),
+        truth_t_s=truth_t,
+        truth_errors_nm=truth_e,
+    )
+
+
+def _truth_error(
+    data: RunData,
+    t_s: FloatArray,
+    pred_nm: FloatArray,
+    measured_nm: FloatArray,
+    fed: npt.NDArray[np.int64],
+) -> FloatArray:
+    """Continuous prediction minus true drift; p is relative to the reference
+    frame and truth to t = 0, so their median difference at the frames is removed."""
+    true_c = data.truth_at(t_s)
+    true_frames = data.truth_at(data.t_s[fed])
+    if true_c is None or true_frames is None:
+        raise InputError("the run has no true drift to compare with")
+    offset = np.nanmedian(measured_nm - true_frames, axis=0)
+    return np.asarray(pred_nm - (true_c + offset[None, :]), dtype=np.float64)
+
+
+def model_design(run: ModelRun) -> ModelDesign:
+    """The final model's basis builder at the frame times, and AR(1) φ per axis.
+
+    φ is the lag-1 autocorrelation of the model's level residuals, clipped
+    to [0, 1].
+    """
+    p = run.predictor
+    t = run.t_s
+    active = list(p.active)
+    known = available_terms(p.config.plugins)
+
+    def builder(params: dict[str, dict[str, float]]) -> tuple[FloatArray, FloatArray]:
+        out = []
+        for a in (0, 1):
+            blocks = p.design_blocks(t, run.history, run.scan_sign, a, active=active, params=params)
+            out.append(np.hstack([b for _, b in blocks]) if blocks else np.zeros((t.size, 0)))
+        return out[0], out[1]
+
+    fitted = {k: dict(v) for k, v in p.params.items()}
+    xs = builder(fitted)
+    phi = np.zeros(2)
+    for a in (0, 1):
+        x = xs[a]
+        if p.fits and p.fits[a].keep.size == x.shape[1]:
+            fit = p.fits[a]
+            r = run.measured_nm[:, a] - x[:, fit.keep] @ fit.coef
+        else:
+            r = run.measured_nm[:, a] - run.measured_nm[:, a].mean()
+        den = float(r[:-1] @ r[:-1])
+        phi[a] = min(max(float(r[1:] @ r[:-1]) / den, 0.0), 1.0) if den > 0 else 0.0
+    grids = [
+        (name, prm.name, prm.grid()) for name in active for prm in known[name].nonlinear_params
+    ]
+    return ModelDesign(
+        t_s=t,
+        y=run.measured_nm,
+        scan_sign=run.scan_sign,
+        phi=phi,
+        builder=builder,
+        params=fitted,
+        grids=grids,
+    )
+
+
+@dataclass(slots=True)
+class Diagnosis:
+    """Everything :func:`diagnose` found; :meth:`to_json` is the documented object."""
+
+    model_effects: list[str]
+    active_effects: list[str]
+    run: ModelRun
+    burn_in_frames: int
+    summary: dict[str, float]
+    truth_summary: dict[str, float] | None
+    ljung_box: dict[str, dict[str, float]]
+    periodogram: dict[str, dict[str, float]]
+    up_down: dict[str, float] | None
+    failures: list[Failure]
+    candidates: list[CandidateResult]
+    n_tests: int
+    thresholds: Thresholds
+    phi: list[float]
+    finding: str
+    config_terms: list[str] | None
+    after: ModelRun | None = None
+    after_summary: dict[str, float] | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def top(self) -> CandidateResult | None:
+        """The best significant candidate, or None."""
+        for c in self.candidates:
+            if c.significant:
+                return c
+        return None
+
+    def config_snippet(self) -> str | None:
+        """The exact lines to put in the configuration file, or None."""
+        if self.config_terms is None:
+            return None
+        terms = ", ".join(f'"{t}"' for t in self.config_terms)
+        return f"[model.physics]\nterms = [{terms}]"
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON object documented in docs/diagnostics.md."""
+        s = self.summary
+        return {
+            "schema_version": SCHEMA_VERSION,
+            "model_effects": list(self.model_effects),
+            "active_effects": list(self.active_effects),
+            "frames": int(self.run.t_s.size),
+            "burn_in_frames": self.burn_in_frames,
+            "rmse_nm": _num(s["rmse_nm"]),
+            "rmse_x_nm": _num(s["rmse_x_nm"]),
+            "rmse_y_nm": _num(s["rmse_y_nm"]),
+            "mean_abs_error_nm": _num(s["mean_abs_nm"]),
+            "peak_error_nm": _num(s["peak_nm"]),
+            "truth": None
+            if self.truth_summary is None
+            else {
+                "rmse_nm": _num(self.truth_summary["rmse_nm"]),
+                "mean_abs_error_nm": _num(self.truth_summary["mean_abs_nm"]),
+                "peak_error_nm": _num(self.truth_summary["peak_nm"]),
+            },
+            "ljung_box": {
+                k: {kk: _num(vv) for kk, vv in v.items()} for k, v in self.ljung_box.items()
+            },
+            "periodogram": {
+                k: {kk: _num(vv) for kk, vv in v.items()} for k, v in self.periodogram.items()
+            },
+            "up_down": None
+            if self.up_down is None
+            else {k: _num(v) for k, v in self.up_down.items()},
+            "ar1_phi": [_num(v) for v in self.phi],
+            "failures": [
+                {
+                    "t_start_s": f.t_start_s,
+                    "t_end_s": f.t_end_s,
+                    "frames": f.frames,
+                    "peak_error_nm": _num(f.peak_error_nm),
+                    "kind": f.kind,
+                    "context": f.context,
+                    "note": f.note,
+                }
+                for f in self.failures
+            ],
+            "candidates": [
+                {
+                    "rank": i + 1,
+                    "effect": c.effect,
+                    "testable": c.testable,
+                    "reason": c.reason or None,
+                    "significant": c.significant,
+                    "score": _num(c.score),
+                    "delta_aicc": _num(c.delta_aicc),
+                    "wald_chi2": _num(c.wald),
+                    "df": c.df,
+                    "p_value": _num(c.p_value),
+                    "p_bonferroni": _num(c.p_bonferroni),
+                    "cv_rmse_base_nm": _num(c.cv_rmse_base_nm),
+                    "cv_rmse_nm": _num(c.cv_rmse_nm),
+                    "cv_drop": None if c.cv_drop is None else _num(c.cv_drop),
+                    "params": {k: _num(v) for k, v in c.params.items()},
+                    "rmse_after_nm": None if c.rmse_after_nm is None else _num(c.rmse_after_nm),
+                    "rmse_after_kind": c.rmse_after_kind,
+                    "evidence": c.evidence(),
+                }
+                for i, c in enumerate(self.candidates)
+            ],
+            "tests": self.n_tests,
+            "thresholds": {
+                "min_delta_aicc": self.thresholds.min_delta_aicc,
+                "alpha": self.thresholds.alpha,
+                "min_cv_drop": self.thresholds.min_cv_drop,
+                "folds": self.thresholds.folds,
+                "no_cv_factor": self.thresholds.no_cv_factor,
+            },
+            "finding": self.finding,
+            "config": self.config_snippet(),
+            "after": None
+            if self.after is None or self.after_summary is None
+            else {
+                "effects": list(self.after.effects),
+                "rmse_nm": _num(self.after_summary["rmse_nm"]),
+                "mean_abs_error_nm": _num(self.after_summary["mean_abs_nm"]),
+                "peak_error_nm": _num(self.after_summary["peak_nm"]),
+                "rmse_drop": _num(1.0 - self.after_summary["rmse_nm"] / s["rmse_nm"])
+                if s["rmse_nm"] > 0
+                else None,
+            },
+        }
+
+
+def _num(v: float | int | None) -> float | None:
+    if v is None:
+        return None
+    f = float(v)
+    return f if math.isfinite(f) else None
+
+
+def diagnose(
+    data: RunData,
+    physics: PhysicsConfig,
+    *,
+    effects: Sequence[str] | None = None,
+    options: DiagnoseOptions | None = None,
+) -> Diagnosis:
+    """Compare the model with the measurements, locate failures, test missing effects.
+
+    Parameters
+    ----------
+    data : RunData
+        Per-frame measurements with channels and events.
+    physics : PhysicsConfig
+        The model configuration (``[model.physics]``).
+    effects : sequence of str, optional
+        Replace the configured terms (``--effects``).
+    options : DiagnoseOptions
+
+    Raises
+    ------
+    ConfigError
+        Unknown or duplicate effect names.
+    InputError
+        Too few measured frames.
+    """
+    options = options or DiagnoseOptions()
+    if effects is not None:
+        effects = [e.strip() for e in effects if e.strip()]
+        if not effects:
+            raise ConfigError("--effects: give at least one effect term (e.g. trend)")
+        physics = physics.model_copy(update={"terms": list(effects)})
+    known = available_terms(physics.plugins)
+    unknown = [t for t in physics.terms if t not in known]
+    if unknown:
+        raise ConfigError(
+            f"effects: unknown term(s) {', '.join(map(repr, unknown))} "
+            f"(known: {', '.join(sorted(known))})"
+        )
+    run = run_from_store(data, physics) or run_model(data, physics)
+    burn = min(options.burn_in_frames, max(run.t_s.size - 8, 0))
+    summary = run.summary(burn)
+    e = run.errors_nm
+    lb: dict[str, dict[str, float]] = {}
+    pg: dict[str, dict[str, float]] = {}
+    for a, axis in enumerate("xy"):
+        q, p, lags = ljung_box(e[burn:, a])
+        lb[axis] = {"q": q, "p_value": p, "lags": float(lags)}
+        periods, power = lomb_scargle(run.t_s[burn:], e[burn:, a])
+        if power.size:
+            i = int(np.argmax(power))
+            pg[axis] = {"peak_period_s": float(periods[i]), "peak_power": float(power[i])}
+        else:
+            pg[axis] = {"peak_period_s": math.nan, "peak_power": math.nan}
+    failures = find_episodes(
+        data, run.t_s[burn:], run.frames[burn:], e[burn:], run.scan_sign[burn:]
+    )
+    up_down = up_down_difference(e[burn:], run.scan_sign[burn:])
+    truth_summary = error_summary(run.truth_errors_nm) if run.truth_errors_nm is not None else None
+
+    design = model_design(run)
+    history = run.history
+    terms = {name: cls() for name, cls in known.items() if name not in physics.terms}
+    testable = [t for t in terms.values() if t.missing(history) is None]
+    n_tests = sum(len(t.nonlinear_grid()) for t in testable)
+    base = base_basis(design)
+    results = [
+        evaluate_candidate(
+            term, design, history, n_tests=n_tests, thresholds=options.thresholds, base=base
+        )
+        for term in terms.values()
+    ]
+    results.sort(
+        key=lambda c: (
+            not c.significant,
+            not c.testable,
+            -(c.score if math.isfinite(c.score) else -math.inf),
+        )
+    )
+    rmse0 = summary["rmse_nm"]
+    after: ModelRun | None = None
+    after_summary = None
+    verified = 0
+    for c in results:
+        if not c.testable:
+            continue
+        if verified < options.verify or c.significant:
+            cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
+            r = run_model(data, cfg, truth=c is results[0])
+            s = r.summary(burn)
+            c.rmse_after_nm = s["rmse_nm"]
+            c.rmse_after_kind = "replayed"
+            if c is results[0] and c.significant:
+                after, after_summary = r, s
+            verified += 1
+        elif c.cv_drop is not None and math.isfinite(rmse0) and c.cv_rmse_base_nm > 0:
+            c.rmse_after_nm = rmse0 * c.cv_rmse_nm / c.cv_rmse_base_nm
+            c.rmse_after_kind = "cv_estimate"
+    top = results[0] if results and results[0].significant else None
+    finding, config_terms = _finding(
+        top, results, physics, summary, after_summary, n_tests, options
+    )
+    return Diagnosis(
+        model_effects=list(physics.terms),
+        active_effects=list(run.predictor.active),
+        run=run,
+        burn_in_frames=burn,
+        summary=summary,
+        truth_summary=truth_summary,
+        ljung_box=lb,
+        periodogram=pg,
+        up_down=up_down,
+        failures=failures,
+        candidates=results,
+        n_tests=n_tests,
+        thresholds=options.thresholds,
+        phi=[float(v) for v in design.phi],
+        finding=finding,
+        config_terms=config_terms,
+        after=after,
+        after_summary=after_summary,
+    )
+
+
+def _format_params(c: CandidateResult) -> str:
+    parts = []
+    for k, v in c.params.items():
+        if k in c.nonlinear:
+            parts.append(f"{k} = {v:.3g}")
+    lin: dict[str, list[str]] = {}
+    for k, v in c.params.items():
+        if k in c.nonlinear:
+            continue
+        base, _, axis = k.rpartition("_")
+        lin.setdefault(base, []).append(f"{axis} = {v:.3g}")
+    for base, vals in lin.items():
+        parts.append(f"{base}: {', '.join(vals)}")
+    return "; ".join(parts)
+
+
+def _finding(
+    top: CandidateResult | None,
+    results: list[CandidateResult],
+    physics: PhysicsConfig,
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+    n_tests: int,
+    options: DiagnoseOptions,
+) -> tuple[str, list[str] | None]:
+    th = options.thresholds
+    rule = (
+        f"ΔAICc > {th.min_delta_aicc:g}, HAC Wald p < {th.alpha:g} after Bonferroni over "
+        f"{n_tests} tests, blocked-CV error at least {100 * th.min_cv_drop:.0f}% lower"
+    )
+    if top is None:
+        testable = [c for c in results if c.testable]
+        best = (
+            f" The closest candidate is {testable[0].effect} ({testable[0].evidence()})."
+            if testable
+            else ""
+        )
+        return (
+            f"No missing effect found: none of the {len(testable)} testable library effects "
+            f"not in the model passes the test ({rule}).{best}",
+            None,
+        )
+    terms = [*physics.terms, top.effect]
+    doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
+    change = ""
+    if after_summary is not None and summary["rmse_nm"] > 0:
+        drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
+        change = (
+            f" Re-running the model with it cuts the one-step RMS error from "
+            f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
+            f"({100 * drop:.0f}% lower)."
+        )
+    return (
+        f"Missing effect: {top.effect} ({doc.rstrip('.')}). Fitted: {_format_params(top)}. "
+        f"Evidence: {top.evidence()}.{change} To add it, put in your configuration file: "
+        f"[model.physics] terms = [{', '.join(repr(t).replace(chr(39), chr(34)) for t in terms)}]",
+        terms,
+    )
+
+
+def _term_instance(name: str, physics: PhysicsConfig) -> Any:
+    return available_terms(physics.plugins)[name]()

@@ -1,0 +1,203 @@
+"""Diagnostics statistics on synthetic series with known ground truth."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from afmdrift.diagnostics import RunData, Thresholds, diagnose
+from afmdrift.diagnostics._candidates import cv_folds
+from afmdrift.diagnostics._stats import (
+    cusum,
+    error_summary,
+    find_episodes,
+    ljung_box,
+    lomb_scargle,
+    robust_z,
+)
+from afmdrift.drivers._base import ChannelSample, Event, EventKind
+from afmdrift.errors import ConfigError, InputError
+from afmdrift.model import PhysicsConfig
+
+
+def test_error_summary_of_known_errors() -> None:
+    e = np.array([[3.0, 4.0], [0.0, 0.0], [np.nan, 1.0], [-6.0, 8.0]])
+    s = error_summary(e)
+    assert s["n"] == 3
+    assert s["mean_abs_nm"] == pytest.approx(5.0)
+    assert s["peak_nm"] == pytest.approx(10.0)
+    assert s["rmse_nm"] == pytest.approx(math.sqrt((25 + 0 + 100) / 3))
+    assert s["rmse_x_nm"] == pytest.approx(math.sqrt((9 + 36) / 3))
+
+
+def test_ljung_box_separates_white_noise_from_ar1() -> None:
+    rng = np.random.default_rng(1)
+    white = rng.normal(size=200)
+    ar = np.zeros(200)
+    for k in range(1, 200):
+        ar[k] = 0.8 * ar[k - 1] + rng.normal()
+    _, p_white, lags = ljung_box(white)
+    _, p_ar, _ = ljung_box(ar)
+    assert lags == 10
+    assert p_white > 0.01
+    assert p_ar < 1e-6
+
+
+def test_lomb_scargle_finds_the_period_of_uneven_samples() -> None:
+    rng = np.random.default_rng(2)
+    t = np.sort(rng.uniform(0, 30000, 150))
+    e = np.sin(2 * np.pi * t / 3600.0) + 0.2 * rng.normal(size=t.size)
+    period, power = lomb_scargle(t, e)
+    assert period[np.argmax(power)] == pytest.approx(3600.0, rel=0.05)
+    assert power.max() > 0.8
+
+
+def test_cusum_locates_a_mean_shift() -> None:
+    rng = np.random.default_rng(3)
+    z = rng.normal(size=120)
+    z[70:] += 2.0
+    _, _, segments = cusum(z)
+    assert segments, "a 2σ shift over 50 samples must raise an alarm"
+    start, stop = segments[0]
+    assert 60 <= start <= 75
+    assert stop > start
+
+
+def test_cusum_quiet_on_white_noise() -> None:
+    z = np.random.default_rng(4).normal(size=120)
+    assert cusum(z)[2] == []
+
+
+def test_robust_z_ignores_a_single_outlier() -> None:
+    x = np.r_[np.random.default_rng(5).normal(size=50), 100.0]
+    z = robust_z(x)
+    assert z[-1] > 30
+    assert np.all(np.abs(z[:-1]) < 5)
+
+
+def test_cv_folds_spread_contiguous_blocks_over_the_record() -> None:
+    labels = cv_folds(100, 5)
+    for f in range(5):
+        rows = np.flatnonzero(labels == f)
+        assert rows.min() <= 20  # every fold spans the record
+        assert rows.max() >= 75
+    assert np.all(labels[:5] == 0)  # blocks are contiguous
+
+
+def _frames(n: int = 100, period_s: float = 300.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    t = 16.0 + period_s * np.arange(n)
+    sign = np.where(np.arange(n) % 2 == 0, 1.0, -1.0)
+    return t, t + 16.0, sign
+
+
+def test_episode_after_an_offset_move_names_the_move() -> None:
+    t, _, sign = _frames(60)
+    rng = np.random.default_rng(6)
+    e = rng.normal(0, 0.5, (60, 2))
+    e[30] = [9.0, -7.0]  # the frame right after the move
+    move = Event(t_s=float(t[30] - 100.0), kind=EventKind.OFFSET_MOVE, x_nm=80.0, y_nm=-60.0)
+    data = RunData.from_arrays(t_s=t, xy_nm=np.zeros((60, 2)), events=[move])
+    eps = find_episodes(data, t, np.arange(60), e, sign)
+    assert len(eps) == 1
+    assert eps[0].t_start_s == t[30]
+    assert "offset_move" in eps[0].context
+    assert "offset move of (+80, -60) nm" in eps[0].note
+
+
+def _lagged(t: np.ndarray, temp: np.ndarray, tau_s: float) -> np.ndarray:
+    out = np.empty_like(temp)
+    out[0] = temp[0]
+    for k in range(1, t.size):
+        a = math.exp(-(t[k] - t[k - 1]) / tau_s)
+        out[k] = a * out[k - 1] + (1 - a) * temp[k]
+    return out - temp[0]
+
+
+def _synthetic(*, humidity_nm_per_pct: float, seed: int, n: int = 90) -> tuple[RunData, np.ndarray]:
+    """Thermal lag (τ = 1500 s) + optional humidity coupling + random walk + noise.
+
+    Built here from the equations, independently of the simulator.
+    """
+    rng = np.random.default_rng(seed)
+    tc = np.arange(0.0, 300.0 * n + 600.0, 30.0)
+    temp = 22.0 + 0.4 * np.sin(2 * np.pi * tc / 3600.0) + rng.normal(0, 0.003, tc.size)
+    rh = 45.0 + 5.0 * np.sin(2 * np.pi * tc / 5400.0 + 1.0) + rng.normal(0, 0.1, tc.size)
+    drift = _lagged(tc, temp, 1500.0)[:, None] * np.array([50.0, -35.0])
+    drift += humidity_nm_per_pct * (rh - rh[0])[:, None] * np.array([1.0, -0.7])
+    drift += np.cumsum(rng.normal(0, 0.02 * math.sqrt(30.0), (tc.size, 2)), axis=0)
+    t, t_end, sign = _frames(n)
+    xy = np.column_stack([np.interp(t, tc, drift[:, a]) for a in (0, 1)])
+    xy += rng.normal(0, 0.3, xy.shape)
+    xy -= xy[0]
+    channels = [
+        ChannelSample(t_s=float(a), values={"temperature_c": float(b), "humidity_pct": float(c)})
+        for a, b, c in zip(tc, temp, rh, strict=True)
+    ]
+    events = [Event(t_s=0.0, kind=EventKind.POWER_ON)]
+    data = RunData.from_arrays(
+        t_s=t, xy_nm=xy, scan_sign=sign, t_end_s=t_end, channels=channels, events=events
+    )
+    return data, xy
+
+
+@pytest.mark.slow
+def test_hidden_humidity_coupling_is_found_and_its_coefficient_recovered() -> None:
+    data, _ = _synthetic(humidity_nm_per_pct=3.0, seed=11)
+    dg = diagnose(data, PhysicsConfig(terms=["trend", "thermal_lag"]))
+    top = dg.candidates[0]
+    assert top.effect == "humidity"
+    assert top.significant
+    assert top.params["k_nm_per_pct_rh_x"] == pytest.approx(3.0, rel=0.15)
+    assert top.params["k_nm_per_pct_rh_y"] == pytest.approx(-2.1, rel=0.15)
+    assert dg.after_summary is not None
+    assert dg.after_summary["rmse_nm"] < 0.7 * dg.summary["rmse_nm"]
+    assert dg.config_terms == ["trend", "thermal_lag", "humidity"]
+    j = dg.to_json()
+    assert j["candidates"][0]["effect"] == "humidity"
+    assert 'terms = ["trend", "thermal_lag", "humidity"]' in j["config"]
+
+
+@pytest.mark.slow
+def test_no_false_alarm_when_the_model_is_complete() -> None:
+    """Regression guard: a complete model must not get a 'missing effect' finding."""
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=12)
+    dg = diagnose(data, PhysicsConfig(terms=["trend", "thermal_lag"]))
+    assert not any(c.significant for c in dg.candidates)
+    assert dg.top is None
+    assert dg.finding.startswith("No missing effect found")
+    assert dg.to_json()["config"] is None
+
+
+def test_untestable_candidates_say_why() -> None:
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=13, n=30)
+    dg = diagnose(
+        data,
+        PhysicsConfig(terms=["trend"]),
+        options=None,
+    )
+    by_name = {c.effect: c for c in dg.candidates}
+    assert not by_name["tip_change"].testable
+    assert "tip_change" in by_name["tip_change"].reason
+
+
+def test_unknown_effect_is_a_config_error() -> None:
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=14, n=20)
+    with pytest.raises(ConfigError, match="no_such_effect"):
+        diagnose(data, PhysicsConfig(), effects=["trend", "no_such_effect"])
+
+
+def test_too_few_frames_is_an_input_error() -> None:
+    with pytest.raises(InputError, match="at least two frames"):
+        RunData.from_arrays(t_s=[0.0], xy_nm=[[0.0, 0.0]])
+
+
+def test_thresholds_are_documented_in_the_json() -> None:
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=15, n=30)
+    j = diagnose(data, PhysicsConfig(terms=["trend"])).to_json()
+    assert j["thresholds"]["min_delta_aicc"] == Thresholds().min_delta_aicc
+    for key in ("model_effects", "rmse_nm", "candidates", "failures"):
+        assert key in j
+    for c in j["candidates"]:
+        assert set(c) >= {"effect", "significant", "score", "params", "rmse_after_nm"}
