@@ -293,7 +293,8 @@ def track_stack(
     """Measure each frame against the last one that measured well.
 
     Yields one JSON-ready dict per frame ``i >= 1``: ``ref_frame``,
-    ``cur_frame``, the increment (:meth:`PairMeasurement.to_dict`) and, when
+    ``cur_frame``, ``ref_t_s``/``cur_t_s`` (scan starts since frame 0's, when
+    the file has timestamps), the increment (:meth:`PairMeasurement.to_dict`) and, when
     valid, ``cumulative_{dx,dy}_{px,nm}`` since frame 0. A frame the engine
     refuses (blank, NaN) gives ``{"valid": false, "error": ...}``; an invalid
     or refused frame does not become the reference.
@@ -305,6 +306,10 @@ def track_stack(
     for i in range(1, len(frames)):
         ref, cur = frames[ref_i], frames[i]
         doc: dict[str, Any] = {"ref_frame": ref_i, "cur_frame": i}
+        t0 = frames[0].timestamp
+        if t0 is not None and ref.timestamp is not None and cur.timestamp is not None:
+            doc["ref_t_s"] = (ref.timestamp - t0).total_seconds()
+            doc["cur_t_s"] = (cur.timestamp - t0).total_seconds()
         try:
             pair = measure_pair(ref, cur, config, prior_px=prior_px, coarse=coarse)
         except AfmdriftError as err:
