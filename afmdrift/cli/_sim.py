@@ -64,7 +64,8 @@ def _register_serve(ssub: Any) -> None:
         description="Serve the instrument protocol (docs/protocol.md) backed by the simulated "
         "AFM. With --pty the slave path (e.g. /dev/pts/5) is printed on stdout; with --port the "
         "bound TCP port on 127.0.0.1 is printed (--port 0 picks a free one). Connect with "
-        "driver url = that path or socket://127.0.0.1:PORT. Stops cleanly on SIGINT/SIGTERM.",
+        "[driver] transport = that path or socket://127.0.0.1:PORT. Stops cleanly on "
+        "SIGINT/SIGTERM.",
     )
     where = p.add_mutually_exclusive_group()
     where.add_argument("--pty", action="store_true", help="Serve on a new pseudo-terminal.")

@@ -18,7 +18,7 @@ REPLAY_PREFIX = "replay:"
 class DriverConfig(BaseModel):
     """How to reach the instrument.
 
-    ``url`` is a serial port (``/dev/ttyUSB0``), a pseudo-terminal
+    ``transport`` is a serial port (``/dev/ttyUSB0``), a pseudo-terminal
     (``/dev/pts/5``, e.g. from ``afmdrift sim serve --pty``), loopback TCP
     (``socket://127.0.0.1:5025``, e.g. from ``afmdrift sim serve --port 5025``),
     or ``replay:PATH`` to replay a recorded session directory.
@@ -26,7 +26,7 @@ class DriverConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    url: str = Field(
+    transport: str = Field(
         "socket://127.0.0.1:5025",
         min_length=1,
         description="Serial port, pty path, socket://HOST:PORT, or replay:SESSION_DIR.",
@@ -50,9 +50,9 @@ class DriverConfig(BaseModel):
         description="replay: virtual seconds per wall second; 0 = as fast as frames are polled.",
     )
 
-    @field_validator("url")
+    @field_validator("transport")
     @classmethod
-    def _check_url(cls, url: str) -> str:
+    def _check_transport(cls, url: str) -> str:
         if url.startswith(REPLAY_PREFIX) and not url[len(REPLAY_PREFIX) :].strip():
             raise ValueError("replay: needs a session directory, e.g. replay:runs/session1")
         return url
@@ -65,16 +65,16 @@ def instrument_from_config(config: DriverConfig) -> Instrument:
     ``replay_speed``; any other URL a :class:`~afmdrift.drivers.NanoScopeDriver`
     on a :class:`~afmdrift.drivers.SerialTransport`.
     """
-    if config.url.startswith(REPLAY_PREFIX):
+    if config.transport.startswith(REPLAY_PREFIX):
         from afmdrift.drivers._replay import ReplayInstrument
 
-        path = config.url[len(REPLAY_PREFIX) :].strip()
+        path = config.transport[len(REPLAY_PREFIX) :].strip()
         return ReplayInstrument(path, speed=config.replay_speed or None)
     from afmdrift.drivers._nanoscope import NanoScopeDriver
     from afmdrift.drivers._transport import SerialTransport
 
     return NanoScopeDriver(
-        SerialTransport(config.url, baudrate=config.baudrate),
+        SerialTransport(config.transport, baudrate=config.baudrate),
         timeout_s=config.timeout_s,
         frame_timeout_s=config.frame_timeout_s,
         reconnect_attempts=config.reconnect_attempts,

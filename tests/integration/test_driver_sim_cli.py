@@ -65,7 +65,9 @@ def _started(proc: subprocess.Popen[str], to_url):  # type: ignore[no-untyped-de
 
 
 async def _session(url: str) -> None:
-    driver = instrument_from_config(DriverConfig(url=url, timeout_s=5.0, backoff_initial_s=0.05))
+    driver = instrument_from_config(
+        DriverConfig(transport=url, timeout_s=5.0, backoff_initial_s=0.05)
+    )
     assert isinstance(driver, NanoScopeDriver)
     async with driver:
         info = await driver.identify()

@@ -149,11 +149,11 @@ def test_replay_rejects_bad_speed(session_dir: Path) -> None:
 
 
 def test_replay_url_in_driver_config(session_dir: Path) -> None:
-    cfg = DriverConfig(url=f"replay:{session_dir}", replay_speed=0)
+    cfg = DriverConfig(transport=f"replay:{session_dir}", replay_speed=0)
     inst = instrument_from_config(cfg)
     assert isinstance(inst, ReplayInstrument)
     assert inst.speed is None
-    serial = instrument_from_config(DriverConfig(url="socket://127.0.0.1:5025"))
+    serial = instrument_from_config(DriverConfig(transport="socket://127.0.0.1:5025"))
     assert isinstance(serial, NanoScopeDriver)
 
 
@@ -161,6 +161,6 @@ def test_driver_config_errors_name_key_and_range() -> None:
     with pytest.raises(ConfigError, match=r"driver.timeout_s = -1.0.*> 0"):
         parse_config({"driver": {"timeout_s": -1.0}})
     with pytest.raises(ConfigError, match="replay: needs a session directory"):
-        parse_config({"driver": {"url": "replay:"}})
+        parse_config({"driver": {"transport": "replay:"}})
     with pytest.raises(ConfigError, match=r"unknown key 'driver\.port'"):
         parse_config({"driver": {"port": 5025}})
