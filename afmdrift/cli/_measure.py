@@ -20,9 +20,9 @@ measures around it (``prior_px``, ``prior`` in the output) within
 ``--search-px`` (default 6 px), else around zero.
 ``--prior-px`` sets the prior by hand. A narrow search matters on periodic
 samples: on the real NanoScope pair (a lattice with a period of about 10 px)
-a ±16 px search lets blocks lock onto neighbouring lattice peaks and the mean
-comes out several px off, while ±6 px around the coarse prior gives a
-consistent answer.
+a ±16 or ±32 px search lets blocks lock onto different lattice peaks, so the
+blocks disagree (the result is px off, or invalid), while ±6 px around the
+coarse prior gives a consistent answer.
 
 Exit status: 0 when every measurement is valid, 1 when one is invalid (the
 result is still printed), 2 on an error (unreadable file, unusable image).
