@@ -59,6 +59,11 @@ class History:
     channel_t_s: list[float] = field(default_factory=list)
     channels: dict[str, list[float]] = field(default_factory=dict)
     events: list[Event] = field(default_factory=list)
+    # Arrays of (log length, finite times, finite values) per channel, rebuilt
+    # when the log grows: channel_at is called many times per frame.
+    _arrays: dict[str, tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
 
     def add_channels(self, sample: ChannelSample) -> None:
         if self.channel_t_s and sample.t_s < self.channel_t_s[-1]:
@@ -83,12 +88,18 @@ class History:
         """Channel ``name`` at ``t_s`` (linear inside the log, held outside)."""
         if name not in self.channels:
             raise KeyError(f"no channel {name!r} logged (have: {sorted(self.channels)})")
-        t = np.asarray(self.channel_t_s, dtype=np.float64)
-        v = np.asarray(self.channels[name], dtype=np.float64)
-        ok = np.isfinite(v)
-        if not ok.any():
+        n = len(self.channel_t_s)
+        cached = self._arrays.get(name)
+        if cached is None or cached[0] != n:
+            t = np.asarray(self.channel_t_s, dtype=np.float64)
+            v = np.asarray(self.channels[name], dtype=np.float64)
+            ok = np.isfinite(v)
+            cached = (n, t[ok], v[ok])
+            self._arrays[name] = cached
+        _, tk, vk = cached
+        if tk.size == 0:
             return np.full(np.shape(t_s), np.nan)
-        return np.interp(np.asarray(t_s, dtype=np.float64), t[ok], v[ok])
+        return np.interp(np.asarray(t_s, dtype=np.float64), tk, vk)
 
     def events_before(self, t_s: float) -> Sequence[Event]:
         k = bisect.bisect_right(self.events, t_s, key=lambda ev: ev.t_s)

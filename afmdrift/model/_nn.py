@@ -34,7 +34,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -46,7 +46,7 @@ from afmdrift.model._base import History, Observation, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
 from afmdrift.model._config import NNConfig
 
-__all__ = ["NNPredictor", "NNSeriesModel", "lm_fit"]
+__all__ = ["NNPredictor", "NNSeriesModel", "lm_fit", "lm_solve"]
 
 _log = logging.getLogger(__name__)
 
@@ -99,41 +99,35 @@ def init_weights(n_in: int, n_hidden: int, n_out: int, generator: torch.Generato
     return torch.cat(parts)
 
 
-def lm_fit(
+def lm_solve(
+    f: Callable[[torch.Tensor], torch.Tensor],
     theta: torch.Tensor,
-    x: torch.Tensor,
-    y: torch.Tensor,
+    target: torch.Tensor,
     *,
-    shape: tuple[int, int, int],
     iterations: int,
     damping: float,
 ) -> tuple[torch.Tensor, float, float]:
-    """Levenberg–Marquardt least squares of :func:`mlp` to ``y``.
+    """Levenberg–Marquardt minimisation of ‖target − f(θ)‖².
 
     Parameters
     ----------
+    f : callable
+        Model, θ (P,) → predictions (m,).
     theta : Tensor, shape (P,)
-        Starting weights (float64).
-    x : Tensor, shape (m, n_in)
-    y : Tensor, shape (m, n_out)
-    shape : (n_in, n_hidden, n_out)
+        Starting parameters (float64).
+    target : Tensor, shape (m,)
     iterations : int
-        Accepted-or-exhausted LM iterations.
+        Maximum number of LM iterations (each recomputes the Jacobian by
+        ``torch.func.jacrev``; within one, λ grows ×10 until a step lowers the cost).
     damping : float
         Starting λ.
 
     Returns
     -------
     theta, cost, damping
-        Final weights, final sum of squared residuals and the adapted λ (to
+        Final parameters, final sum of squared residuals and the adapted λ (to
         warm-start the next call).
     """
-    n_in, n_hidden, n_out = shape
-
-    def f(th: torch.Tensor) -> torch.Tensor:
-        return mlp(th, x, n_in, n_hidden, n_out).reshape(-1)
-
-    target = y.reshape(-1)
     r = target - f(theta)
     cost = float(r @ r)
     lam = float(damping)
@@ -141,6 +135,7 @@ def lm_fit(
     for _ in range(iterations):
         jac = jacrev(f)(theta)
         accepted = False
+        improvement = 0.0
         for _attempt in range(12):
             if m <= p:
                 a = jac @ jac.T + lam * torch.eye(m, dtype=theta.dtype)
@@ -163,6 +158,25 @@ def lm_fit(
     return theta, cost, lam
 
 
+def lm_fit(
+    theta: torch.Tensor,
+    x: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    shape: tuple[int, int, int],
+    iterations: int,
+    damping: float,
+) -> tuple[torch.Tensor, float, float]:
+    """:func:`lm_solve` for one :func:`mlp` with inputs ``x`` (m, n_in) and targets
+    ``y`` (m, n_out); ``shape`` is (n_in, n_hidden, n_out)."""
+    n_in, n_hidden, n_out = shape
+
+    def f(th: torch.Tensor) -> torch.Tensor:
+        return mlp(th, x, n_in, n_hidden, n_out).reshape(-1)
+
+    return lm_solve(f, theta, y.reshape(-1), iterations=iterations, damping=damping)
+
+
 class NNSeriesModel:
     """The paper's network on a generic 2-D series (drift, or a model residual).
 
@@ -180,7 +194,7 @@ class NNSeriesModel:
         gen = torch.Generator().manual_seed(config.seed)
         nets = 1 if config.joint else 2
         self.theta = [init_weights(n_in, config.hidden, n_out, gen) for _ in range(nets)]
-        self.damping = [config.damping] * nets
+        self.damping = [float(config.damping)] * nets
         self.last_cost = [math.nan] * nets
 
     def _shape(self) -> tuple[int, int, int]:
@@ -233,14 +247,12 @@ class NNSeriesModel:
         targets = z_inc[cfg.lags :]
         with torch_threads(cfg.threads):
             for net in range(len(self.theta)):
-                axis = None if cfg.joint else net
-                x = self._inputs(z_inc, z_chan, axis)[:-1]
+                x = self._inputs(z_inc, z_chan, None if cfg.joint else net)[:-1]
                 y = targets if cfg.joint else targets[:, net : net + 1]
-                x, y = x[-cfg.window :], y[-cfg.window :]
                 theta, cost, lam = lm_fit(
                     self.theta[net],
-                    torch.from_numpy(np.ascontiguousarray(x)),
-                    torch.from_numpy(np.ascontiguousarray(y)),
+                    torch.from_numpy(np.ascontiguousarray(x[-cfg.window :])),
+                    torch.from_numpy(np.ascontiguousarray(y[-cfg.window :])),
                     shape=shape,
                     iterations=iterations,
                     damping=self.damping[net],
