@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import signal
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -21,8 +24,15 @@ from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
 from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
+REPO = Path(__file__).resolve().parent.parent
 
-def small_scenario(
+
+def small_scenario(**options: Any) -> Scenario:
+    """The scenario of :func:`scenario_data` (same options), validated."""
+    return parse_scenario(scenario_data(**options), source="service-test")
+
+
+def scenario_data(
     *,
     seed: int = 7,
     pixels: int = 128,
@@ -33,9 +43,11 @@ def small_scenario(
     warmup_nm: tuple[float, float] | None = None,
     warmup_tau_s: float = 2000.0,
     extra: dict[str, Any] | None = None,
-) -> Scenario:
-    """A fast scenario: ``pixels``² frames of a textured gold sample, mild drift
-    (random walk, thermal, and optionally a power-on settling ``warmup_nm``).
+) -> dict[str, Any]:
+    """A fast scenario as a TOML-like mapping.
+
+    ``pixels``² frames of a textured gold sample with mild drift (random walk,
+    thermal, and optionally a power-on settling ``warmup_nm``).
 
     4 nm per pixel; a frame's trace takes ``pixels / line_rate_hz`` s of
     instrument time and frames start every ``frame_period_s``.
@@ -74,7 +86,81 @@ def small_scenario(
         }
     for key, value in (extra or {}).items():
         data[key] = value
-    return parse_scenario(data, source="service-test")
+    return data
+
+
+def write_scenario(path: Path, data: dict[str, Any]) -> Path:
+    """Write a scenario mapping as TOML (tables of scalars and lists only)."""
+
+    def value(v: Any) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, str):
+            return f'"{v}"'
+        if isinstance(v, list | tuple):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        return repr(v)
+
+    lines: list[str] = []
+
+    def table(prefix: str, d: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in d.items() if not isinstance(v, dict)}
+        if prefix:
+            lines.append(f"[{prefix}]")
+        lines.extend(f"{k} = {value(v)}" for k, v in scalars.items())
+        for k, v in d.items():
+            if isinstance(v, dict):
+                table(f"{prefix}.{k}" if prefix else k, v)
+
+    table("", data)
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+class SimProcess:
+    """``afmdrift sim serve`` in a subprocess on 127.0.0.1 (killable with SIGKILL)."""
+
+    def __init__(self, scenario_file: Path, *, speed: float, port: int = 0) -> None:
+        self.scenario_file = scenario_file
+        self.speed = speed
+        self.port = port
+        self.proc: subprocess.Popen[str] | None = None
+
+    def start(self) -> str:
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "afmdrift",
+                "sim",
+                "serve",
+                "--port",
+                str(self.port),
+                "--scenario",
+                str(self.scenario_file),
+                "--speed",
+                str(self.speed),
+            ],
+            cwd=REPO,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+        )
+        assert self.proc.stdout is not None
+        line = self.proc.stdout.readline().strip()
+        if not line.isdigit():
+            self.kill()
+            raise RuntimeError(f"afmdrift sim serve did not print its port (got {line!r})")
+        self.port = int(line)
+        return f"socket://127.0.0.1:{self.port}"
+
+    def kill(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGKILL)
+        if self.proc is not None:
+            self.proc.wait(timeout=30)
+            if self.proc.stdout is not None:
+                self.proc.stdout.close()
 
 
 @contextlib.asynccontextmanager

@@ -72,6 +72,9 @@ INSTRUMENT_ERRORS: tuple[type[BaseException], ...] = (
 
 _T = TypeVar("_T")
 
+#: Consecutive failed calls (garbled replies, timeouts) before a reconnect.
+_FAILURES_BEFORE_RECONNECT = 3
+
 
 class _InstrumentDownError(Exception):
     """Internal: an instrument call failed; the reconnect task takes over."""
@@ -154,6 +157,8 @@ class DriftService:
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._last_offset: OffsetMsg | None = None
         self._frame_done = asyncio.Event()
+        self._consecutive_failures = 0
+        self.instrument_errors = 0
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -283,12 +288,35 @@ class DriftService:
     async def _call(self, fn: Callable[..., Awaitable[_T]], *args: Any) -> _T:
         await self._connected.wait()
         try:
-            return await fn(*args)
+            result = await fn(*args)
         except INSTRUMENT_ERRORS as err:
             self._instrument_failed(fn, err)
             raise _InstrumentDownError from err
+        if self._consecutive_failures:
+            self._consecutive_failures = 0
+            self.flags.discard("instrument_error")
+        return result
 
     def _instrument_failed(self, fn: Callable[..., Any], err: BaseException) -> None:
+        """A failed call: a lost connection, or repeated errors, trigger a reconnect.
+
+        A single garbled reply or timeout (the driver has already resynchronised
+        the line) only skips this poll.
+        """
+        self._consecutive_failures += 1
+        self.instrument_errors += 1
+        self.flags.add("instrument_error")
+        lost = isinstance(err, ConnectionError | EOFError) or (
+            isinstance(err, OSError) and not isinstance(err, TimeoutError)
+        )
+        if not lost and self._consecutive_failures < _FAILURES_BEFORE_RECONNECT:
+            log.warning(
+                "instrument call %s failed: %s: %s",
+                getattr(fn, "__name__", fn),
+                type(err).__name__,
+                err,
+            )
+            return
         if self._connected.is_set():
             log.warning(
                 "instrument call %s failed: %s: %s; reconnecting",
@@ -296,7 +324,6 @@ class DriftService:
                 type(err).__name__,
                 err,
             )
-        self.flags.add("instrument_error")
         self._connected.clear()
         self._reconnect.set()
 
@@ -336,35 +363,50 @@ class DriftService:
                 ident = {f"instrument_{k}": str(v) for k, v in dataclasses.asdict(info).items()}
                 await self._in_worker(functools.partial(self._store.set_meta, ident))
             self.flags.discard("instrument_error")
+            self._consecutive_failures = 0
             self._connected.set()
 
     def _on_connected(self, now_s: float, offset: tuple[float, float]) -> None:
-        if self._last_service_t_s is not None and now_s + self._t_offset_s < (
-            self._last_service_t_s - 1e-6
-        ):
-            self._epoch += 1
-            self._t_offset_s = self._last_service_t_s - now_s
-            self._event_cursor = 0
-            self._last_frame_key = None
-            self.pipeline.request_reset()
-            log.warning(
-                "instrument clock went back to %.3f s: it was restarted; epoch %d, "
-                "times shifted by %.3f s, new registration reference",
-                now_s,
-                self._epoch,
-                self._t_offset_s,
-            )
-            if self._store is not None:
-                store, t_off = self._store, self._t_offset_s
-                assert self._executor is not None
-                self._executor.submit(store.set_meta, {"t_offset_s": repr(t_off)})
-        t = now_s + self._t_offset_s
-        self.clock.observe(wall_s=time.time(), instrument_s=t)
-        self._last_service_t_s = t
+        t = self._observe_now(now_s)
         if self._last_frame_t_s is None and self.svc.expected_frame_interval_s is not None:
             self._last_frame_t_s = t  # staleness counts from the first connection
         moved = commanded_offset_nm([t], self._events)[0]
         self._absolute_offset_base = (offset[0] - moved[0], offset[1] - moved[1])
+
+    def _observe_now(self, now_s: float) -> float:
+        """Record an instrument clock reading; a clock that went back starts an epoch.
+
+        Returns the reading on the service's time axis.
+        """
+        if self._last_service_t_s is not None and now_s + self._t_offset_s < (
+            self._last_service_t_s - 1e-6
+        ):
+            self._new_epoch(now_s)
+        t = now_s + self._t_offset_s
+        self.clock.observe(wall_s=time.time(), instrument_s=t)
+        self._last_service_t_s = t
+        return t
+
+    def _new_epoch(self, now_s: float) -> None:
+        assert self._last_service_t_s is not None
+        self._epoch += 1
+        # The restarted instrument's time 0 is placed right after the last time
+        # seen, so everything it logged since its start (frames, events,
+        # channels) falls after the previous epoch; the outage is not counted.
+        last_seen = max(self._last_service_t_s, self._last_frame_t_s or -math.inf)
+        self._t_offset_s = last_seen
+        self._event_cursor = 0
+        self._last_frame_key = None
+        self.pipeline.request_reset()
+        log.warning(
+            "instrument clock went back to %.3f s: it was restarted; epoch %d, "
+            "times shifted by %.3f s, new registration reference",
+            now_s,
+            self._epoch,
+            self._t_offset_s,
+        )
+        if self._store is not None and self._executor is not None:
+            self._executor.submit(self._store.set_meta, {"t_offset_s": repr(self._t_offset_s)})
 
     def _shift(self, t_s: float) -> float:
         return t_s + self._t_offset_s
@@ -386,10 +428,7 @@ class DriftService:
 
     async def _clock_loop(self) -> None:
         async def tick() -> None:
-            now = await self._call(self.instrument.now_s)
-            t = self._shift(now)
-            self.clock.observe(wall_s=time.time(), instrument_s=t)
-            self._last_service_t_s = t
+            self._observe_now(await self._call(self.instrument.now_s))
 
         await self._every(self.svc.clock_sync_interval_s, tick)
 
@@ -423,6 +462,14 @@ class DriftService:
             key = (frame.index, frame.t_end_s)
             if key == self._last_frame_key:
                 return
+            if self._last_frame_key is not None and frame.t_end_s < self._last_frame_key[1]:
+                # An older frame than the last one: the instrument was restarted
+                # (its driver may have reconnected on its own). Read its clock.
+                epoch = self._epoch
+                self._observe_now(await self._call(self.instrument.now_s))
+                if epoch == self._epoch:
+                    log.warning("frame %d ends before the previous one; ignored", frame.index)
+                    return
             detected = time.time()
             if self._last_frame_key is not None and frame.index > self._last_frame_key[0] + 1:
                 log.warning(
@@ -430,8 +477,8 @@ class DriftService:
                     self._last_frame_key[0] + 1,
                     frame.index - 1,
                 )
-            self._last_frame_key = key
             await self._poll_events()  # every offset move up to this frame is known
+            self._last_frame_key = key
             shifted = dataclasses.replace(
                 frame,
                 t_start_s=self._shift(frame.t_start_s),
@@ -536,6 +583,13 @@ class DriftService:
         while self.frames_processed < n:
             self._frame_done.clear()
             await self._frame_done.wait()
+
+    async def wait_for_flag(self, flag: str, *, poll_s: float = 0.02) -> None:
+        """Return once status flag ``flag`` is raised (bound it with a timeout)."""
+        for _ in itertools.count():
+            if flag in self.flags:
+                return
+            await asyncio.sleep(poll_s)
 
     def _next(self, topic: str) -> int:
         n = self._pub_seq[topic]

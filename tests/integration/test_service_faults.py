@@ -1,0 +1,270 @@
+"""Fault injection: the daemon keeps running and its store stays consistent when the
+simulator is killed and restarted, replies are corrupted or late, subscribers are
+slow, the daemon itself is SIGKILLed, or the configuration is bad."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import zmq
+import zmq.asyncio
+from service_sim import (
+    SimProcess,
+    driver,
+    running_service,
+    scenario_data,
+    service_config,
+    sim_server,
+    small_scenario,
+    write_scenario,
+)
+
+from afmdrift.client import Subscriber
+from afmdrift.service import OffsetMsg, RunStore
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _check_store(run_dir: Path) -> list:  # type: ignore[type-arg]
+    with RunStore(run_dir) as store:
+        assert store.check_consistency() == []
+        records = store.frames()
+    assert [r.seq for r in records] == list(range(len(records)))
+    keys = [(r.epoch, r.instrument_frame) for r in records]
+    assert len(set(keys)) == len(keys), "a frame was recorded twice"
+    t = [r.t_mid_s for r in records]
+    assert all(b > a for a, b in itertools.pairwise(t)), "time axis not increasing"
+    return records
+
+
+@pytest.mark.asyncio
+async def test_simulator_killed_and_restarted(tmp_path: Path) -> None:
+    """The simulator process is SIGKILLed and started again on the same port with its
+    clock back at 0: the daemon keeps running, flags the failure, and continues in a
+    new epoch with a new reference."""
+    ctx = zmq.asyncio.Context()
+    run = tmp_path / "run"
+    scenario = write_scenario(tmp_path / "scenario.toml", scenario_data())
+    sim = SimProcess(scenario, speed=100.0)
+    try:
+        url = sim.start()
+        async with running_service(service_config(run), driver(url), ctx) as service:
+            async with asyncio.timeout(30):
+                await service.wait_for_frames(4)
+            sim.kill()
+            async with asyncio.timeout(10):
+                await service.wait_for_flag("instrument_error")
+            before = service.frames_processed
+            assert sim.start() == url
+            async with asyncio.timeout(40):
+                await service.wait_for_frames(before + 5)
+            assert "instrument_error" not in service.status_msg().flags
+    finally:
+        sim.kill()
+        ctx.term()
+    records = _check_store(run)
+    epochs = [r.epoch for r in records]
+    assert epochs[0] == 0
+    assert epochs[-1] == 1
+    first_new = next(r for r in records if r.epoch == 1)
+    assert first_new.reason == "new reference (position estimated)"
+    assert all(r.fed_model for r in records if r.epoch == 1 and r.seq > first_new.seq)
+
+
+@pytest.mark.asyncio
+async def test_corrupted_bytes_and_timeouts_do_not_stop_the_service(tmp_path: Path) -> None:
+    ctx = zmq.asyncio.Context()
+    run = tmp_path / "run"
+    try:
+        async with (
+            sim_server(small_scenario(), speed=20.0) as (server, url),
+            running_service(service_config(run), driver(url), ctx) as service,
+        ):
+            async with asyncio.timeout(30):
+                await service.wait_for_frames(2)
+            server.faults.corrupt_next_reply(count=2, where="payload", match="FRAME:DATA")
+            server.faults.corrupt_next_reply(count=3, where="header")
+            server.faults.delay_next_reply(1.5, count=2, match="SYST:TIME")
+            server.faults.truncate_next_reply(5, count=1, match="CHAN")
+            async with asyncio.timeout(40):
+                await service.wait_for_frames(service.frames_processed + 4)
+            assert server.faults.pending == 0
+            assert service.instrument_errors >= 3
+    finally:
+        ctx.term()
+    records = _check_store(run)
+    assert sum(r.fed_model for r in records) >= len(records) - 1
+
+
+@pytest.mark.asyncio
+async def test_slow_and_absent_subscribers_do_not_slow_the_offset_stream(tmp_path: Path) -> None:
+    """A subscriber that never reads fills its queue and loses messages; the service
+    and a well-behaved subscriber are unaffected."""
+    ctx = zmq.asyncio.Context()
+    try:
+        async with sim_server(small_scenario(), speed=100.0) as (_, url):
+            cfg = service_config(tmp_path / "run", offset_rate_hz=500.0, sndhwm=50)
+            async with running_service(cfg, driver(url), ctx) as service:
+                stuck = ctx.socket(zmq.SUB)
+                stuck.setsockopt(zmq.RCVHWM, 10)
+                stuck.setsockopt(zmq.SUBSCRIBE, b"")
+                stuck.setsockopt(zmq.LINGER, 0)
+                stuck.connect(service.pub_endpoint)
+                good = Subscriber(service.pub_endpoint, topics=("offset",), ctx=ctx)
+                try:
+                    await asyncio.sleep(0.5)
+                    seqs: list[int] = []
+                    walls: list[float] = []
+                    async with asyncio.timeout(20):
+                        while len(seqs) < 1000:
+                            msg = await good.recv()
+                            assert isinstance(msg, OffsetMsg)
+                            seqs.append(msg.seq)
+                            walls.append(msg.wall_s)
+                    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+                    rate = (len(seqs) - 1) / (walls[-1] - walls[0])
+                    assert rate > 400
+                    assert service.frames_processed > 0
+                finally:
+                    good.close()
+                    stuck.close()
+    finally:
+        ctx.term()
+
+
+def _write_config(path: Path, run_dir: Path, **service: object) -> Path:
+    lines = ["[service]", f'run_dir = "{run_dir}"']
+    base = {
+        "pub_endpoint": "tcp://127.0.0.1:*",
+        "control_endpoint": "tcp://127.0.0.1:*",
+        "frame_poll_interval_s": 0.05,
+        "clock_sync_interval_s": 0.1,
+        "channel_poll_interval_s": 0.2,
+        "event_poll_interval_s": 0.2,
+        "reconnect_delay_s": 0.1,
+    }
+    base.update(service)
+    for k, v in base.items():
+        lines.append(f'{k} = "{v}"' if isinstance(v, str) else f"{k} = {v}")
+    lines += ["[registration]", "block_size = 32", "extended_size = 64"]
+    lines += ["[model]", 'predictor = "constant_velocity"']
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return path
+
+
+def _frame_count(run_dir: Path) -> int:
+    db_path = run_dir / "run.sqlite"
+    if not db_path.is_file():
+        return 0
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)) as db:
+            return int(db.execute("SELECT COUNT(*) FROM frames").fetchone()[0])
+    except sqlite3.OperationalError:
+        return 0
+
+
+async def _wait_frames(run_dir: Path, n: int, proc: asyncio.subprocess.Process) -> None:
+    for _ in range(600):
+        if _frame_count(run_dir) >= n:
+            return
+        assert proc.returncode is None, "daemon exited early"
+        await asyncio.sleep(0.1)
+    raise TimeoutError(f"fewer than {n} frames in {run_dir}")
+
+
+async def _daemon(config: Path, url: str) -> asyncio.subprocess.Process:
+    return await asyncio.create_subprocess_exec(
+        sys.executable,
+        "-m",
+        "afmdrift",
+        "run",
+        "--config",
+        str(config),
+        "--instrument",
+        url,
+        cwd=REPO,
+        stdout=asyncio.subprocess.DEVNULL,
+        stderr=asyncio.subprocess.PIPE,
+    )
+
+
+@pytest.mark.asyncio
+async def test_sigkilled_daemon_resumes_its_model_and_reference(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    cfg = _write_config(tmp_path / "svc.toml", run)
+    async with sim_server(small_scenario(warmup_nm=(60.0, 30.0)), speed=50.0) as (_, url):
+        url = f"socket://127.0.0.1:{url.rsplit(':', 1)[1]}"
+        proc = await _daemon(cfg, url)
+        try:
+            await _wait_frames(run, 5, proc)
+            proc.send_signal(signal.SIGKILL)
+            assert await proc.wait() == -signal.SIGKILL
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+        killed_at = _check_store(run)
+        proc = await _daemon(cfg, url)
+        try:
+            await _wait_frames(run, len(killed_at) + 4, proc)
+            proc.send_signal(signal.SIGTERM)
+            assert await asyncio.wait_for(proc.wait(), 20) == 0
+        finally:
+            if proc.returncode is None:
+                proc.kill()
+                await proc.wait()
+    records = _check_store(run)
+    resumed = records[len(killed_at)]
+    # measured against the stored reference, by the stored model: no new reference
+    assert resumed.reason == ""
+    assert resumed.fed_model
+    assert resumed.pred_x_nm == resumed.pred_x_nm  # not NaN: the model was restored
+    assert abs(resumed.x_nm - resumed.pred_x_nm) < 3.0
+
+
+@pytest.mark.parametrize(
+    ("toml", "named"),
+    [
+        ("[service]\noffset_rate_hz = 5000\n", "service.offset_rate_hz"),
+        ("[service]\nofset_rate_hz = 10\n", "service.ofset_rate_hz"),
+        ('[service]\npub_endpoint = "tcp://*:5560"\n', "curve_secret_key_file"),
+        ("[registration]\nblock_size = 4\n", "registration.block_size"),
+    ],
+)
+def test_bad_configuration_exits_at_once_naming_the_key(
+    tmp_path: Path, toml: str, named: str
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text(toml, encoding="utf-8")
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "afmdrift",
+            "run",
+            "--config",
+            str(bad),
+            "--instrument",
+            "/dev/null",
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONWARNINGS": "error"},
+        check=False,
+    )
+    assert proc.returncode == 2
+    assert named in proc.stderr
+    assert "Traceback" not in proc.stderr
