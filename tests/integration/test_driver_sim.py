@@ -200,11 +200,14 @@ async def test_corrupted_frame_is_rejected_then_recovered(
         np.testing.assert_array_equal(again.heights_nm, truth.heights_nm)
 
 
+@pytest.mark.slow
 @pytest.mark.asyncio
 async def test_late_dropped_partial_and_stale_replies(server: SimulatorServer) -> None:
     port = await server.start_tcp(0)
-    async with NanoScopeDriver(f"socket://127.0.0.1:{port}", timeout_s=0.3) as driver:
-        server.faults.delay_next_reply(0.6, match="SYST:TIME")
+    # The server answers one connection's commands in order, so the reply after a
+    # delayed one waits for it: the delay exceeds the timeout by a margin well below it.
+    async with NanoScopeDriver(f"socket://127.0.0.1:{port}", timeout_s=1.0) as driver:
+        server.faults.delay_next_reply(1.3, match="SYST:TIME")
         with pytest.raises(InstrumentTimeout):
             await driver.now_s()
         assert (await driver.identify()).model == "SimulatedAFM"  # late reply is skipped
