@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -85,8 +86,13 @@ def test_text_output_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     png = tmp_path / "field.png"
     assert main(["measure", a, b, "--pixel-size-nm", "1.5", "--plot", str(png)]) == 0
     out = capsys.readouterr().out
-    assert "dx = +0.5" in out
-    assert "valid" in out
+    found = re.search(r"dx = ([-+][\d.]+) px, dy = ([-+][\d.]+) px", out)
+    assert found is not None, out
+    assert float(found.group(1)) == pytest.approx(0.5, abs=0.02)
+    assert float(found.group(2)) == pytest.approx(0.25, abs=0.02)
+    blocks = re.search(r"blocks +(\d+) of (\d+) valid", out)
+    assert blocks is not None
+    assert 3 <= int(blocks.group(1)) <= int(blocks.group(2))
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
