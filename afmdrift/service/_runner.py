@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import asyncio
-import importlib
 import logging
 import signal
 from pathlib import Path
 
 import zmq.asyncio
+from pydantic import ValidationError
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.drivers._base import Instrument
+from afmdrift.drivers import DriverConfig, Instrument, instrument_from_config
 from afmdrift.errors import AfmdriftError, ConfigError
 from afmdrift.service._daemon import DriftService
 
@@ -21,34 +21,18 @@ log = logging.getLogger(__name__)
 
 
 def open_instrument(config: AfmdriftConfig, *, url: str | None = None) -> Instrument:
-    """The (unconnected) instrument named by ``url`` or by the ``[driver]`` section.
+    """The (unconnected) instrument of the ``[driver]`` section, or at ``url``.
 
-    ``replay:SESSION_DIR`` replays a recorded session; anything else is a
-    transport URL for the NanoScope-style driver (``socket://127.0.0.1:N``,
-    ``/dev/ttyUSB0``, a pseudo-terminal path).
-
-    Raises
-    ------
-    ConfigError
-        No instrument is configured.
+    ``url`` replaces ``driver.transport`` (``socket://127.0.0.1:N``, a serial or
+    pty path, or ``replay:SESSION_DIR``); the other driver settings still apply.
     """
-    driver_cfg = getattr(config, "driver", None)
-    target = url if url is not None else getattr(driver_cfg, "transport", None)
-    if not target:
-        raise ConfigError(
-            "no instrument: set driver.transport in the configuration or pass --instrument URL"
-        )
-    if target.startswith("replay:"):
-        replay = importlib.import_module("afmdrift.drivers._replay")
-        speed = float(getattr(driver_cfg, "replay_speed", 1.0) or 1.0)
-        instrument: Instrument = replay.ReplayInstrument(target[len("replay:") :], speed=speed)
-        return instrument
-    from afmdrift.drivers._nanoscope import NanoScopeDriver
-
-    timeout = getattr(driver_cfg, "timeout_s", None)
-    if timeout is None:
-        return NanoScopeDriver(target)
-    return NanoScopeDriver(target, timeout_s=timeout)
+    driver = config.driver
+    if url is not None:
+        try:
+            driver = DriverConfig.model_validate({**driver.model_dump(), "transport": url})
+        except ValidationError as err:
+            raise ConfigError(f"--instrument {url!r}: {err.errors()[0]['msg']}") from None
+    return instrument_from_config(driver)
 
 
 async def run_until_signalled(
