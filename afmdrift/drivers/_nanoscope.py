@@ -69,9 +69,11 @@ class NanoScopeDriver:
 
     Parameters
     ----------
-    transport : Transport or str
-        An (unopened) transport, or a URL for :class:`SerialTransport`
-        (``/dev/ttyUSB0``, ``/dev/pts/N``, ``socket://127.0.0.1:5025``).
+    transport : Transport, str or callable
+        An (unopened) transport, which the driver re-opens to reconnect; a URL
+        for :class:`SerialTransport` (``/dev/ttyUSB0``, ``/dev/pts/N``,
+        ``socket://127.0.0.1:5025``); or a factory called for a fresh
+        transport on every (re)connect.
     timeout_s : float
         Longest wait for a reply line.
     frame_timeout_s : float
@@ -86,7 +88,7 @@ class NanoScopeDriver:
 
     def __init__(
         self,
-        transport: Transport | str,
+        transport: Transport | str | Callable[[], Transport],
         *,
         timeout_s: float = 2.0,
         frame_timeout_s: float = 30.0,
@@ -95,8 +97,13 @@ class NanoScopeDriver:
         backoff_max_s: float = 5.0,
         baudrate: int = 115200,
     ) -> None:
+        self._factory: Callable[[], Transport] | None = None
+        self._opened = False  # the current transport has been opened once
         if isinstance(transport, str):
             transport = SerialTransport(transport, baudrate=baudrate)
+        elif not isinstance(transport, Transport):
+            self._factory = transport
+            transport = transport()
         for name, value in (
             ("timeout_s", timeout_s),
             ("frame_timeout_s", frame_timeout_s),
@@ -171,7 +178,10 @@ class NanoScopeDriver:
     def _reopen_sync(self) -> None:
         with self._io_lock:
             self.transport.close()
+            if self._factory is not None and self._opened:
+                self.transport = self._factory()
             self.transport.open()
+            self._opened = True
             self._dirty = False
 
     # ---------------------------------------------------------------- exchange core

@@ -190,6 +190,7 @@ _HEADER_RE = re.compile(r"\*?[A-Z][A-Z0-9]*(?::[A-Z][A-Z0-9]*)*")
 _NUMBER_RE = re.compile(r"[-+]?(?:[0-9]+(?:\.[0-9]*)?|\.[0-9]+)(?:[eE][-+]?[0-9]+)?")
 _INT_RE = re.compile(r"[-+]?[0-9]{1,18}")
 _TOKEN_RE = re.compile(r"[A-Za-z0-9_.+\-<>]+")
+_NON_PRINTABLE_RE = re.compile(rb"[^\x20-\x7e]")
 
 
 @dataclass(frozen=True, slots=True)
@@ -287,7 +288,7 @@ def _split_tag(line: bytes) -> tuple[int | None, bytes]:
 def _ascii_text(raw: bytes, what: str) -> str:
     if len(raw) > LINE_MAX:
         raise ProtocolError(f"{what} longer than {LINE_MAX} bytes")
-    if any(b < 0x20 or b > 0x7E for b in raw):
+    if _NON_PRINTABLE_RE.search(raw):
         raise ProtocolError(f"{what} holds non-printable bytes: {raw[:60]!r}")
     return raw.decode("ascii")
 

@@ -441,3 +441,22 @@ def test_fuzz_driver_frame_query_raises_only_typed_errors(reply: bytes) -> None:
     if frame is not None:
         np.testing.assert_array_equal(frame.heights_nm, _frame(3).heights_nm)
         assert frame.t_start_s == _frame(3).t_start_s
+
+
+@pytest.mark.asyncio
+async def test_transport_factory_gives_a_fresh_transport_on_reconnect() -> None:
+    made: list[_FlakyTransport] = []
+
+    def factory() -> _FlakyTransport:
+        if made:  # the replacement after the first line dropped
+            made.append(_FlakyTransport([(b"@2 SYST:TIME?\n", b"@2 SYST:TIME 5.0\n")]))
+        else:
+            made.append(_FlakyTransport([], drop_on_write=1))
+        return made[-1]
+
+    driver = NanoScopeDriver(factory, timeout_s=0.2, backoff_initial_s=0.01)
+    async with driver:
+        assert await driver.now_s() == 5.0
+    assert len(made) == 2  # one from the constructor, a fresh one on reconnect
+    assert made[0].opens == 1
+    made[-1].assert_done()
