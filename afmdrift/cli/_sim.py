@@ -127,7 +127,15 @@ async def _serve_until_signal(sim: Any, *, port: int | None, speed: float) -> No
             if port is None:
                 print(await server.start_pty(), flush=True)
             else:
-                print(await server.start_tcp(port), flush=True)
+                try:
+                    bound = await server.start_tcp(port)
+                except OSError as err:
+                    from afmdrift.errors import ConfigError
+
+                    raise ConfigError(
+                        f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
+                    ) from None
+                print(bound, flush=True)
             await stop.wait()
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):

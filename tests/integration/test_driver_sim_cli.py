@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -100,3 +101,16 @@ async def test_serve_pty_then_sigint_exits_cleanly(
     await _session(path)
     proc.send_signal(signal.SIGINT)
     assert proc.wait(timeout=30) == 0
+
+
+@pytest.mark.slow
+def test_serve_on_a_busy_port_is_a_clear_error(scenario_file: Path) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        proc = _serve(scenario_file, "--port", str(port))
+        _out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert f"--port {port}: cannot listen on 127.0.0.1:{port}" in err
+    assert "Traceback" not in err
