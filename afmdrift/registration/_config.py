@@ -75,7 +75,7 @@ class RegistrationConfig(BaseModel):
         True, description="Whole-frame coarse alignment when no expected drift is known."
     )
     refine: bool = Field(
-        True, description="Second block pass when the drift is a pixel or more off the prior."
+        True, description="Second block pass when the drift is over 2 px off the prior."
     )
     mse_stride_px: int = Field(
         4, ge=1, le=8, description="Lattice step of the MSE peak verification."

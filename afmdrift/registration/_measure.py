@@ -29,6 +29,8 @@ __all__ = [
 
 #: Smallest accepted image edge (px).
 MIN_IMAGE_PX = 64
+#: A second block pass is made when the drift is farther than this from the prior (px).
+REFINE_PX = 2.0
 
 _CACHE_SIZE = 4
 _cache_lock = threading.Lock()
@@ -283,9 +285,10 @@ def measure_blocks(
     prior_px: tuple[float, float],
 ) -> tuple[BlockMeasurement, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Block pass around ``prior_px``, repeated once around the measured
-    drift when that is a pixel or more away (``config.refine``): windows then
-    sit within half a pixel of their content, where the window-induced bias
-    of the sub-pixel estimate is smallest."""
+    drift when that is more than ``REFINE_PX`` away (``config.refine``):
+    windows then sit within half a pixel of their content, where the
+    window-envelope correction of the sub-pixel estimate is most exact and
+    no content is lost at the window edges."""
     meas, top, left = engine.measure(ref, grad, prior_px=prior_px)
     if not engine.config.refine:
         return meas, top, left
@@ -293,7 +296,7 @@ def measure_blocks(
     if int(ok.sum()) < engine.config.min_valid_blocks:
         return meas, top, left
     est = np.median(meas.vectors_px[ok], axis=0)
-    if np.any(np.rint(est) != np.rint(np.asarray(prior_px))):
+    if float(np.max(np.abs(est - np.asarray(prior_px)))) > REFINE_PX:
         again = (float(est[0]), float(est[1]))
         meas, top, left = engine.measure(ref, grad, prior_px=again)
     return meas, top, left

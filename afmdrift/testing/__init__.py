@@ -9,14 +9,15 @@ Runtime code (the service) never imports this package.
   :class:`Particles` for scenes whose particles tests move or add.
 * Exact shifts: :func:`fourier_shift` (periodic, sub-pixel; exact after
   :func:`band_limit`, which every texture applies) and
-  :func:`shifted_crop` (shift a larger texture, cut a frame, so content enters
-  and leaves at the edges as in a real scan).
+  :func:`shifted_crop` / :class:`TextureShifter` (shift a larger texture, cut
+  a frame, so content enters and leaves at the edges as in a real scan).
 * Artefacts: :func:`add_noise` (SNR = std of heights / std of noise),
   :func:`add_plane` (z offset and tilt), :func:`add_line_offsets`.
 """
 
 from afmdrift.testing._images import (
     Particles,
+    TextureShifter,
     add_line_offsets,
     add_noise,
     add_plane,
@@ -30,6 +31,7 @@ from afmdrift.testing._images import (
 
 __all__ = [
     "Particles",
+    "TextureShifter",
     "add_line_offsets",
     "add_noise",
     "add_plane",

@@ -21,6 +21,7 @@ import numpy.typing as npt
 
 __all__ = [
     "Particles",
+    "TextureShifter",
     "add_line_offsets",
     "add_noise",
     "add_plane",
@@ -93,6 +94,66 @@ def fourier_shift(image: npt.ArrayLike, *, dx_px: float, dy_px: float) -> FloatA
     return np.fft.irfft2(np.fft.rfft2(img) * ramp, s=(rows, cols))
 
 
+class TextureShifter:
+    """Cut frames out of exactly shifted copies of one large periodic texture.
+
+    The texture's spectrum is computed once, so each frame costs a single
+    inverse FFT; :func:`shifted_crop` is the one-off form.
+
+    Parameters
+    ----------
+    texture : array_like, shape (rows, cols)
+        Periodic, band-limited texture (any texture of this module).
+    """
+
+    def __init__(self, texture: npt.ArrayLike) -> None:
+        tex = np.asarray(texture, dtype=np.float64)
+        if tex.ndim != 2:
+            raise ValueError(f"texture must be 2-D, got shape {tex.shape}")
+        self.shape: tuple[int, int] = (int(tex.shape[0]), int(tex.shape[1]))
+        self._spec = np.fft.rfft2(tex)
+        self._ky = np.fft.fftfreq(self.shape[0])[:, None]
+        self._kx = np.fft.rfftfreq(self.shape[1])[None, :]
+
+    def crop(
+        self,
+        shape: tuple[int, int],
+        *,
+        dx_px: float = 0.0,
+        dy_px: float = 0.0,
+        origin_px: tuple[int, int] | None = None,
+    ) -> FloatArray:
+        """The frame ``shape`` at ``origin_px`` (``(col, row)`` of its top-left
+        corner; default: centred) of the texture shifted by ``(dx_px, dy_px)``.
+
+        Raises
+        ------
+        ValueError
+            If the window does not fit, or the shift is larger than the margin
+            between window and texture edge (wrapped content would enter).
+        """
+        rows, cols = _check_shape(shape)
+        t_rows, t_cols = self.shape
+        if origin_px is None:
+            origin_px = ((t_cols - cols) // 2, (t_rows - rows) // 2)
+        x0, y0 = int(origin_px[0]), int(origin_px[1])
+        if x0 < 0 or y0 < 0 or x0 + cols > t_cols or y0 + rows > t_rows:
+            raise ValueError(
+                f"frame {shape} at origin {origin_px} does not fit in texture {self.shape}"
+            )
+        margin_x = min(x0, t_cols - cols - x0)
+        margin_y = min(y0, t_rows - rows - y0)
+        if abs(dx_px) > margin_x or abs(dy_px) > margin_y:
+            raise ValueError(
+                f"shift ({dx_px}, {dy_px}) px exceeds the texture margin "
+                f"({margin_x}, {margin_y}) px"
+            )
+        ramp = np.exp(-2j * np.pi * (self._kx * dx_px + self._ky * dy_px))
+        shifted = np.fft.irfft2(self._spec * ramp, s=self.shape)
+        out: FloatArray = shifted[y0 : y0 + rows, x0 : x0 + cols].copy()
+        return out
+
+
 def shifted_crop(
     texture: npt.ArrayLike,
     *,
@@ -106,7 +167,7 @@ def shifted_crop(
     The frame is the window ``shape`` at ``origin_px`` (``(col, row)`` of its
     top-left corner; default: centred) of ``fourier_shift(texture, dx_px,
     dy_px)``. Content therefore enters and leaves at the frame edges as with
-    a real drifting scan.
+    a real drifting scan. See :class:`TextureShifter` for many frames.
 
     Raises
     ------
@@ -114,22 +175,7 @@ def shifted_crop(
         If the window does not fit, or the shift is larger than the margin
         between window and texture edge (wrapped content would enter).
     """
-    tex = np.asarray(texture, dtype=np.float64)
-    rows, cols = _check_shape(shape)
-    t_rows, t_cols = tex.shape
-    if origin_px is None:
-        origin_px = ((t_cols - cols) // 2, (t_rows - rows) // 2)
-    x0, y0 = int(origin_px[0]), int(origin_px[1])
-    if x0 < 0 or y0 < 0 or x0 + cols > t_cols or y0 + rows > t_rows:
-        raise ValueError(f"frame {shape} at origin {origin_px} does not fit in texture {tex.shape}")
-    margin_x = min(x0, t_cols - cols - x0)
-    margin_y = min(y0, t_rows - rows - y0)
-    if abs(dx_px) > margin_x or abs(dy_px) > margin_y:
-        raise ValueError(
-            f"shift ({dx_px}, {dy_px}) px exceeds the texture margin ({margin_x}, {margin_y}) px"
-        )
-    shifted = fourier_shift(tex, dx_px=dx_px, dy_px=dy_px)
-    return shifted[y0 : y0 + rows, x0 : x0 + cols].copy()
+    return TextureShifter(texture).crop(shape, dx_px=dx_px, dy_px=dy_px, origin_px=origin_px)
 
 
 @dataclass(frozen=True)

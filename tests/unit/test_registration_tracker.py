@@ -14,7 +14,7 @@ from afmdrift.registration import (
     RegistrationConfig,
     RegistrationError,
 )
-from afmdrift.testing import add_noise, particle_texture, rough_texture, shifted_crop
+from afmdrift.testing import TextureShifter, add_noise, particle_texture, rough_texture
 
 PIXEL_NM = 2.0
 
@@ -27,9 +27,9 @@ def _sequence(
     tex = particle_texture(
         (shape[0] + 2 * margin, shape[1] + 2 * margin), pixel_size_nm=PIXEL_NM, rng=rng
     )
+    shifter = TextureShifter(tex)
     return [
-        add_noise(shifted_crop(tex, shape=shape, dx_px=dx, dy_px=dy), snr=snr, rng=rng)
-        for dx, dy in path
+        add_noise(shifter.crop(shape, dx_px=dx, dy_px=dy), snr=snr, rng=rng) for dx, dy in path
     ]
 
 

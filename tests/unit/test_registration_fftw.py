@@ -1,0 +1,77 @@
+"""FFTW plans and wisdom: the file is written, reused, and never fatal."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmdrift.registration import RegistrationConfig, _fftw
+from afmdrift.registration._fftw import BatchedRealFFT, default_wisdom_path, resolve_wisdom_path
+
+
+@pytest.fixture(autouse=True)
+def _fresh_wisdom_state(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each test sees wisdom files as never loaded in this process."""
+    monkeypatch.setattr(_fftw, "_loaded", set())
+
+
+def test_wisdom_path_precedence(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.delenv("AFMDRIFT_FFTW_WISDOM", raising=False)
+    assert default_wisdom_path().parent == tmp_path / "cache" / "afmdrift"
+    assert default_wisdom_path().name.startswith("fftw-wisdom-")
+    assert resolve_wisdom_path(None) == default_wisdom_path()
+    monkeypatch.setenv("AFMDRIFT_FFTW_WISDOM", str(tmp_path / "env.wis"))
+    assert resolve_wisdom_path(None) == tmp_path / "env.wis"
+    assert resolve_wisdom_path(str(tmp_path / "cfg.wis")) == tmp_path / "cfg.wis"
+    assert resolve_wisdom_path("") is None
+
+
+def test_new_plans_write_wisdom_that_a_later_run_reads(tmp_path: Path) -> None:
+    path = tmp_path / "sub" / "wisdom"
+    fft = BatchedRealFFT(3, (40, 36), planner="estimate", wisdom_path=path)
+    fft = BatchedRealFFT(3, (42, 38), planner="measure", wisdom_path=path)
+    assert path.is_file()
+    data = path.read_bytes()
+    assert data.startswith(b"afmdrift-fftw-wisdom 1\n")
+    assert _fftw._decode(data) is not None
+    # The transforms are right: forward then inverse returns rows·cols × input.
+    x = np.random.default_rng(0).standard_normal(fft.real.shape).astype(np.float32)
+    fft.real[:] = x
+    fft.forward()
+    np.testing.assert_allclose(fft.spectrum[1], np.fft.rfft2(x[1]), rtol=1e-4, atol=1e-3)
+    fft.cross[:] = fft.spectrum
+    fft.inverse()
+    np.testing.assert_allclose(fft.real / (42 * 38), x, atol=1e-4)
+
+
+def test_unwritable_wisdom_location_is_not_fatal(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory", encoding="utf-8")
+    with caplog.at_level(logging.INFO, logger="afmdrift.registration._fftw"):
+        fft = BatchedRealFFT(2, (44, 34), planner="measure", wisdom_path=blocker / "wisdom")
+    assert fft.real.shape == (2, 44, 34)
+    assert "cannot write FFTW wisdom" in caplog.text
+
+
+def test_corrupt_wisdom_file_is_ignored_with_a_warning(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "wisdom"
+    path.write_bytes(b"afmdrift-fftw-wisdom 1\n999\nshort")
+    with caplog.at_level(logging.WARNING, logger="afmdrift.registration._fftw"):
+        BatchedRealFFT(2, (46, 30), planner="estimate", wisdom_path=path)
+    assert "malformed FFTW wisdom" in caplog.text
+
+
+def test_config_setting_selects_the_wisdom_file(tmp_path: Path) -> None:
+    from afmdrift.registration._engine import BlockEngine
+
+    path = tmp_path / "engine.wis"
+    BlockEngine((96, 130), RegistrationConfig(fftw_wisdom=str(path)))
+    assert path.is_file()
