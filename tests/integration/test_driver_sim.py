@@ -228,3 +228,47 @@ async def test_late_dropped_partial_and_stale_replies(server: SimulatorServer) -
             await driver.event_count()
         assert await driver.get_offset() == (0.0, 0.0)
         assert server.faults.pending == 0
+
+
+@pytest.mark.slow
+@pytest.mark.asyncio
+@pytest.mark.parametrize("kind", ["tcp", "pty"])
+async def test_fault_storm_never_yields_a_wrong_frame(server: SimulatorServer, kind: str) -> None:
+    """Random injected faults on frame and index replies: every call either raises a
+    typed error or returns exactly the simulator's frame, and the line recovers."""
+    url = await _url(server, kind)
+    rng = np.random.default_rng(11)
+    async with NanoScopeDriver(url, timeout_s=0.5, frame_timeout_s=0.5) as driver:
+        await _wait_frame(driver)
+        await driver.stop_scan()  # freeze the latest frame so it can be compared
+        truth = server.sim.latest_frame()
+        assert truth is not None
+        outcomes = {"ok": 0, "error": 0}
+        for _ in range(16):
+            match = str(rng.choice(["FRAME:DATA", "FRAME:INDEX"]))
+            fault = int(rng.integers(0, 4))
+            if fault == 0:
+                server.faults.corrupt_next_reply(match=match, nbytes=int(rng.integers(1, 4)))
+            elif fault == 1:
+                server.faults.truncate_next_reply(int(rng.integers(0, 200)), match=match)
+            elif fault == 2:
+                server.faults.stale_next_reply(match=match)
+            else:
+                server.faults.drop_next_reply(match=match)
+            try:
+                if match == "FRAME:DATA":
+                    frame = await driver.fetch_frame()
+                else:
+                    frame = await driver.latest_frame()
+            except (ProtocolError, InstrumentTimeout):
+                outcomes["error"] += 1
+            else:
+                outcomes["ok"] += 1
+                assert frame is not None
+                assert frame.index == truth.index
+                np.testing.assert_array_equal(frame.heights_nm, truth.heights_nm)
+            server.faults.clear()
+        assert outcomes["error"] > 0
+        again = await driver.fetch_frame()
+        assert again is not None
+        np.testing.assert_array_equal(again.heights_nm, truth.heights_nm)
