@@ -36,7 +36,7 @@ import threading
 import time
 import tty
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -499,10 +499,9 @@ class SimulatorServer:
     async def stop(self) -> None:
         """Close the listener, every connection, the pty and the ticker (idempotent)."""
         self._stopping.set()
-        if self._tcp is not None:
-            self._tcp.close()
-            await self._tcp.wait_closed()
-            self._tcp = None
+        listener, self._tcp = self._tcp, None
+        if listener is not None:
+            listener.close()  # stop accepting; connections are cancelled below
         tasks = list(self._tasks)
         if self._ticker is not None:
             tasks.append(self._ticker)
@@ -510,14 +509,16 @@ class SimulatorServer:
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
+        if listener is not None:
+            await listener.wait_closed()
         if self._pty_fds is not None:
             for fd in self._pty_fds:
                 os.close(fd)
             self._pty_fds = None
             self.pty_path = None
 
-    def _spawn(self, coro: object) -> None:
-        task: asyncio.Task[None] = asyncio.create_task(coro)  # type: ignore[arg-type]
+    def _spawn(self, coro: Coroutine[object, object, None]) -> None:
+        task = asyncio.create_task(coro)
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
 
