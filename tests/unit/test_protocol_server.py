@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from afmdrift.drivers._protocol import (
+    COMMANDS,
     decode_frame_header,
     decode_frame_reply,
     parse_error_body,
@@ -195,3 +196,35 @@ async def test_overlong_line_over_tcp_is_input_buffer_overrun(server: SimulatorS
         await server.stop()
     assert first.startswith(b'ERR -363,"Input buffer overrun')
     assert second.startswith(b"@5 *IDN afmdrift,SimulatedAFM,")
+
+
+@pytest.mark.parametrize(
+    "header", sorted(h for h, spec in COMMANDS.items() if spec.query_args is not None)
+)
+def test_every_query_in_the_command_table_is_answered(server: SimulatorServer, header: str) -> None:
+    """Regression guard: COMMANDS (used by docs and the driver) and the server's
+    handlers stay in step; a documented query never gets -113."""
+    args = ",".join("0" for _ in range(COMMANDS[header].query_args or 0))
+    reply, _ = server.handle_line(f"@9 {header}? {args}\n".encode())
+    first = parse_reply(reply.split(b"\n", 1)[0])
+    assert first.tag == 9
+    if first.header == "ERR":
+        assert parse_error_body(first.body)[0] != -113
+
+
+@pytest.mark.parametrize(
+    ("line", "after"),
+    [
+        (b"*CLS\n", None),
+        (b"SCAN:STOP\n", b"SCAN:STAT?\n"),
+        (b"SCAN:START\n", b"SCAN:STAT?\n"),
+        (b"SCAN:OFFS 1.5,2.5\n", b"SCAN:OFFS?\n"),
+        (b"TIP:MOVE 10,20\n", None),
+        (b"TIP:MAN 10,20,30,20\n", b"EVENT:COUNT?\n"),
+    ],
+)
+def test_set_commands_answer_ok(server: SimulatorServer, line: bytes, after: bytes | None) -> None:
+    assert _ask(server, line) == ("OK", "")
+    if after is not None:
+        header, _ = _ask(server, after)
+        assert header == after.split(b"?")[0].decode()
