@@ -272,3 +272,19 @@ async def test_fault_storm_never_yields_a_wrong_frame(server: SimulatorServer, k
         again = await driver.fetch_frame()
         assert again is not None
         np.testing.assert_array_equal(again.heights_nm, truth.heights_nm)
+
+
+@pytest.mark.asyncio
+async def test_concurrent_tasks_never_interleave_queries(driver: NanoScopeDriver) -> None:
+    """Regression guard: the per-connection lock keeps each query with its own reply."""
+    await driver.set_offset(3.0, -1.0)
+    results = await asyncio.gather(
+        *(driver.get_offset() for _ in range(10)),
+        *(driver.pixels() for _ in range(10)),
+        *(driver.latest_frame() for _ in range(5)),
+        *(driver.read_channels() for _ in range(5)),
+    )
+    assert results[:10] == [(3.0, -1.0)] * 10
+    assert results[10:20] == [(64, 64)] * 10
+    assert driver.resyncs == 0
+    assert driver.stale_replies == 0
