@@ -288,3 +288,28 @@ async def test_concurrent_tasks_never_interleave_queries(driver: NanoScopeDriver
     assert results[10:20] == [(64, 64)] * 10
     assert driver.resyncs == 0
     assert driver.stale_replies == 0
+
+
+@pytest.mark.asyncio
+async def test_pty_client_leaving_mid_frame_does_not_poison_the_next_client(
+    server: SimulatorServer,
+) -> None:
+    """A pty has no connections: a client that leaves before reading a frame block
+    leaves it on the line. The next client skips or flushes it and gets correct replies."""
+    path = await server.start_pty()
+    async with NanoScopeDriver(path, timeout_s=2.0) as first:
+        await _wait_frame(first)
+        # Ask for a frame and the event log, then leave without reading the replies.
+        await asyncio.to_thread(first.transport.write, b"@900 FRAME:DATA?\n@901 EVENT:LOG? 0\n")
+        await asyncio.sleep(0.2)
+    async with NanoScopeDriver(path, timeout_s=2.0) as second:
+        try:
+            info = await second.identify()
+        except ProtocolError:
+            info = await second.identify()  # the first try resynchronised the line
+        assert info.model == "SimulatedAFM"
+        frame = await second.fetch_frame()
+        truth = server.sim.latest_frame()
+        assert frame is not None
+        assert truth is not None
+        assert frame.index <= truth.index
