@@ -24,6 +24,7 @@ from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
 from afmdrift.model._physics import PhysicsPredictor, solve_wls
 from afmdrift.model._positions import (
     commanded_offset_nm,
+    correct_slow_axis_timing,
     drift_from_measurements,
     truth_frame_mean,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "available_terms",
     "build_offset_curve",
     "commanded_offset_nm",
+    "correct_slow_axis_timing",
     "drift_from_measurements",
     "hermite_curve",
     "load_term_class",

@@ -49,7 +49,7 @@ class PhysicsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     terms: list[str] = Field(
-        default_factory=lambda: ["trend", "thermal_lag", "creep", "scan_direction"],
+        default_factory=lambda: ["trend", "warmup", "thermal_lag", "creep", "scan_direction"],
         description="Effect terms (library names, entry points or plugin names).",
     )
     plugins: list[str] = Field(
@@ -58,8 +58,8 @@ class PhysicsConfig(BaseModel):
     residual: Literal["none", "ar1", "nn"] = Field(
         "ar1", description="Model of what the terms leave: none, AR(1), or the paper's NN."
     )
-    memory_s: float | None = Field(
-        None, gt=0, description="Exponential forgetting time of old points (None: keep all)."
+    memory_s: float = Field(
+        7200.0, ge=0, description="Exponential forgetting time of old points, s (0: keep all)."
     )
     sigma_floor_nm: float = Field(
         0.1, gt=0, le=100, description="Smallest per-point uncertainty used as weight."

@@ -38,7 +38,11 @@ import numpy.typing as npt
 from afmdrift.drivers._base import ChannelSample, ScanDirection
 from afmdrift.model._base import History, Observation
 from afmdrift.model._config import ModelConfig
-from afmdrift.model._positions import drift_from_measurements, truth_frame_mean
+from afmdrift.model._positions import (
+    correct_slow_axis_timing,
+    drift_from_measurements,
+    truth_frame_mean,
+)
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
 from afmdrift.model._registry import make_predictor
 from afmdrift.registration._config import RegistrationConfig
@@ -71,8 +75,16 @@ class MeasuredSeries:
     valid_blocks: list[int] = field(default_factory=list)
 
 
-def measure_session(session: Session, config: RegistrationConfig) -> MeasuredSeries:
-    """Run the registration engine over every frame and convert to drift positions."""
+def measure_session(
+    session: Session, config: RegistrationConfig, *, timing_correction: bool = True
+) -> MeasuredSeries:
+    """Run the registration engine over every frame and convert to drift positions.
+
+    Commanded offset moves are added back (:func:`drift_from_measurements`)
+    and, unless ``timing_correction`` is False, the raster-timing bias of each
+    measurement against its reference frame is removed
+    (:func:`correct_slow_axis_timing`).
+    """
     from afmdrift.registration import DriftTracker
 
     tracker = DriftTracker(pixel_size_nm=session.meta.pixel_size_nm, config=config)
@@ -81,6 +93,7 @@ def measure_session(session: Session, config: RegistrationConfig) -> MeasuredSer
     sigma = np.full(n, np.nan)
     ms = np.zeros(n)
     blocks: list[int] = []
+    reference = [-1] * n
     for i, frame in enumerate(session.iter_frames()):
         t0 = time.perf_counter()
         step = tracker.update(np.asarray(frame.heights_nm))
@@ -90,15 +103,24 @@ def measure_session(session: Session, config: RegistrationConfig) -> MeasuredSer
             sigma[i] = 0.0
             blocks.append(-1)
             continue
-        inc = step.increment
-        blocks.append(int(inc.valid_blocks))
-        if inc.valid:
+        meas = step.measurement
+        blocks.append(int(meas.valid_blocks))
+        if step.accepted:
             m[i] = np.asarray(step.position_nm, dtype=np.float64).reshape(2)
-            sigma[i] = float(inc.sigma_nm)
+            sigma[i] = float(meas.sigma_nm)
+            reference[i] = int(step.reference_index)
         else:
-            _log.info("frame %d: invalid measurement (%s)", i, inc.reason)
-    t = np.array([f.t_mid_s for f in session.iter_frames()])
+            _log.info("frame %d: measurement not accepted (%s)", i, meas.reason)
+    frames = list(session.iter_frames())
+    t = np.array([f.t_mid_s for f in frames])
     p = drift_from_measurements(t, m, session.events, t_ref_s=float(t[0]))
+    if timing_correction:
+        slope = np.array(
+            [f.line_time_s if f.direction is ScanDirection.UP else -f.line_time_s for f in frames]
+        )
+        p = correct_slow_axis_timing(
+            t, p, m, reference, slope, pixel_size_y_nm=session.meta.pixel_size_nm[1]
+        )
     return MeasuredSeries(
         t_s=t,
         t_end_s=session.frame_times[:, 1].copy(),

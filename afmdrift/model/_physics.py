@@ -242,7 +242,7 @@ class PhysicsPredictor(_LoggingPredictor):
     def _weights(self) -> FloatArray:
         sigma = np.maximum(np.asarray(self.log.sigma_nm), self.config.sigma_floor_nm)
         w = 1.0 / sigma**2
-        if self.config.memory_s is not None:
+        if self.config.memory_s > 0:
             t = self.log.t()
             w = w * np.exp(-(t[-1] - t) / self.config.memory_s)
         return np.asarray(w, dtype=np.float64)
