@@ -83,7 +83,7 @@ class SimulatedInstrument(Protocol):
 
     @property
     def now_s(self) -> float: ...
-    def advance_to(self, t_s: float) -> object: ...
+    def advance_to(self, t_s: float, *, render_all: bool = True) -> object: ...
     def identify(self) -> InstrumentInfo: ...
     @property
     def scan_size_nm(self) -> tuple[float, float]: ...
@@ -449,7 +449,10 @@ class SimulatorServer:
 
         Advances in steps of :attr:`step_s` virtual seconds, releasing the lock
         between steps, so commands are answered and :meth:`stop` returns
-        promptly even when the physics lags behind a high speed.
+        promptly even when the physics lags behind a high speed. Frames that a
+        later frame of the same step supersedes are not rendered
+        (``render_all=False``): only the last completed frame is served, so
+        nobody could fetch them.
         """
         target = self.clock.now_s()
         while not self._stopping.is_set():
@@ -467,7 +470,7 @@ class SimulatorServer:
         now = self.sim.now_s
         if now >= target_s:
             return False
-        self.sim.advance_to(min(now + self.step_s, target_s))
+        self.sim.advance_to(min(now + self.step_s, target_s), render_all=False)
         return True
 
     async def start_tcp(self, port: int = 0, *, host: str = "127.0.0.1") -> int:
