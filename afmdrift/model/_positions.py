@@ -221,12 +221,11 @@ def correct_slow_axis_timing(
     for _ in range(2):
         q = p + corr
         v = np.zeros((n, 2))
-        for i in good:
-            k = int(np.searchsorted(good, i))
+        for k in range(good.size):
             lo = good[max(k - 1, 0)]
             hi = good[min(k + 1, good.size - 1)]
             if hi != lo:
-                v[i] = (q[hi] - q[lo]) / (t[hi] - t[lo])
+                v[good[k]] = (q[hi] - q[lo]) / (t[hi] - t[lo])
         corr = np.zeros((n, 2))
         for i in range(n):
             r = int(reference_index[i])
