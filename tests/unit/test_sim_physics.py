@@ -277,3 +277,26 @@ def test_truth_components_sum_to_truth_and_start_at_zero(tmp_path: Path) -> None
     np.testing.assert_allclose(sum_y, y, atol=1e-9)
     assert x[0] == 0.0
     assert y[0] == 0.0
+
+
+def test_creep_of_thousands_of_closed_loop_moves_matches_the_exact_sum() -> None:
+    """Guards the O(1)-per-query creep evaluation (sum of exponentials) against the
+    exact log law when a controller moves the offset every second."""
+    gamma, t0 = 0.03, 1.0
+    physics = PhysicsConfig.model_validate(
+        {**OFF, "creep": {"enabled": True, "gamma_per_decade": gamma, "t0_s": t0}}
+    )
+    sim = DriftPhysics(physics, seed=0)
+    rng = np.random.default_rng(1)
+    offsets = np.cumsum(rng.normal(0.0, 2.0, (3000, 2)), axis=0)
+    times = 1.0 + np.arange(3000.0)
+    for t_m, (x, y) in zip(times, offsets, strict=True):
+        sim.command_offset(float(t_m), float(x), float(y))
+    deltas = np.diff(np.vstack([[0.0, 0.0], offsets]), axis=0)
+    query = np.array([0.5, 1.0, 1.5, 17.25, 999.9, 2500.0, 3000.0, 86400.0])
+    got = sim.components_at(query)["creep"]
+    for q, g in zip(query, got, strict=True):
+        past = times < q
+        decades = np.log10(1 + (q - times[past]) / t0)
+        exact = -gamma * (deltas[past] * decades[:, None]).sum(axis=0)
+        np.testing.assert_allclose(g, exact, rtol=0, atol=1e-7)

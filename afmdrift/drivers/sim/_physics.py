@@ -85,6 +85,74 @@ class TipChange:
     dy_nm: float
 
 
+class _StepTable:
+    """A piecewise-constant (x, y) function of time, appended in time order.
+
+    ``at(t)`` is the value set by the last entry with time <= t, or ``initial``.
+    """
+
+    def __init__(self, initial: tuple[float, float]) -> None:
+        self.count = 0
+        self.times = np.zeros(16)
+        self.values = np.zeros((17, 2))  # row 0: the initial value
+        self.values[0] = initial
+
+    def append(self, t_s: float, x: float, y: float) -> None:
+        k = self.count
+        if k == self.times.size:
+            self.times = np.resize(self.times, 2 * k)
+            self.values = np.resize(self.values, (2 * k + 1, 2))
+        self.times[k] = t_s
+        self.values[k + 1] = (x, y)
+        self.count = k + 1
+
+    @property
+    def last(self) -> FloatArray:
+        out: FloatArray = self.values[self.count]
+        return out
+
+    def at(self, t_s: FloatArray) -> FloatArray:
+        k = np.searchsorted(self.times[: self.count], t_s, side="right")
+        out: FloatArray = self.values[k]
+        return out
+
+
+class _CreepModes:
+    """Sum-of-exponentials state of the logarithmic creep of many moves.
+
+    Modes ``s_i = e^{u_i}`` on a grid of step ``h = 0.5`` in ``u = ln s`` from
+    ``1e-8 / τ_max`` (``τ_max = 1e8`` s, about three years) to ``40 / t_0``,
+    weights ``w_i = h e^{−t_0 s_i}``. The approximation of ``ln(1 + τ/t_0)``
+    is better than 1e-7 (absolute) for 0 ≤ τ ≤ τ_max.
+    """
+
+    def __init__(self, t0_s: float) -> None:
+        u = np.arange(math.log(1e-8 / 1e8), math.log(40.0 / t0_s), 0.5)
+        self.s = np.exp(u)
+        self.w = 0.5 * np.exp(-t0_s * self.s)
+        self.count = 0
+        self.times = np.zeros(16)
+        self.total = np.zeros((16, 2))
+        self.state = np.zeros((16, self.s.size, 2))
+
+    def add(self, t_s: float, dx_nm: float, dy_nm: float) -> None:
+        k = self.count
+        if k == self.times.size:
+            self.times = np.resize(self.times, 2 * k)
+            self.total = np.resize(self.total, (2 * k, 2))
+            self.state = np.resize(self.state, (2 * k, self.s.size, 2))
+        step = np.array([dx_nm, dy_nm])
+        if k == 0:
+            self.total[0] = step
+            self.state[0] = step[None, :]
+        else:
+            decay = np.exp(-(t_s - self.times[k - 1]) * self.s)
+            self.total[k] = self.total[k - 1] + step
+            self.state[k] = self.state[k - 1] * decay[:, None] + step[None, :]
+        self.times[k] = t_s
+        self.count = k + 1
+
+
 class _Grid:
     """Growable regular-grid store of the stochastic processes."""
 
@@ -151,6 +219,10 @@ class DriftPhysics:
         if h.fluctuation_pct > 0:
             self._ou_rh = float(self._rng_rh.normal(0.0, h.fluctuation_pct))
         self._moves: list[OffsetMove] = []
+        self._commanded = _StepTable((float(start_offset_nm[0]), float(start_offset_nm[1])))
+        self._hyst = _StepTable((0.0, 0.0))  # drift term −(a − c) after each move
+        self._tip_table = _StepTable((0.0, 0.0))  # cumulative tip-change steps
+        self._creep_modes = _CreepModes(config.creep.t0_s)
         self._start_offset = (float(start_offset_nm[0]), float(start_offset_nm[1]))
         self._play = np.array(self._start_offset, dtype=np.float64)  # play-operator output
         self._tips: list[TipChange] = []
@@ -272,7 +344,7 @@ class DriftPhysics:
         """Record a commanded absolute offset at ``t_s`` (time order); return the move."""
         if self._moves and t_s < self._moves[-1].t_s:
             raise ValueError(f"offset move at t={t_s} s is before the last one")
-        cx, cy = self.commanded_offset_at(t_s)
+        cx, cy = self._commanded.last
         c = np.array([x_nm, y_nm], dtype=np.float64)
         if self.config.hysteresis.enabled:
             r = np.asarray(self.config.hysteresis.play_nm, dtype=np.float64)
@@ -290,12 +362,18 @@ class DriftPhysics:
             ey_nm=float(e[1]),
         )
         self._moves.append(move)
+        self._commanded.append(move.t_s, move.x_nm, move.y_nm)
+        self._hyst.append(move.t_s, -move.ex_nm, -move.ey_nm)
+        if move.dx_nm or move.dy_nm:
+            self._creep_modes.add(move.t_s, move.dx_nm, move.dy_nm)
         return move
 
     def add_tip_change(self, t_s: float, dx_nm: float, dy_nm: float) -> TipChange:
         """Record a tip change at ``t_s`` with its step in apparent position."""
         change = TipChange(float(t_s), float(dx_nm), float(dy_nm))
         self._tips.append(change)
+        total = self._tip_table.last + np.array([change.dx_nm, change.dy_nm])
+        self._tip_table.append(change.t_s, float(total[0]), float(total[1]))
         return change
 
     @property
@@ -305,11 +383,7 @@ class DriftPhysics:
     def commanded_offset_at(self, t_s: npt.ArrayLike) -> FloatArray:
         """Commanded XY offset (piecewise constant), shape (..., 2), nm."""
         t = np.asarray(t_s, dtype=np.float64)
-        table = np.array([self._start_offset] + [(m.x_nm, m.y_nm) for m in self._moves])
-        times = np.array([m.t_s for m in self._moves])
-        k = np.searchsorted(times, t, side="right")
-        out: FloatArray = table[k]
-        return out
+        return self._commanded.at(t)
 
     # ------------------------------------------------------------------ drift components
 
@@ -364,30 +438,39 @@ class DriftPhysics:
         return z
 
     def _creep(self, t: FloatArray) -> FloatArray:
+        """Σ_m −γ Δ_m log10(1 + (t − t_m)/t_0), in O(modes) per time whatever the moves.
+
+        ``ln(1 + τ/t_0) = ∫_0^∞ e^{−t_0 s} (1 − e^{−τ s}) ds/s`` (a Frullani
+        integral), discretised by the trapezoidal rule in ``ln s``:
+        ``≈ Σ_i w_i (1 − e^{−τ s_i})`` (see :class:`_CreepModes`). So the creep of
+        all moves up to move k is carried by ``D_k = Σ Δ_m`` and the per-mode
+        states ``S_k,i = Σ Δ_m e^{−(t_k − t_m) s_i}``; a closed-loop controller
+        that moves the offset every second for days costs the same per query
+        as a single move.
+        """
         out = np.zeros((*t.shape, 2))
-        gamma = self.config.creep.gamma_per_decade
-        t0 = self.config.creep.t0_s
-        for m in self._moves:
-            if m.dx_nm == 0.0 and m.dy_nm == 0.0:
+        modes = self._creep_modes
+        if modes.count == 0:
+            return out
+        flat_t = t.reshape(-1)
+        flat = out.reshape(-1, 2)
+        scale = -self.config.creep.gamma_per_decade / math.log(10.0)
+        times = modes.times[: modes.count]
+        for lo in range(0, flat_t.size, 4096):
+            tt = flat_t[lo : lo + 4096]
+            k = np.searchsorted(times, tt, side="right") - 1
+            ok = k >= 0
+            if not ok.any():
                 continue
-            el = np.maximum(t - m.t_s, 0.0)
-            decades = np.log10(1.0 + el / t0)
-            out[..., 0] -= gamma * m.dx_nm * decades
-            out[..., 1] -= gamma * m.dy_nm * decades
+            kk = k[ok]
+            decay = np.exp(-(tt[ok] - times[kk])[:, None] * modes.s[None, :])
+            # Σ_m Δ_m (1 − e^{−τ_m s_i}) per mode; exactly 0 at the instant of a move.
+            rest = modes.total[kk][:, None, :] - modes.state[kk] * decay[:, :, None]
+            flat[lo : lo + 4096][ok] = scale * np.einsum("i,nia->na", modes.w, rest)
         return out
 
     def _hysteresis(self, t: FloatArray) -> FloatArray:
-        table = np.array([(0.0, 0.0)] + [(-m.ex_nm, -m.ey_nm) for m in self._moves])
-        times = np.array([m.t_s for m in self._moves])
-        out: FloatArray = table[np.searchsorted(times, t, side="right")]
-        return out
+        return self._hyst.at(t)
 
     def _tip_steps(self, t: FloatArray) -> FloatArray:
-        if not self._tips:
-            return np.zeros((*t.shape, 2))
-        times = np.array([c.t_s for c in self._tips])
-        cum = np.concatenate(
-            [np.zeros((1, 2)), np.cumsum([(c.dx_nm, c.dy_nm) for c in self._tips], axis=0)]
-        )
-        out: FloatArray = cum[np.searchsorted(times, t, side="right")]
-        return out
+        return self._tip_table.at(t)

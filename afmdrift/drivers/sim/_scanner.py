@@ -127,6 +127,7 @@ def _window_per_pixel(
     for axis in (0, 1):
         w0 = w_ends[:, 0, axis]
         out.append(w0[:, None] + (w_ends[:, 1, axis] - w0)[:, None] * frac[None, :])
+    jumps_s = jumps_s[(jumps_s > t[0, 0]) & (jumps_s <= t[-1, -1])]
     if jumps_s.size:
         inside = (jumps_s[None, :] > t[:, :1]) & (jumps_s[None, :] <= t[:, -1:])
         for i in np.nonzero(inside.any(axis=1))[0]:
