@@ -60,6 +60,9 @@ class ServiceConfig(BaseModel):
     )
     run_dir: str = Field("runs/latest", description="Run directory (store, archive, logs).")
     archive_frames: bool = Field(False, description="Also keep every image as frames/NNNNNN.npy.")
+    keep_model_states: int = Field(
+        100, ge=0, le=10_000_000, description="Predictor states kept in the store (0: all)."
+    )
     offset_rate_hz: float = Field(100.0, ge=1.0, le=1000.0, description="Offset stream rate.")
     heartbeat_interval_s: float = Field(1.0, ge=0.05, le=60.0, description="Status period.")
     frame_poll_interval_s: float = Field(0.5, ge=0.005, le=60.0, description="Frame poll period.")

@@ -171,7 +171,10 @@ class DriftService:
             if self._curve_keys is not None:
                 self._curve_keys.start(ctx)
             self._store = RunStore(
-                self.svc.run_dir, archive_frames=self.svc.archive_frames, check_same_thread=False
+                self.svc.run_dir,
+                archive_frames=self.svc.archive_frames,
+                keep_model_states=self.svc.keep_model_states,
+                check_same_thread=False,
             )
             self._executor = concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="afmdrift-worker"

@@ -55,7 +55,11 @@ def replay_session(
     started = time.perf_counter()
     s = session if isinstance(session, Session) else read_session(session)
     out = Path(run_dir)
-    store = RunStore(out, archive_frames=config.service.archive_frames)
+    store = RunStore(
+        out,
+        archive_frames=config.service.archive_frames,
+        keep_model_states=config.service.keep_model_states,
+    )
     try:
         if store.frame_count():
             raise InputError(

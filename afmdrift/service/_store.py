@@ -193,6 +193,9 @@ class RunStore:
         Directory of the run (created if needed).
     archive_frames : bool
         Keep every image as ``frames/NNNNNN.npy``.
+    keep_model_states : int
+        Keep only the newest this many predictor states (0: keep all). States
+        grow with the model's history; the newest one is what a restart needs.
     check_same_thread : bool
         As for :func:`sqlite3.connect`; the daemon opens the store in its main
         thread and then uses it only from its single worker thread.
@@ -203,6 +206,7 @@ class RunStore:
         run_dir: str | Path,
         *,
         archive_frames: bool = False,
+        keep_model_states: int = 0,
         check_same_thread: bool = True,
     ) -> None:
         self.run_dir = Path(run_dir)
@@ -211,6 +215,7 @@ class RunStore:
         except OSError as err:
             raise StoreError(f"{self.run_dir}: cannot create run directory ({err})") from None
         self.archive_frames = archive_frames
+        self.keep_model_states = keep_model_states
         self.path = self.run_dir / DB_NAME
         try:
             self._db = sqlite3.connect(
@@ -307,6 +312,12 @@ class RunStore:
                         None if curve is None else json.dumps(curve),
                     ),
                 )
+                if self.keep_model_states:
+                    self._db.execute(
+                        "DELETE FROM model_state WHERE seq NOT IN "
+                        "(SELECT seq FROM model_state ORDER BY seq DESC LIMIT ?)",
+                        (self.keep_model_states,),
+                    )
             if reference is not None:
                 self._meta_set("reference_seq", str(record.seq))
                 self._meta_set("reference_x_nm", repr(record.image_x_nm))
