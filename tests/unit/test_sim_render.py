@@ -283,3 +283,23 @@ def test_image_artefacts_noise_line_offsets_z_drift_and_tilt() -> None:
     # Tilt: the mean slope along the fast axis is the x tilt.
     gx = np.polyfit(ux.ravel(), h.mean(axis=0), 1)[0]
     assert gx == pytest.approx(0.01, abs=5e-4)
+
+
+def test_tip_change_with_a_blunter_tip_broadens_the_particles() -> None:
+    """Apparent width σ = √(R_p R_t): doubling R_t doubles each particle's imaged volume."""
+    sc = gold_scenario(
+        physics={
+            **QUIET,
+            "tip_changes": {
+                "enabled": True,
+                "scheduled": [{"t_s": 2.0, "step_nm": [0.0, 0.0], "tip_radius_nm": 20.0}],
+            },
+        }
+    )
+    sim = SimulatedAFM(sc, seed=5)
+    before, after = sim.advance_to(6.0)[:2]
+    assert after.t_start_s >= 2.0
+    ux, uy = pixel_grid(sim)
+    assert np.abs(after.heights_nm - analytic_heights(sim.sample, ux, uy)).max() < 0.05
+    ratio = after.heights_nm.sum() / before.heights_nm.sum()
+    assert ratio == pytest.approx(2.0, rel=0.1)
