@@ -49,7 +49,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -64,6 +64,7 @@ __all__ = [
     "base_basis",
     "cv_folds",
     "evaluate_candidate",
+    "ml_phi",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -162,11 +163,12 @@ class CandidateResult:
         """One line summarising the evidence."""
         if not self.testable:
             return f"not testable: {self.reason}"
-        cv = (
-            f"blocked-CV error {100 * self.cv_drop:+.0f}% lower"
-            if self.cv_drop is not None
-            else "not cross-validatable"
-        )
+        if self.cv_drop is None:
+            cv = "not cross-validatable"
+        elif self.cv_drop >= 0:
+            cv = f"blocked-CV error {100 * self.cv_drop:.0f}% lower"
+        else:
+            cv = f"blocked-CV error {-100 * self.cv_drop:.0f}% higher"
         return (
             f"ΔAICc = {self.delta_aicc:.1f}, HAC Wald χ²({self.df}) = {self.wald:.1f} "
             f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}"
@@ -400,6 +402,14 @@ def evaluate_candidate(
         basis = optimise_model(design, raw)
         scan = _scan(term, design, history, basis, grid)
         totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
+    # One Cochrane–Orcutt step: the model with the candidate gets its own φ, from
+    # its level residuals, so the comparison is between the two models' one-step
+    # predictions y_k | y_{k-1} (conditional likelihoods of the same data).
+    best_params = scan[int(np.argmin(totals))][0]
+    design_c = replace(design, phi=_level_phi(design, basis.params, term, history, best_params))
+    basis = _basis(design_c, basis.params)
+    scan = _scan(term, design_c, history, basis, grid)
+    totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
     per_theta = []
     for params, zc, rss1 in scan:
         k_c = sum(z.shape[1] for z in zc)
@@ -416,9 +426,8 @@ def evaluate_candidate(
         df += k
     p = float(stats.chi2.sf(wald, df)) if df else 1.0
     p_bonf = min(1.0, p * max(n_tests, 1))
-    ytil = [design.qd(design.y[:, a], a) for a in (0, 1)]
     cv_base, cv_cand, cv_ok = _blocked_cv(
-        term, design, history, b0.zm, basis.zm, ytil, grid, thresholds.folds
+        term, design, design_c, history, b0.zm, basis.zm, grid, thresholds.folds
     )
     cv_drop = (1.0 - cv_cand / cv_base) if (cv_ok and cv_base > 0) else None
     if cv_drop is not None:
@@ -438,7 +447,7 @@ def evaluate_candidate(
     named: dict[str, float] = dict(params)
     units = term.coefficient_units
     for a, axis in enumerate("xy"):
-        raw_a = design.qd(np.asarray(blocks[a], dtype=np.float64), a)
+        raw_a = design_c.qd(np.asarray(blocks[a], dtype=np.float64), a)
         z_full = _partial(basis.qm[a], raw_a)
         keep = _nonzero_cols(z_full, float(np.abs(raw_a).max()) if raw_a.size else 0.0)
         coef_full = np.full(z_full.shape[1], math.nan)
@@ -480,17 +489,68 @@ def evaluate_candidate(
     )
 
 
+#: AR(1) coefficients searched for each model's conditional likelihood.
+PHI_GRID = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0])
+
+
+def ml_phi(y: FloatArray, x: Sequence[FloatArray]) -> FloatArray:
+    """Per axis, the φ of :data:`PHI_GRID` that maximises the conditional
+    Gaussian likelihood of y_k | y_{k−1} (minimum quasi-differenced RSS).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n, 2)
+    x : sequence of two ndarrays, shapes (n, K_a)
+        Level basis per axis.
+    """
+    phi = np.zeros(2)
+    for a in (0, 1):
+        best = math.inf
+        for f in PHI_GRID:
+            z = x[a][1:] - f * x[a][:-1]
+            yt = y[1:, a] - f * y[:-1, a]
+            keep = _nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)
+            r = yt
+            if keep.any():
+                coef, *_ = np.linalg.lstsq(z[:, keep], yt, rcond=1e-10)
+                r = yt - z[:, keep] @ coef
+            rss = float(r @ r)
+            if rss < best:
+                best, phi[a] = rss, float(f)
+    return phi
+
+
+def _level_phi(
+    design: ModelDesign,
+    params: dict[str, dict[str, float]],
+    term: EffectTerm,
+    history: History,
+    cand_params: dict[str, float],
+) -> FloatArray:
+    """:func:`ml_phi` of the model (θ_M = ``params``) with the candidate added."""
+    xm = design.builder(params)
+    xc = _cand_block(term, design.t_s, history, design.scan_sign, cand_params)
+    return ml_phi(
+        design.y,
+        [np.hstack([xm[a], np.asarray(xc[a], dtype=np.float64)]) for a in (0, 1)],
+    )
+
+
 def _blocked_cv(
     term: EffectTerm,
     design: ModelDesign,
+    design_c: ModelDesign,
     history: History,
     zm_base: list[FloatArray],
     zm: list[FloatArray],
-    ytil: list[FloatArray],
     grid: list[dict[str, float]],
     folds: int,
 ) -> tuple[float, float, bool]:
-    """Blocked-CV RMS error (Euclidean) of the model and of model + term.
+    """Blocked-CV RMS one-step error (Euclidean) of the model and of model + term.
+
+    Each model predicts y_k from y_{k-1} with its own φ (``design`` for the
+    model, ``design_c`` with the candidate), so both errors are errors of
+    predicting the same measured positions.
 
     θ_C is chosen on each training set; the model's columns are ``zm_base``
     for the model alone and ``zm`` (θ_M refitted with the candidate) with
@@ -498,12 +558,14 @@ def _blocked_cv(
     training data carries none of a column that its test block uses.
     """
     t, sign = design.t_s, design.scan_sign
+    ytil_base = [design.qd(design.y[:, a], a) for a in (0, 1)]
+    ytil = [design_c.qd(design.y[:, a], a) for a in (0, 1)]
     m = ytil[0].size
     labels = cv_folds(m, folds)
     zc_grid = []
     for params in grid:
         blocks = _cand_block(term, t, history, sign, params)
-        zc_grid.append([design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)])
+        zc_grid.append([design_c.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)])
     se_base = 0.0
     se_cand = 0.0
     evaluable = True
@@ -536,7 +598,7 @@ def _blocked_cv(
                 best_rss, best_pred = rss, preds
         assert best_pred is not None
         for a in (0, 1):
-            base_pred = _ls_predict(zm_base[a][train], ytil[a][train], zm_base[a][test])
-            se_base += float(np.sum((ytil[a][test] - base_pred) ** 2))
+            base_pred = _ls_predict(zm_base[a][train], ytil_base[a][train], zm_base[a][test])
+            se_base += float(np.sum((ytil_base[a][test] - base_pred) ** 2))
             se_cand += float(np.sum((ytil[a][test] - best_pred[a]) ** 2))
     return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable

@@ -35,6 +35,7 @@ from afmdrift.diagnostics._candidates import (
     Thresholds,
     base_basis,
     evaluate_candidate,
+    ml_phi,
 )
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._stats import (
@@ -255,8 +256,8 @@ def _truth_error(
 def model_design(run: ModelRun) -> ModelDesign:
     """The final model's basis builder at the frame times, and AR(1) φ per axis.
 
-    φ is the lag-1 autocorrelation of the model's level residuals, clipped
-    to [0, 1].
+    φ maximises the conditional likelihood of the model's one-step
+    predictions (:func:`~afmdrift.diagnostics._candidates.ml_phi`).
     """
     p = run.predictor
     t = run.t_s
@@ -271,17 +272,7 @@ def model_design(run: ModelRun) -> ModelDesign:
         return out[0], out[1]
 
     fitted = {k: dict(v) for k, v in p.params.items()}
-    xs = builder(fitted)
-    phi = np.zeros(2)
-    for a in (0, 1):
-        x = xs[a]
-        if p.fits and p.fits[a].keep.size == x.shape[1]:
-            fit = p.fits[a]
-            r = run.measured_nm[:, a] - x[:, fit.keep] @ fit.coef
-        else:
-            r = run.measured_nm[:, a] - run.measured_nm[:, a].mean()
-        den = float(r[:-1] @ r[:-1])
-        phi[a] = min(max(float(r[1:] @ r[:-1]) / den, 0.0), 1.0) if den > 0 else 0.0
+    phi = ml_phi(run.measured_nm, builder(fitted))
     grids = [
         (name, prm.name, prm.grid()) for name in active for prm in known[name].nonlinear_params
     ]
@@ -557,19 +548,24 @@ def diagnose(
 
 
 def _format_params(c: CandidateResult) -> str:
-    parts = []
-    for k, v in c.params.items():
-        if k in c.nonlinear:
-            parts.append(f"{k} = {v:.3g}")
+    """Fitted parameters in words: θ, linear coefficients per axis, refitted model θ."""
+    parts = [f"{k} = {v:.3g}" for k, v in c.params.items() if k in c.nonlinear]
     lin: dict[str, list[str]] = {}
+    model: list[str] = []
     for k, v in c.params.items():
         if k in c.nonlinear:
+            continue
+        if k.startswith("model."):
+            model.append(f"{k.removeprefix('model.')} = {v:.3g}")
             continue
         base, _, axis = k.rpartition("_")
         lin.setdefault(base, []).append(f"{axis} = {v:.3g}")
     for base, vals in lin.items():
         parts.append(f"{base}: {', '.join(vals)}")
-    return "; ".join(parts)
+    text = "; ".join(parts)
+    if model:
+        text += f" (model terms refitted with it: {', '.join(model)})"
+    return text
 
 
 def _finding(

@@ -337,8 +337,13 @@ def find_episodes(
                 tag = str(ev.kind.value)
                 if tag not in tags:
                     tags.append(tag)
-                dt = (t0 - ev.t_s) / 60.0
-                when = f"{dt:.0f} min before" if dt >= 0 else f"inside, at t = {ev.t_s:.0f} s"
+                dt_s = t0 - ev.t_s
+                if dt_s < 0:
+                    when = f"inside, at t = {ev.t_s:.0f} s"
+                elif dt_s < 90:
+                    when = f"{dt_s:.0f} s before"
+                else:
+                    when = f"{dt_s / 60:.0f} min before"
                 if tag == "offset_move":
                     parts.append(f"offset move of ({ev.x_nm:+.0f}, {ev.y_nm:+.0f}) nm {when}")
                 else:
