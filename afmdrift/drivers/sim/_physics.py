@@ -277,7 +277,7 @@ class DriftPhysics:
         head0 = float(self._head_deterministic(t0)[0] + self._ou_room)
         self._t_scanner = head0 + self.config.thermal.initial_offset_k
         self._t_head_prev = head0
-        rh0 = float(self._rh_deterministic(t0)[0] + self._ou_rh)
+        rh0 = float(np.clip(self._rh_deterministic(t0)[0] + self._ou_rh, 0.0, 100.0))
         self._grid.append(
             {
                 "t_head": np.array([head0]),
@@ -305,7 +305,7 @@ class DriftPhysics:
         ou_rh = self._ou(self._rng_rh, self._ou_rh, h.fluctuation_pct, h.fluctuation_tau_s, _CHUNK)
         if ou_rh.size:
             self._ou_rh = float(ou_rh[-1])
-        rh = self._rh_deterministic(t) + ou_rh
+        rh = np.clip(self._rh_deterministic(t) + ou_rh, 0.0, 100.0)  # a relative humidity
         sigma = np.asarray(self.config.random_walk.sigma_nm_per_sqrt_s, dtype=np.float64)
         steps = self._rng_rw.normal(0.0, 1.0, (_CHUNK, 2)) * sigma * math.sqrt(self._dt)
         rw = self._rw + np.cumsum(steps, axis=0)
