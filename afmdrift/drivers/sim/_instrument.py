@@ -299,6 +299,7 @@ class SimulatedAFM:
     # ------------------------------------------------------------------ identity and scan
 
     def identify(self) -> InstrumentInfo:
+        """Vendor ``afmdrift``, model ``SimulatedAFM``, serial naming scenario and seed."""
         return InstrumentInfo(
             vendor="afmdrift",
             model="SimulatedAFM",
@@ -308,6 +309,7 @@ class SimulatedAFM:
 
     @property
     def scan_size_nm(self) -> tuple[float, float]:
+        """Scan size (x, y), nm."""
         return self._geometry.size_nm
 
     @property
@@ -317,18 +319,22 @@ class SimulatedAFM:
 
     @property
     def line_rate_hz(self) -> float:
+        """Scan lines (trace + retrace) per second."""
         return self._geometry.line_rate_hz
 
     @property
     def pixel_size_nm(self) -> tuple[float, float]:
+        """Pixel size (x, y), nm."""
         return self._geometry.pixel_size_nm
 
     @property
     def frame_period_s(self) -> float:
+        """Time between frame starts while scanning, s."""
         return self._geometry.frame_period_s
 
     @property
     def geometry(self) -> ScanGeometry:
+        """The current scan geometry and timing."""
         return self._geometry
 
     def configure_scan(
@@ -378,6 +384,7 @@ class SimulatedAFM:
 
     @property
     def running(self) -> bool:
+        """Whether the instrument is scanning."""
         return self._running
 
     def start(self) -> None:
@@ -465,6 +472,7 @@ class SimulatedAFM:
 
     @property
     def tip_position_nm(self) -> tuple[float, float]:
+        """Where the tip was parked by :meth:`tip_move` or left by :meth:`manipulate`."""
         return self._tip_nm
 
     def image_to_sample(self, x_nm: float, y_nm: float) -> tuple[float, float]:
