@@ -1,103 +1,291 @@
-"""``afmdrift demo``: drift measured on a generated frame sequence.
+"""``afmdrift demo``: the whole system on a simulated AFM, in under a minute.
 
-Generates a particle texture (gold-colloid-like bumps, 2 nm pixels, 512×512
-frames) drifting along a known smooth path, adds height noise at SNR 10, runs
-:class:`~afmdrift.registration.DriftTracker` over the frames and prints true
-and measured cumulative drift per frame, then the RMS error.
+The simulated AFM (:mod:`afmdrift.drivers.sim`) is served over its instrument
+protocol on a pseudo-terminal (or loopback TCP) on an accelerated clock; the
+drift service (:class:`afmdrift.service.DriftService`) connects to it with the
+production driver, measures every frame, predicts, publishes the offset d(t)
+over ZeroMQ and records the run; a subscriber (:mod:`afmdrift.client`) prints
+each frame as it arrives next to the simulator's true drift and samples the
+published offset stream. The summary names the run directory and gives the
+frames, the drift, the prediction error and the offset error against truth.
+
+Everything runs in one process and one event loop; nothing leaves 127.0.0.1.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
+from pathlib import Path
 from typing import Any
 
-#: Pixel size of the generated frames (nm).
+#: Pixel size of the simulated frames (nm).
 PIXEL_NM = 2.0
+#: Frame period of the simulated instrument (s), as in Yang et al. (2008).
+FRAME_PERIOD_S = 256.0
+#: Lines per second of the simulated scanner.
+LINE_RATE_HZ = 4.0
 
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "demo",
-        help="Measure drift on a generated frame sequence and compare with the truth.",
-        description="Generate frames of a particle sample drifting along a known smooth path "
-        "(thermal settling plus a slow creep, SNR 10), track them with the block "
-        "phase-correlation engine and print true vs measured cumulative drift.",
+        help="Run the simulated AFM, the drift service and a subscriber; print a summary.",
+        description="Serve the simulated AFM over a pseudo-terminal on an accelerated clock, "
+        "run the drift service on it and subscribe to its offsets. Prints each frame's true "
+        "and measured cumulative drift and the prediction error, then a summary (frames, "
+        "drift, prediction error, offset error against truth) naming the run directory.",
     )
-    p.add_argument("--frames", type=int, default=20, help="number of frames (default 20)")
-    p.add_argument("--size", type=int, default=512, help="frame edge in px (default 512)")
+    p.add_argument("--frames", type=int, default=24, help="frames to run (default 24)")
+    p.add_argument("--size", type=int, default=256, help="frame edge in px (default 256)")
     p.add_argument("--snr", type=float, default=10.0, help="height SNR (default 10)")
     p.add_argument("--seed", type=int, default=2008, help="random seed (default 2008)")
+    p.add_argument(
+        "--speed",
+        type=float,
+        default=256.0,
+        help="simulated seconds per wall second (default 256: one frame per second)",
+    )
+    p.add_argument(
+        "--transport", choices=("pty", "tcp"), default="pty", help="simulator line (default pty)"
+    )
+    p.add_argument("--predictor", default=None, help="predictor (default: [model] predictor)")
+    p.add_argument(
+        "--config", default=None, help="TOML configuration (default: config/default.toml)"
+    )
+    p.add_argument("--run-dir", default=None, help="run directory (default: runs/demo-<UTC time>)")
     p.set_defaults(handler=_demo)
 
 
-def drift_path_nm(t_s: Any) -> Any:
-    """Demo drift path (x, y) in nm at times ``t_s``: exponential thermal
-    settling (60 nm and -35 nm, time constant 1500 s) plus a linear creep."""
-    import numpy as np
+def drift_scenario(*, size_px: int, seed: int, noise_nm: float) -> Any:
+    """The demo's scenario: gold colloids on mica, power-on settling, thermal and
+    random-walk drift (see docs/physics.md), ``size_px``² frames at 2 nm/px."""
+    from afmdrift.drivers.sim import parse_scenario
 
-    t = np.asarray(t_s, dtype=np.float64)
-    settle = 1.0 - np.exp(-t / 1500.0)
-    return np.column_stack([60.0 * settle + 0.004 * t, -35.0 * settle + 0.002 * t])
+    return parse_scenario(
+        {
+            "name": "demo",
+            "seed": seed,
+            "duration_s": 30 * 86400.0,
+            "scan": {
+                "pixels": [size_px, size_px],
+                "size_nm": [PIXEL_NM * size_px, PIXEL_NM * size_px],
+                "line_rate_hz": LINE_RATE_HZ,
+                "frame_period_s": max(FRAME_PERIOD_S, size_px / LINE_RATE_HZ),
+                "directions": "up",
+            },
+            "sample": {
+                "kind": "gold_on_mica",
+                "grid_nm": 1.0,
+                "map_px": 2048,
+                "roughness_nm": 0.5,
+                "gold": {"density_per_um2": 250.0},
+            },
+            "physics": {
+                "warmup": {"enabled": True, "amplitude_nm": [90.0, -60.0], "tau_s": 5000.0},
+                "random_walk": {"enabled": True, "sigma_nm_per_sqrt_s": [0.01, 0.01]},
+            },
+            "artefacts": {"noise_nm": noise_nm},
+        },
+        source="demo",
+    )
 
 
 def _demo(args: argparse.Namespace) -> int:
-    import math
-
-    import numpy as np
+    import asyncio
 
     from afmdrift.errors import InputError
-    from afmdrift.registration import DriftTracker
-    from afmdrift.testing import TextureShifter, add_noise, particle_texture
 
     if args.frames < 2:
         raise InputError(f"--frames must be at least 2, got {args.frames}")
-    if not 64 <= args.size <= 2048:
-        raise InputError(f"--size must be between 64 and 2048 px, got {args.size}")
+    if not 64 <= args.size <= 1024:
+        raise InputError(f"--size must be between 64 and 1024 px, got {args.size}")
     if not args.snr > 0:
         raise InputError(f"--snr must be > 0, got {args.snr}")
-    rng = np.random.default_rng(args.seed)
-    t_s = 256.0 * np.arange(args.frames)  # one frame every 256 s, as in the paper
-    path_px = drift_path_nm(t_s) / PIXEL_NM
-    margin = math.ceil(float(np.abs(path_px).max())) + 16
-    edge = args.size + 2 * margin
-    shifter = TextureShifter(particle_texture((edge, edge), pixel_size_nm=PIXEL_NM, rng=rng))
-    tracker = DriftTracker(pixel_size_nm=PIXEL_NM)
+    if not 1.0 <= args.speed <= 5000.0:
+        raise InputError(f"--speed must be between 1 and 5000, got {args.speed}")
+    return asyncio.run(_run_demo(args))
+
+
+async def _run_demo(args: argparse.Namespace) -> int:
+    import asyncio
+    import time
+
+    import numpy as np
+    import zmq.asyncio
+
+    from afmdrift.client import Subscriber
+    from afmdrift.config import load_config
+    from afmdrift.drivers import Frame, NanoScopeDriver, ScanDirection
+    from afmdrift.drivers.sim import SimulatedAFM
+    from afmdrift.drivers.sim._server import SimulatorServer
+    from afmdrift.model import truth_frame_mean
+    from afmdrift.service import DriftService, FrameMsg, OffsetMsg, RunStore
+
+    # Detector noise from the SNR: the sample's height spread over one noiseless frame.
+    probe = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=0.0))
+    first = probe.advance_to(max(FRAME_PERIOD_S, args.size / LINE_RATE_HZ) + 1.0)[0]
+    noise_nm = float(np.std(first.heights_nm)) / args.snr
+    sim = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=noise_nm))
+
+    base = load_config(args.config)
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
+    run_dir = Path(args.run_dir or f"runs/demo-{stamp}")
+    model = base.model
+    if args.predictor is not None:
+        model = model.model_copy(update={"predictor": args.predictor})
+    config = base.model_copy(
+        update={
+            "model": model,
+            "service": base.service.model_copy(
+                update={
+                    "run_dir": str(run_dir),
+                    "pub_endpoint": "tcp://127.0.0.1:*",
+                    "control_endpoint": "tcp://127.0.0.1:*",
+                    "frame_poll_interval_s": 0.05,
+                    "clock_sync_interval_s": 0.1,
+                    "channel_poll_interval_s": 0.5,
+                    "event_poll_interval_s": 0.5,
+                    "heartbeat_interval_s": 0.5,
+                }
+            ),
+        }
+    )
+    rows = args.size
+    scan_s = rows / LINE_RATE_HZ
+
+    def truth(t_mid_s: float) -> Any:
+        """Mean true drift over the scan lines of the frame centred at ``t_mid_s``."""
+        frame = Frame(
+            index=0,
+            heights_nm=np.zeros((rows, 1)),
+            pixel_size_nm=(PIXEL_NM, PIXEL_NM),
+            t_start_s=t_mid_s - scan_s / 2,
+            t_end_s=t_mid_s + scan_s / 2,
+            direction=ScanDirection.UP,
+        )
+        t = np.linspace(frame.t_start_s, frame.t_end_s, 256)
+        x, y = sim.truth_at(t)
+        return truth_frame_mean(frame, t, np.stack([x, y], axis=1))
 
     print(
-        f"afmdrift demo: {args.frames} frames of {args.size}x{args.size} px at {PIXEL_NM:g} nm/px, "
-        f"particle sample, SNR {args.snr:g}, one frame per 256 s"
+        f"afmdrift demo: simulated AFM ({args.size}x{args.size} px at {PIXEL_NM:g} nm/px, gold "
+        f"colloids, SNR {args.snr:g}, one frame per {FRAME_PERIOD_S:g} s) served over a "
+        f"{'pseudo-terminal' if args.transport == 'pty' else 'loopback TCP'} at {args.speed:g}x; "
+        f"drift service with predictor {config.model.predictor!r}; subscriber on ZeroMQ"
     )
     header = (
         f"{'frame':>5} {'t_s':>6} {'true_x_nm':>10} {'true_y_nm':>10} {'meas_x_nm':>10} "
-        f"{'meas_y_nm':>10} {'err_nm':>7} {'blocks':>7}"
+        f"{'meas_y_nm':>10} {'err_nm':>7} {'blocks':>7} {'pred_err_nm':>11}"
     )
-    print(header)
+    ctx = zmq.asyncio.Context()
     errors: list[float] = []
-    origin = path_px[0]
-    for i in range(args.frames):
-        d = path_px[i] - origin
-        frame = shifter.crop((args.size, args.size), dx_px=float(d[0]), dy_px=float(d[1]))
-        step = tracker.update(add_noise(frame, snr=args.snr, rng=rng))
-        true_nm = d * PIXEL_NM
-        if step is None:
-            print(f"{i:5d} {t_s[i]:6.0f} {0.0:10.2f} {0.0:10.2f} {'reference':>21}")
-            continue
-        meas = step.position_nm
-        blocks = f"{step.measurement.valid_blocks}/{step.measurement.total_blocks}"
-        if step.accepted:
-            err = math.hypot(meas[0] - true_nm[0], meas[1] - true_nm[1])
-            errors.append(err)
-            err_text = f"{err:7.3f}"
-        else:
-            err_text = f"{'-':>7}"
-        print(
-            f"{i:5d} {t_s[i]:6.0f} {true_nm[0]:10.2f} {true_nm[1]:10.2f} {meas[0]:10.2f} "
-            f"{meas[1]:10.2f} {err_text} {blocks:>7}"
-            + ("" if step.accepted else f"  rejected: {step.measurement.reason}")
-        )
+    rejected = 0
+    pred_errors: list[float] = []
+    offset_errors: list[float] = []
+    ref_truth: Any = None
+    frames_seen = 0
+    started = time.monotonic()
+    budget_s = 60.0 + 3.0 * args.frames * FRAME_PERIOD_S / args.speed
+    try:
+        async with SimulatorServer(sim, speed=args.speed) as server:
+            if args.transport == "pty":
+                url = await server.start_pty()
+            else:
+                url = f"socket://127.0.0.1:{await server.start_tcp(0)}"
+            service = DriftService(
+                config=config, instrument=NanoScopeDriver(url), ctx=ctx, config_path=args.config
+            )
+            task = asyncio.create_task(service.run(), name="afmdrift-demo-service")
+            try:
+                await asyncio.wait_for(service.ready.wait(), 30.0)
+                print(f"simulator on {url}; service publishing on {service.pub_endpoint}")
+                print(header)
+                sub = Subscriber(service.pub_endpoint, topics=("frame", "offset"), ctx=ctx)
+                try:
+                    async with asyncio.timeout(budget_s):
+                        while frames_seen < args.frames:
+                            msg = await sub.recv()
+                            if isinstance(msg, OffsetMsg):
+                                if msg.valid and ref_truth is not None:
+                                    x, y = sim.truth_at(msg.t_s)
+                                    offset_errors.append(
+                                        math.hypot(
+                                            msg.x_nm - (x - ref_truth[0]),
+                                            msg.y_nm - (y - ref_truth[1]),
+                                        )
+                                    )
+                                continue
+                            if not isinstance(msg, FrameMsg):
+                                continue
+                            frames_seen += 1
+                            if ref_truth is None:
+                                ref_truth = truth(msg.t_s)
+                            true = truth(msg.t_s) - ref_truth
+                            blocks = f"{msg.valid_blocks}/{msg.total_blocks}"
+                            pred = "-" if msg.pred_error_nm is None else f"{msg.pred_error_nm:.3f}"
+                            if msg.reason == "reference":
+                                print(
+                                    f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} "
+                                    f"{true[1]:10.2f} {'reference':>21}"
+                                )
+                                continue
+                            if msg.x_nm is None or msg.y_nm is None:
+                                rejected += 1
+                                print(
+                                    f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} "
+                                    f"{true[1]:10.2f} {'-':>10} {'-':>10} {'-':>7} {blocks:>7}"
+                                    f" {pred:>11}  rejected: {msg.reason}"
+                                )
+                                continue
+                            err = math.hypot(msg.x_nm - true[0], msg.y_nm - true[1])
+                            errors.append(err)
+                            if msg.pred_error_nm is not None:
+                                pred_errors.append(msg.pred_error_nm)
+                            print(
+                                f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} {true[1]:10.2f} "
+                                f"{msg.x_nm:10.2f} {msg.y_nm:10.2f} {err:7.3f} {blocks:>7} "
+                                f"{pred:>11}"
+                            )
+                finally:
+                    sub.close()
+            finally:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await task
+    finally:
+        ctx.term()
+    with RunStore(run_dir) as store:
+        csv_path = store.write_measurements_csv()
+        records = store.frames()
+    wall_s = time.monotonic() - started
+    last = records[-1] if records else None
     rms = math.sqrt(sum(e * e for e in errors) / len(errors)) if errors else math.nan
     print(
         f"RMS error of cumulative drift: {rms:.3f} nm ({rms / PIXEL_NM:.4f} px) over "
-        f"{len(errors)} measured frames; {args.frames - 1 - len(errors)} rejected"
+        f"{len(errors)} measured frames; {rejected} rejected"
     )
+    print(f"summary after {wall_s:.1f} s of wall time:")
+    print(f"  frames: {frames_seen} received by the subscriber, {len(records)} in the run store")
+    if last is not None and ref_truth is not None:
+        span_s = last.t_mid_s - records[0].t_mid_s
+        print(
+            f"  drift: measured ({last.x_nm:.1f}, {last.y_nm:.1f}) nm over {span_s / 3600:.2f} h "
+            f"of instrument time ({math.hypot(last.x_nm, last.y_nm) / max(span_s, 1e-9):.4f} "
+            "nm/s on average)"
+        )
+    if pred_errors:
+        print(
+            f"  prediction error (made before each frame arrived): mean "
+            f"{sum(pred_errors) / len(pred_errors):.2f} nm, max {max(pred_errors):.2f} nm over "
+            f"{len(pred_errors)} frames (Yang et al. 2008: mean 1.62 nm, peak 6.88 nm)"
+        )
+    if offset_errors:
+        print(
+            f"  offset error against truth: mean {sum(offset_errors) / len(offset_errors):.2f} nm,"
+            f" max {max(offset_errors):.2f} nm over {len(offset_errors)} published samples "
+            f"({config.service.offset_rate_hz:g} Hz)"
+        )
+    print(f"  run directory: {run_dir} (run.sqlite, {csv_path.name})")
     return 0
