@@ -96,19 +96,26 @@ def test_rendering_matches_the_analytic_surface_to_far_below_a_pixel() -> None:
 
 
 def test_constant_drift_is_an_exact_subpixel_shift() -> None:
-    """A frame under constant drift d is the zero-drift frame shifted by d (registration view)."""
-    step = (3.3, -5.1)  # nm = (0.825, -1.275) px
-    base = SimulatedAFM(gold_scenario(), seed=11).advance_to(2.5)[0]
+    """A frame under constant drift d is the zero-drift frame shifted by d (registration view).
+
+    The scan pixel (3 nm) differs from the sample grid (4 nm), so the frames
+    sample the surface between its grid nodes and the shift is measured with a
+    different interpolant than the renderer's.
+    """
+    step = (3.3, -5.1)  # nm = (1.1, -1.7) px
+    scan = {"pixels": [128, 128], "size_nm": [384.0, 384.0], "line_rate_hz": 64.0}
+    base = SimulatedAFM(gold_scenario(scan=scan), seed=11).advance_to(2.5)[0]
     shifted_sc = gold_scenario(
+        scan=scan,
         physics={
             **QUIET,
             "tip_changes": {"enabled": True, "scheduled": [{"t_s": 0.0, "step_nm": list(step)}]},
-        }
+        },
     )
     shifted = SimulatedAFM(shifted_sc, seed=11).advance_to(2.5)[0]
     dx, dy = fit_shift_px(base.heights_nm, shifted.heights_nm)
-    assert dx == pytest.approx(step[0] / 4.0, abs=0.01)
-    assert dy == pytest.approx(step[1] / 4.0, abs=0.01)
+    assert dx == pytest.approx(step[0] / 3.0, abs=0.01)
+    assert dy == pytest.approx(step[1] / 3.0, abs=0.01)
 
 
 def test_within_frame_drift_distorts_the_frame_pixel_by_pixel() -> None:
