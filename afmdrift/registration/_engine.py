@@ -15,6 +15,7 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +32,7 @@ from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
+_Scalar = TypeVar("_Scalar", bound=np.generic)
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 IArr = npt.NDArray[np.intp]
@@ -42,6 +44,10 @@ _NEWTON_STEPS = 2
 #: Largest Newton step (px) and the last step below which it has converged.
 _MAX_STEP_PX = 1.0
 _CONVERGED_PX = 0.02
+#: Candidate peaks lower than this fraction of a block's highest peak are
+#: not verified: at low SNR their MSE is as noisy as the right one's and would
+#: only add wrong picks.
+CANDIDATE_RATIO = 0.5
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
 
@@ -137,12 +143,19 @@ class BlockEngine:
         kx_max = max(1, int(config.subpixel_band * ex / 2))
         ky = np.arange(-ky_max, ky_max + 1)
         kx = np.arange(0, kx_max + 1)
-        self._band_rows = (ky % ey).astype(np.intp)
-        self._band_cols = kx.astype(np.intp)
+        self._band_ky = ky_max
+        self._band_kx = kx_max
         self._fy = ky / ey
         self._fx = kx / ex
         # Hermitian weight: columns kx > 0 stand for themselves and -kx.
         self._band_w = np.where(kx == 0, 1.0, 2.0)[None, None, :] * np.ones((1, ky.size, 1))
+        off5 = np.arange(-2.0, 3.0)
+        self._ex5 = np.exp(2j * np.pi * self._fx[:, None] * off5[None, :])  # (Lx, 5)
+        self._ey5 = np.exp(2j * np.pi * self._fy[:, None] * off5[None, :])  # (Ly, 5)
+        gy_, gx_ = np.meshgrid(self._fy, self._fx, indexing="ij")
+        self._moments = np.stack(
+            [np.ones_like(gx_), gx_, gx_**2, gy_, gx_ * gy_, gy_**2], axis=-1
+        ).reshape(-1, 6)  # (Ly·Lx, 6), real
         # Curvature κ of the window autocorrelation A(s) = Σ w(x) w(x+s) / Σ w²
         # near s = 0 (per axis): the correlation of windowed blocks is about
         # A(p)·C(p - d), so its maximum is pulled towards p = 0 unless A is
@@ -177,7 +190,7 @@ class BlockEngine:
         mean = spec[:, 0, 0].real / self._w_sum
         spec[:, self._w_rows, self._w_cols] -= mean[:, None] * self._w_vals[None, :]
         mag = np.abs(spec, out=self._mag)
-        band_mag = mag[:, self._band_rows[:, None], self._band_cols[None, :]]
+        band_mag = self._band(mag)
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
         mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
         np.reciprocal(mag, out=mag)
@@ -261,7 +274,7 @@ class BlockEngine:
         if cfg.subpixel == "dft":
             # Cross-power weights |S_cur||S_ref| turn the phase-only band back
             # into a matched filter: noise-only frequencies get little weight.
-            band = self.fft.cross[:, self._band_rows[:, None], self._band_cols[None, :]]
+            band = self._band(self.fft.cross)
             band *= self._cur_band_mag * ref.band_mag
         self.fft.inverse()
         corr = self.fft.real  # (n, ey, ex), scaled by ey·ex
@@ -288,9 +301,19 @@ class BlockEngine:
                 xx = np.clip(ix[:, None] + offs, 0, wx - 1)
                 region[rows[:, None, None], yy[:, :, None], xx[:, None, :]] = -np.inf
 
-        # Verify each candidate by the MSE between the two gradient blocks.
-        mse = self._candidate_mse(ref, grad, top, left, cand_y, cand_x)
-        mse[~np.isfinite(cand_v) | (cand_v <= 0)] = np.inf
+        # Verify each plausible candidate (positive, and at least
+        # CANDIDATE_RATIO of the block's highest peak) by the MSE between the
+        # two gradient blocks; the lowest MSE wins.
+        plausible = np.isfinite(cand_v) & (cand_v > 0) & (cand_v >= CANDIDATE_RATIO * cand_v[:, :1])
+        bi, ki = np.nonzero(plausible)
+        mse = np.full((n, k), np.inf)
+        mse[bi, ki] = self._candidate_mse(
+            ref,
+            grad,
+            bi,
+            (top - ref.top)[bi] + cand_y[bi, ki],
+            (left - ref.left)[bi] + cand_x[bi, ki],
+        )
         best = np.argmin(mse, axis=1)
         sy = cand_y[rows, best]
         sx = cand_x[rows, best]
@@ -327,6 +350,12 @@ class BlockEngine:
         )
         return result, top, left
 
+    def _band(self, spec: npt.NDArray[_Scalar]) -> npt.NDArray[_Scalar]:
+        """Copy of the sub-pixel band of half-spectra ``spec``, shape
+        (n, 2·ky + 1, kx + 1), rows ordered ky = -ky_max .. +ky_max."""
+        ky, kx = self._band_ky, self._band_kx
+        return np.concatenate([spec[:, -ky:, : kx + 1], spec[:, : ky + 1, : kx + 1]], axis=1)
+
     def _search_region(self, corr: F32) -> F32:
         """Correlation at shifts ``-max..+max`` (wrapped), shape (n, 2my+1, 2mx+1).
 
@@ -357,16 +386,21 @@ class BlockEngine:
         Returns the offsets ``(fx, fy)`` from the integer peak and a mask of
         the blocks where the iteration converged within 3 px of it.
         """
-        r = band.astype(np.complex128) * self._band_w
+        n, ly, lx = band.shape
+        fy, fx = self._fy, self._fx
         two_pi_i = 2j * np.pi
-        # Band-limited c at the 5×5 integer shifts around the full-band peak
-        # (noise can put that peak a pixel or two off); quadratic start at the
-        # best of them.
-        off = np.arange(-2.0, 3.0)
-        ex5 = np.exp(two_pi_i * self._fx[None, :, None] * (sx[:, None, None] + off))
-        ey5 = np.exp(two_pi_i * self._fy[None, :, None] * (sy[:, None, None] + off))
-        c5 = np.einsum("nyi,nyj->nij", ey5, np.matmul(r, ex5)).real  # c5[n, y, x]
-        best = np.argmax(c5.reshape(c5.shape[0], -1), axis=1)
+        two_pi = 2.0 * np.pi
+        # Centre the band on the integer peak: r0 = w · R · exp(2πi k·s).
+        r0 = band.astype(np.complex128) * self._band_w
+        r0 *= np.exp(two_pi_i * fy[None, :] * sy[:, None])[:, :, None]
+        r0 *= np.exp(two_pi_i * fx[None, :] * sx[:, None])[:, None, :]
+        # Band-limited c at the 5×5 integer offsets around it (noise can put
+        # the full-band peak a pixel or two off): two matrix products for all
+        # blocks; quadratic start at the best of them.
+        a = _cmatmul(r0.reshape(n * ly, lx), self._ex5).reshape(n, ly, 5)
+        c5 = _cmatmul(a.transpose(0, 2, 1).reshape(n * 5, ly), self._ey5).real.reshape(n, 5, 5)
+        c5 = c5.transpose(0, 2, 1)  # c5[n, y, x]
+        best = np.argmax(c5.reshape(n, -1), axis=1)
         by_, bx_ = np.divmod(best, 5)
         by_ = np.clip(by_, 1, 3)
         bx_ = np.clip(bx_, 1, 3)
@@ -381,44 +415,37 @@ class BlockEngine:
         hxx = c[:, 1, 2] - 2.0 * c[:, 1, 1] + c[:, 1, 0]
         hyy = c[:, 2, 1] - 2.0 * c[:, 1, 1] + c[:, 0, 1]
         hxy = 0.25 * (c[:, 2, 2] - c[:, 2, 0] - c[:, 0, 2] + c[:, 0, 0])
-        step_x, step_y = _ascent_step(gx, gy, hxx, hyy, hxy)
-        step_x += bx_ - 2
-        step_y += by_ - 2
-        px = sx + step_x
-        py = sy + step_y
-        fy, fx = self._fy, self._fx
-        fx_pow = np.stack([np.ones_like(fx), fx, fx * fx], axis=1).astype(np.complex128)
-        fy2 = fy * fy
-        two_pi = 2.0 * np.pi
+        qx, qy = _ascent_step(gx, gy, hxx, hyy, hxy)
+        dx = qx + (bx_ - 2)  # offset from the integer peak
+        dy = qy + (by_ - 2)
         ky_env, kx_env = self._envelope
-        step = np.full(px.shape, np.inf)
+        step = np.full(n, np.inf)
         for _ in range(_NEWTON_STEPS):
-            ey_ = np.exp(two_pi_i * fy[None, :] * py[:, None])  # (n, Ly)
-            ex_ = np.exp(two_pi_i * fx[None, :] * px[:, None])  # (n, Lx)
-            # a[n, y, j] = Σ_x R · exp(2πi fx px) · fx^j, times the y phase.
-            a = np.matmul(r, ex_[:, :, None] * fx_pow[None, :, :])
-            a *= ey_[:, :, None]
-            s0 = a.sum(axis=1)  # (n, 3): Σ z, Σ z fx, Σ z fx²
-            s_y = np.einsum("nyj,y->nj", a[:, :, :2], fy)  # Σ z fy, Σ z fy fx
-            s_yy = np.einsum("ny,y->n", a[:, :, 0], fy2)
-            # Derivatives of log c plus the window-envelope correction
-            # (maximise c(p) / A(p), A(p) ≈ exp(-κx px²/2 - κy py²/2)).
-            c0 = s0[:, 0].real
+            z = r0 * np.exp(two_pi_i * fy[None, :] * dy[:, None])[:, :, None]
+            z *= np.exp(two_pi_i * fx[None, :] * dx[:, None])[:, None, :]
+            # Σ z·{1, fx, fx², fy, fx·fy, fy²} in one product.
+            zz = z.reshape(n, ly * lx)
+            m = _small_gemm(zz.real, self._moments) + 1j * _small_gemm(zz.imag, self._moments)
+            c0 = m[:, 0].real
             positive = c0 > 0
             inv = 1.0 / np.where(positive, c0, 1.0)
-            gx = -two_pi * s0[:, 1].imag * inv
-            gy = -two_pi * s_y[:, 0].imag * inv
-            hxx = -(two_pi**2) * s0[:, 2].real * inv - gx * gx + kx_env
-            hyy = -(two_pi**2) * s_yy.real * inv - gy * gy + ky_env
-            hxy = -(two_pi**2) * s_y[:, 1].real * inv - gx * gy
+            # Derivatives of log c plus the window-envelope correction
+            # (maximise c(p) / A(p), A(p) ≈ exp(-κx px²/2 - κy py²/2)).
+            gx = -two_pi * m[:, 1].imag * inv
+            gy = -two_pi * m[:, 3].imag * inv
+            hxx = -(two_pi**2) * m[:, 2].real * inv - gx * gx + kx_env
+            hyy = -(two_pi**2) * m[:, 5].real * inv - gy * gy + ky_env
+            hxy = -(two_pi**2) * m[:, 4].real * inv - gx * gy
+            px = sx + dx
+            py = sy + dy
             step_x, step_y = _ascent_step(gx + kx_env * px, gy + ky_env * py, hxx, hyy, hxy)
             step_x = np.where(positive, step_x, 0.0)
             step_y = np.where(positive, step_y, 0.0)
-            px += step_x
-            py += step_y
+            dx = dx + step_x
+            dy = dy + step_y
             step = np.where(positive, np.hypot(step_x, step_y), np.inf)
-        off_x = px - sx
-        off_y = py - sy
+        off_x = dx
+        off_y = dy
         ok = (step < _CONVERGED_PX) & (np.abs(off_x) <= 3.0) & (np.abs(off_y) <= 3.0)
         return np.where(ok, off_x, 0.0), np.where(ok, off_y, 0.0), ok
 
@@ -426,34 +453,44 @@ class BlockEngine:
         self,
         ref: ReferenceSpectra,
         grad: F32,
-        top: IArr,
-        left: IArr,
-        cand_y: IArr,
-        cand_x: IArr,
+        block: IArr,
+        shift_y: IArr,
+        shift_x: IArr,
     ) -> F64:
-        """Mean squared difference of the inner blocks at each candidate shift.
+        """Mean squared difference of the inner blocks at candidate shifts.
 
-        Sampled on a lattice of ``mse_stride_px``; the mean difference is
-        removed (an offset is not a mismatch). Pixels of the shifted block
-        outside the current image are left out (the overlap); fewer than a
-        quarter of the samples in the overlap gives ``inf``.
+        One value per (block, total integer shift) pair, shape (P,). Sampled
+        on a lattice of ``mse_stride_px``; the mean difference is removed (an
+        offset is not a mismatch). Samples of the shifted block outside the
+        current image are left out (the overlap); fewer than a quarter of the
+        samples in the overlap gives ``inf``.
         """
         rows_img, cols_img = grad.shape
         iy0, ix0 = self._inner
-        ry = (ref.top + iy0)[:, None] + self._mse_rows[None, :]  # (n, Ly)
-        rx = (ref.left + ix0)[:, None] + self._mse_cols[None, :]  # (n, Lx)
-        ty = (top - ref.top)[:, None] + cand_y  # (n, K)
-        tx = (left - ref.left)[:, None] + cand_x
-        cy = ry[:, None, :] + ty[:, :, None]  # (n, K, Ly)
-        cx = rx[:, None, :] + tx[:, :, None]  # (n, K, Lx)
+        ry = (ref.top[block] + iy0)[:, None] + self._mse_rows[None, :]  # (P, Ly)
+        rx = (ref.left[block] + ix0)[:, None] + self._mse_cols[None, :]  # (P, Lx)
+        cy = ry + shift_y[:, None]
+        cx = rx + shift_x[:, None]
         vy = (cy >= 0) & (cy < rows_img)
         vx = (cx >= 0) & (cx < cols_img)
         total = self._mse_rows.size * self._mse_cols.size
         if bool(vy.all() and vx.all()):  # the usual case: every sample overlaps
-            diff = grad[cy[:, :, :, None], cx[:, :, None, :]]
-            diff -= ref.grad[ry[:, None, :, None], rx[:, None, None, :]]
-            mse: F64 = diff.var(axis=(2, 3), dtype=np.float64)
+            diff = grad[cy[:, :, None], cx[:, None, :]]
+            diff -= ref.grad[ry[:, :, None], rx[:, None, :]]
+            mse: F64 = diff.var(axis=(1, 2), dtype=np.float64)
             return mse
+        np.clip(cy, 0, rows_img - 1, out=cy)
+        np.clip(cx, 0, cols_img - 1, out=cx)
+        diff = grad[cy[:, :, None], cx[:, None, :]]
+        diff -= ref.grad[ry[:, :, None], rx[:, None, :]]
+        w = (vy[:, :, None] & vx[:, None, :]).astype(np.float32)
+        cnt = w.sum(axis=(1, 2), dtype=np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = (diff * w).sum(axis=(1, 2), dtype=np.float64) / cnt
+            sq = np.square(diff - mean[:, None, None].astype(np.float32)) * w
+            mse = sq.sum(axis=(1, 2), dtype=np.float64) / cnt
+        mse[cnt < 0.25 * total] = np.inf
+        return mse
         np.clip(cy, 0, rows_img - 1, out=cy)
         np.clip(cx, 0, cols_img - 1, out=cx)
         diff = grad[cy[:, :, :, None], cx[:, :, None, :]]
@@ -466,6 +503,35 @@ class BlockEngine:
             mse = sq.sum(axis=(2, 3), dtype=np.float64) / cnt
         mse[cnt < 0.25 * total] = np.inf
         return mse
+
+
+#: OpenBLAS runs a matrix product on several threads when m·n·k exceeds
+#: 65536·4; on a shared machine its spinning threads make our small products
+#: 10-50 times slower, so :func:`_small_gemm` splits them below that size.
+_GEMM_SINGLE_THREAD_MNK = 65536 * 4 - 1
+
+
+def _small_gemm(a: F64, b: F64) -> F64:
+    """``a @ b`` for real 2-D arrays, in row chunks that BLAS runs on one thread."""
+    m, k = a.shape
+    n = b.shape[1]
+    rows = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, k * n))
+    if m <= rows:
+        out: F64 = a @ b
+        return out
+    return np.concatenate([a[i : i + rows] @ b for i in range(0, m, rows)], axis=0)
+
+
+def _cmatmul(
+    a: npt.NDArray[np.complex128], b: npt.NDArray[np.complex128]
+) -> npt.NDArray[np.complex128]:
+    """Complex ``a @ b`` from four single-threaded real products."""
+    ar, ai = np.ascontiguousarray(a.real), np.ascontiguousarray(a.imag)
+    br, bi = np.ascontiguousarray(b.real), np.ascontiguousarray(b.imag)
+    out: npt.NDArray[np.complex128] = (_small_gemm(ar, br) - _small_gemm(ai, bi)) + 1j * (
+        _small_gemm(ar, bi) + _small_gemm(ai, br)
+    )
+    return out
 
 
 def _ascent_step(gx: F64, gy: F64, hxx: F64, hyy: F64, hxy: F64) -> tuple[F64, F64]:
