@@ -44,6 +44,8 @@ def _record(args: argparse.Namespace) -> int:
         if isinstance(err, AfmdriftError):
             raise
         raise InputError(str(err)) from None
+    except OSError as err:
+        raise InputError(f"--out {args.out}: cannot write the session: {err.strerror}") from None
     s = summary.stats
     print(
         f"{summary.path}: {summary.frames} frames over {summary.duration_s:.0f} s "

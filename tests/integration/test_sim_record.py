@@ -146,3 +146,13 @@ def test_built_in_scenarios_record_a_few_frames(name: str, tmp_path: Path) -> No
     assert s.frames.shape == (2, sc.scan.pixels[1], sc.scan.pixels[0])
     assert np.isfinite(s.frames).all()
     assert s.frames[0].std() > 0.05
+
+
+def test_unwritable_output_is_an_error_not_a_traceback(
+    scenario_file: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("not a directory")
+    args = ["sim", "record", str(scenario_file), "--out", str(blocker), "--frames", "1"]
+    assert main(args) == 2
+    assert "cannot write the session" in capsys.readouterr().err
