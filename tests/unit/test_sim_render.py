@@ -310,3 +310,16 @@ def test_tip_change_with_a_blunter_tip_broadens_the_particles() -> None:
     assert np.abs(after.heights_nm - analytic_heights(sim.sample, ux, uy)).max() < 0.05
     ratio = after.heights_nm.sum() / before.heights_nm.sum()
     assert ratio == pytest.approx(2.0, rel=0.1)
+
+
+def test_any_height_array_can_be_the_sample() -> None:
+    rng = np.random.default_rng(2)
+    image = ndimage.gaussian_filter(rng.standard_normal((200, 240)), 2.0)
+    sample = Sample.from_image(image, pixel_size_nm=(2.0, 3.0), edge_sigma_px=0.5)
+    assert sample.extent_nm == (480.0, 600.0)
+    sc = gold_scenario(scan={"pixels": [32, 32], "size_nm": [64.0, 96.0], "line_rate_hz": 64.0})
+    sim = SimulatedAFM(sc, seed=0, sample=sample)
+    frame = sim.advance_to(0.6)[0]
+    np.testing.assert_allclose(frame.heights_nm, sample.base_nm[:32, :32], atol=1e-9)
+    with pytest.raises(ValueError, match="16x16"):
+        Sample.from_image(np.zeros((8, 8)), pixel_size_nm=(1.0, 1.0))

@@ -55,6 +55,9 @@ class SimulatedAFM:
     seed : int, optional
         Overrides ``scenario.seed``. The same scenario and seed give the same
         frames, channels and truth for the same sequence of calls.
+    sample : Sample, optional
+        Use this sample instead of the one ``scenario.sample`` describes, e.g.
+        ``Sample.from_image(array, pixel_size_nm=(px, py))`` for any height image.
 
     Notes
     -----
@@ -65,14 +68,18 @@ class SimulatedAFM:
     trace ends after the change.
     """
 
-    def __init__(self, scenario: Scenario, *, seed: int | None = None) -> None:
+    def __init__(
+        self, scenario: Scenario, *, seed: int | None = None, sample: Sample | None = None
+    ) -> None:
         self.scenario = scenario
         self.seed = int(scenario.seed if seed is None else seed)
         sc = scenario.scan
         self.physics = DriftPhysics(
             scenario.physics, seed=self.seed, start_offset_nm=sc.start_offset_nm
         )
-        self.sample = Sample.from_config(scenario.sample, seed=self.seed)
+        self.sample = (
+            Sample.from_config(scenario.sample, seed=self.seed) if sample is None else sample
+        )
         self._check_sample_extent(sc.size_nm)
         self._geometry = ScanGeometry(
             size_nm=(float(sc.size_nm[0]), float(sc.size_nm[1])),
@@ -105,12 +112,16 @@ class SimulatedAFM:
 
     @classmethod
     def from_scenario(
-        cls, scenario: Scenario | str | Path, *, seed: int | None = None
+        cls,
+        scenario: Scenario | str | Path,
+        *,
+        seed: int | None = None,
+        sample: Sample | None = None,
     ) -> SimulatedAFM:
         """Build from a :class:`Scenario`, a TOML path, or a built-in scenario name."""
         if not isinstance(scenario, Scenario):
             scenario = load_scenario(scenario)
-        return cls(scenario, seed=seed)
+        return cls(scenario, seed=seed, sample=sample)
 
     # ------------------------------------------------------------------ schedule
 

@@ -145,7 +145,7 @@ class Sample:
         """Build the sample a scenario describes (deterministic for ``seed``)."""
         rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0x5A3F]))
         if cfg.kind == "texture":
-            return cls._from_texture(cfg, rng)
+            return cls._from_texture(cfg)
         n = cfg.map_px
         shape = (n, n)
         g = cfg.grid_nm
@@ -190,36 +190,72 @@ class Sample:
         )
 
     @classmethod
-    def _from_texture(cls, cfg: SampleConfig, rng: np.random.Generator) -> Sample:
+    def from_image(
+        cls,
+        heights_nm: npt.ArrayLike,
+        *,
+        pixel_size_nm: tuple[float, float],
+        tip_radius_nm: float = 10.0,
+        edge_sigma_px: float = 1.0,
+    ) -> Sample:
+        """A sample whose surface is a height image (e.g. a real AFM image).
+
+        The image is made periodic (:func:`periodic_component`), its mean removed,
+        and smoothed by ``edge_sigma_px − 0.5`` px if that is positive.
+
+        Parameters
+        ----------
+        heights_nm : array_like, shape (rows, cols)
+            Finite heights in nm, at least 16×16 px.
+        pixel_size_nm : (float, float)
+            Pixel size of the image along x and y, nm.
+
+        Raises
+        ------
+        ValueError
+            The image is not a finite 2-D array of at least 16×16 px, or a pixel
+            size is not positive.
+        """
+        heights = np.asarray(heights_nm, dtype=np.float64)
+        if heights.ndim != 2 or min(heights.shape) < 16 or not np.all(np.isfinite(heights)):
+            raise ValueError(
+                f"need a finite 2-D height image of at least 16x16 px, got shape {heights.shape}"
+            )
+        if not all(math.isfinite(v) and v > 0 for v in pixel_size_nm):
+            raise ValueError(f"pixel_size_nm must be positive, got {pixel_size_nm}")
+        base = periodic_component(heights - heights.mean())
+        if edge_sigma_px > 0.5:
+            base = _smooth_periodic(base, edge_sigma_px - 0.5)
+        return cls(
+            base,
+            grid_nm=(float(pixel_size_nm[0]), float(pixel_size_nm[1])),
+            tip_radius_nm=tip_radius_nm,
+            min_sigma_px=edge_sigma_px,
+        )
+
+    @classmethod
+    def _from_texture(cls, cfg: SampleConfig) -> Sample:
         assert cfg.texture is not None
         path = Path(cfg.texture.path)
+        where = f"sample.texture.path = {str(path)!r}"
         pixel_nm: tuple[float, float] | None = cfg.texture.pixel_size_nm
         if path.suffix.lower() == ".npy":
             try:
                 heights = np.load(path, allow_pickle=False)
             except (OSError, ValueError) as err:
-                raise ConfigError(
-                    f"sample.texture.path = {str(path)!r}: cannot read: {err}"
-                ) from None
+                raise ConfigError(f"{where}: cannot read: {err}") from None
         else:
             heights, file_pixel_nm = _load_with_afmdrift_io(path)
             pixel_nm = pixel_nm or file_pixel_nm
-        heights = np.asarray(heights, dtype=np.float64)
-        if heights.ndim != 2 or min(heights.shape) < 16 or not np.all(np.isfinite(heights)):
-            raise ConfigError(
-                f"sample.texture.path = {str(path)!r}: need a finite 2-D height image of at "
-                f"least 16x16 px, got shape {heights.shape}"
+        try:
+            return cls.from_image(
+                heights,
+                pixel_size_nm=pixel_nm or (cfg.grid_nm, cfg.grid_nm),
+                tip_radius_nm=cfg.tip_radius_nm,
+                edge_sigma_px=cfg.edge_sigma_px,
             )
-        grid = pixel_nm or (cfg.grid_nm, cfg.grid_nm)
-        base = periodic_component(heights - heights.mean())
-        if cfg.edge_sigma_px > 0.5:
-            base = _smooth_periodic(base, cfg.edge_sigma_px - 0.5)
-        return cls(
-            base,
-            grid_nm=(float(grid[0]), float(grid[1])),
-            tip_radius_nm=cfg.tip_radius_nm,
-            min_sigma_px=cfg.edge_sigma_px,
-        )
+        except ValueError as err:
+            raise ConfigError(f"{where}: {err}") from None
 
     # ------------------------------------------------------------------ particles
 
