@@ -94,6 +94,13 @@ class ModelConfig(BaseModel):
     lookahead: int = Field(
         2, ge=1, le=16, description="Predicted future samples in each published curve."
     )
+    blend_fraction: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="Hermite: hand over to the new prediction within this fraction of a frame "
+        "period after publication (0: at the next frame time).",
+    )
     nn: NNConfig = Field(default_factory=NNConfig)
     kalman: KalmanConfig = Field(default_factory=KalmanConfig)
     physics: PhysicsConfig = Field(default_factory=PhysicsConfig)

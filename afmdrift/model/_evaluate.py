@@ -296,6 +296,7 @@ def _run_one(
                 frame_period_s=period,
                 lookahead=config.lookahead,
                 previous=previous[kind],
+                blend_s=config.blend_fraction * period,
             )
             if kind == config.reconstruction:
                 t_curve[k] = (time.perf_counter() - t0) * 1e3

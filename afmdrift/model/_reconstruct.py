@@ -292,6 +292,7 @@ def build_offset_curve(
     frame_period_s: float,
     lookahead: int = 2,
     previous: OffsetCurve | None = None,
+    blend_s: float | None = None,
 ) -> OffsetCurve:
     """Build the curve to publish after a frame has been measured.
 
@@ -313,6 +314,10 @@ def build_offset_curve(
     previous : OffsetCurve, optional
         The curve published before; the Hermite curve starts from its value and
         slope at ``t_now_s`` (C1 continuity across publications).
+    blend_s : float, optional
+        Hermite only: add a knot on the new prediction ``blend_s`` after
+        ``t_now_s``, so the curve hands over from the previous one within
+        ``blend_s`` instead of at the next frame time.
     """
     if not (math.isfinite(frame_period_s) and frame_period_s > 0):
         raise ValueError(f"frame_period_s must be positive, got {frame_period_s}")
@@ -329,6 +334,9 @@ def build_offset_curve(
             dt_s=frame_period_s,
             t_valid_s=(float(t_now_s), float(future[-1])),
         )
+    if blend_s is not None and blend_s > 0:
+        # Reach the new prediction blend_s after publication, then follow it.
+        future = np.concatenate([[t_now_s + blend_s], future[future > t_now_s + 1.05 * blend_s]])
     future = future[future > t_now_s + 0.05 * frame_period_s]
     if future.size == 0:
         future = np.array([t_now_s + frame_period_s])
@@ -389,4 +397,5 @@ def reconstruct_offset(
         frame_period_s=period,
         lookahead=config.lookahead,
         previous=previous,
+        blend_s=config.blend_fraction * period,
     )

@@ -155,3 +155,26 @@ def test_reconstruct_offset_follows_the_config() -> None:
     np.testing.assert_allclose(c.at([t])[0], [2.0 * t / PERIOD_S, -t / PERIOD_S], atol=1e-9)
     with pytest.raises(ValueError, match="no observations"):
         reconstruct_offset(make_predictor("kalman"), h, config=ModelConfig(), t_now_s=0.0)
+
+
+def test_blended_hermite_is_c1_and_reaches_the_new_prediction() -> None:
+    """With blend_fraction the hand-over to a new prediction takes a tenth of a frame,
+    and the curve still starts from the previous curve's value and slope."""
+    s = synthetic_series(hours=2.0, seed=4, velocity_walk_nm_per_h=3.0)
+    pred = make_predictor("kalman")
+    cfg = ModelConfig(blend_fraction=0.1)
+    prev = None
+    for o in s.observations:
+        pred.update(o, s.history)
+        t_now = o.t_s + 64.0
+        cur = reconstruct_offset(pred, s.history, config=cfg, t_now_s=t_now, previous=prev)
+        if prev is not None:
+            np.testing.assert_allclose(cur.at([t_now]), prev.at([t_now]), atol=1e-9)
+            np.testing.assert_allclose(
+                cur.derivative([t_now]), prev.derivative([t_now]), atol=1e-12
+            )
+        t_hand = t_now + 0.1 * PERIOD_S
+        np.testing.assert_allclose(
+            cur.at([t_hand]), pred.predict([t_hand], s.history).mean_nm, atol=1e-9
+        )
+        prev = cur
