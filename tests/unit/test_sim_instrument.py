@@ -119,3 +119,40 @@ def test_jumping_ahead_without_rendering_superseded_frames_gives_the_same_latest
     np.testing.assert_array_equal(
         a.advance_to(104.0)[0].heights_nm, b.advance_to(104.0)[0].heights_nm
     )
+
+
+def test_random_api_sequences_never_break_the_clock_or_the_frames() -> None:
+    """Guards the long-running server: any interleaving of commands keeps frames
+    complete, ordered and inside their own scan interval."""
+    rng = np.random.default_rng(11)
+    sc = small_scenario(
+        physics={
+            "creep": {"enabled": True},
+            "hysteresis": {"enabled": True, "play_nm": [1.0, 1.0]},
+            "tip_changes": {"enabled": True, "rate_per_h": 100.0},
+        }
+    )
+    sim = SimulatedAFM(sc, seed=2)
+    last_index = -1
+    for _ in range(300):
+        op = int(rng.integers(0, 6))
+        if op == 0:
+            sim.set_offset(*rng.normal(0.0, 50.0, 2))
+        elif op == 1:
+            sim.configure_scan(pixels=(int(rng.integers(8, 40)), int(rng.integers(8, 40))))
+        elif op == 2:
+            sim.stop()
+        elif op == 3:
+            sim.start()
+        elif op == 4:
+            sim.manipulate(*rng.uniform(0.0, 150.0, 4))
+        t_next = sim.now_s + float(rng.exponential(2.0))
+        for f in sim.advance_to(t_next, render_all=bool(rng.integers(0, 2))):
+            assert f.index > last_index
+            last_index = f.index
+            assert f.t_start_s < f.t_end_s <= t_next
+            assert np.isfinite(f.heights_nm).all()
+            assert f.heights_nm.shape == (f.shape[0], f.shape[1])
+    times = [e.t_s for e in sim.events]
+    assert times == sorted(times)
+    assert sim.now_s > 100.0
