@@ -26,6 +26,7 @@ from afmdrift.model._positions import (
     commanded_offset_nm,
     correct_slow_axis_timing,
     drift_from_measurements,
+    frames_spanning_moves,
     truth_frame_mean,
 )
 from afmdrift.model._reconstruct import (
@@ -68,6 +69,7 @@ __all__ = [
     "commanded_offset_nm",
     "correct_slow_axis_timing",
     "drift_from_measurements",
+    "frames_spanning_moves",
     "hermite_curve",
     "load_term_class",
     "make_predictor",

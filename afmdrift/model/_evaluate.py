@@ -41,6 +41,7 @@ from afmdrift.model._config import ModelConfig
 from afmdrift.model._positions import (
     correct_slow_axis_timing,
     drift_from_measurements,
+    frames_spanning_moves,
     truth_frame_mean,
 )
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
@@ -80,7 +81,8 @@ def measure_session(
 ) -> MeasuredSeries:
     """Run the registration engine over every frame and convert to drift positions.
 
-    Commanded offset moves are added back (:func:`drift_from_measurements`)
+    Commanded offset moves are added back (:func:`drift_from_measurements`),
+    frames scanned across a move are dropped (:func:`frames_spanning_moves`)
     and, unless ``timing_correction`` is False, the raster-timing bias of each
     measurement against its reference frame is removed
     (:func:`correct_slow_axis_timing`).
@@ -113,6 +115,10 @@ def measure_session(
             _log.info("frame %d: measurement not accepted (%s)", i, meas.reason)
     frames = list(session.iter_frames())
     t = np.array([f.t_mid_s for f in frames])
+    spanning = frames_spanning_moves(session.frame_times, session.events)
+    for k in np.nonzero(spanning)[0]:
+        _log.info("frame %d: an offset move happened during its scan; not used", int(k))
+    m[spanning] = np.nan
     p = drift_from_measurements(t, m, session.events, t_ref_s=float(t[0]))
     if timing_correction:
         slope = np.array(

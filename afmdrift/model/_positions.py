@@ -36,6 +36,10 @@ per frame: the reference frame scanned that content at other rows, hence at
 other times, than the ones its mid-scan time stands for.
 :func:`correct_slow_axis_timing` removes that first-order bias (a few percent
 of each increment at 30 px per frame).
+
+A frame during whose scan an offset move happened is displaced by different
+amounts above and below the move; :func:`frames_spanning_moves` finds them so
+they are not used as drift observations.
 """
 
 from __future__ import annotations
@@ -51,6 +55,7 @@ __all__ = [
     "commanded_offset_nm",
     "correct_slow_axis_timing",
     "drift_from_measurements",
+    "frames_spanning_moves",
     "truth_frame_mean",
 ]
 
@@ -233,3 +238,27 @@ def correct_slow_axis_timing(
                 continue
             corr[i] = corr[r] - v[r] * slope[r] * (m[i, 1] - m[r, 1]) / pixel_size_y_nm
     return np.asarray(p + corr, dtype=np.float64)
+
+
+def frames_spanning_moves(
+    frame_times_s: npt.ArrayLike, events: Sequence[Event]
+) -> npt.NDArray[np.bool_]:
+    """Frames during whose scan a commanded offset move happened, shape (n,).
+
+    Rows scanned before the move and rows scanned after it are displaced by
+    different amounts, so the frame's measurement is neither the drift before
+    nor after the move; such frames must not become drift observations.
+
+    Parameters
+    ----------
+    frame_times_s : array_like, shape (n, 2)
+        ``(t_start_s, t_end_s)`` of each frame.
+    events : sequence of Event
+        The event log (``offset_move`` entries are used).
+    """
+    ft = np.asarray(frame_times_s, dtype=np.float64).reshape(-1, 2)
+    moves = np.array([e.t_s for e in events if e.kind is EventKind.OFFSET_MOVE])
+    if moves.size == 0:
+        return np.zeros(ft.shape[0], dtype=bool)
+    inside = (moves[None, :] > ft[:, :1]) & (moves[None, :] < ft[:, 1:2])
+    return np.asarray(np.any(inside, axis=1), dtype=np.bool_)

@@ -243,3 +243,14 @@ def test_slow_axis_timing_bias_is_removed_along_a_keyframe_chain(slope_sign: flo
     assert np.max(np.abs(m - p_true)) > 5.0
     fixed = correct_slow_axis_timing(t, m, m, refs, slope, pixel_size_y_nm=dy_nm)
     np.testing.assert_allclose(fixed, p_true, atol=0.2)
+
+
+def test_frame_scanned_across_a_move_is_flagged() -> None:
+    """Regression: a move at a frame's mid-scan time mixed pre- and post-move rows and
+    was taken as a 500 nm drift jump."""
+    from afmdrift.model import frames_spanning_moves
+
+    times = [[0.0, 128.0], [256.0, 384.0], [512.0, 640.0]]
+    events = [Event(320.0, EventKind.OFFSET_MOVE, 400.0, 0.0), Event(450.0, EventKind.TIP_CHANGE)]
+    np.testing.assert_array_equal(frames_spanning_moves(times, events), [False, True, False])
+    np.testing.assert_array_equal(frames_spanning_moves(times, []), [False, False, False])
