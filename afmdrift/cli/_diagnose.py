@@ -105,6 +105,8 @@ def format_text(j: dict[str, Any]) -> str:
         "Ljung-Box whiteness p-value: "
         + ", ".join(f"{a} {_f(lb[a]['p_value'], '.2g')}" for a in ("x", "y"))
     )
+    for pat in j["patterns"]:
+        lines.append(f"pattern: {pat}")
     if j["failures"]:
         lines.append("where it fails:")
         for f in j["failures"]:

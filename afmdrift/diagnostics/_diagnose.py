@@ -40,6 +40,7 @@ from afmdrift.diagnostics._candidates import (
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._stats import (
     Failure,
+    cross_correlation,
     error_summary,
     find_episodes,
     ljung_box,
@@ -301,6 +302,7 @@ class Diagnosis:
     periodogram: dict[str, dict[str, float]]
     up_down: dict[str, float] | None
     failures: list[Failure]
+    patterns: list[str]
     candidates: list[CandidateResult]
     n_tests: int
     thresholds: Thresholds
@@ -357,6 +359,7 @@ class Diagnosis:
             if self.up_down is None
             else {k: _num(v) for k, v in self.up_down.items()},
             "ar1_phi": [_num(v) for v in self.phi],
+            "patterns": list(self.patterns),
             "failures": [
                 {
                     "t_start_s": f.t_start_s,
@@ -414,6 +417,58 @@ class Diagnosis:
                 else None,
             },
         }
+
+
+def _patterns(
+    data: RunData,
+    run: ModelRun,
+    burn: int,
+    lb: dict[str, dict[str, float]],
+    pg: dict[str, dict[str, float]],
+    up_down: dict[str, float] | None,
+) -> list[str]:
+    """Session-wide regularities of the one-step errors, in plain language."""
+    out: list[str] = []
+    e = run.errors_nm[burn:]
+    n = int(np.all(np.isfinite(e), axis=1).sum())
+    for axis in ("x", "y"):
+        p = lb[axis]["p_value"]
+        if math.isfinite(p) and p < 0.01:
+            out.append(
+                f"{axis} errors are autocorrelated (Ljung-Box p = {p:.2g} over "
+                f"{int(lb[axis]['lags'])} lags): something systematic is left in them"
+            )
+        power, period = pg[axis]["peak_power"], pg[axis]["peak_period_s"]
+        if math.isfinite(power) and power > 0.3:
+            out.append(
+                f"{axis} errors have a periodic component of {period / 3600:.2g} h "
+                f"(a sinusoid explains {100 * power:.0f}% of their variance)"
+            )
+    if n >= 10:
+        threshold = max(0.3, 3.0 / math.sqrt(n))
+        for name in data.channel_names():
+            ct, cv = data.channel_series(name)
+            if ct.size < 2:
+                continue
+            x = np.interp(run.t_s, ct, cv)
+            dx = np.concatenate([[np.nan], np.diff(x)])[burn:]
+            for a, axis in enumerate("xy"):
+                lags, r = cross_correlation(e[:, a], dx, max_lag=3)
+                if not np.isfinite(r).any():
+                    continue
+                i = int(np.nanargmax(np.abs(r)))
+                if abs(r[i]) > threshold:
+                    out.append(
+                        f"{axis} errors follow the changes of {name} (correlation "
+                        f"{r[i]:+.2f} at a lag of {int(lags[i])} frame(s))"
+                    )
+    if up_down is not None and up_down["p_value"] < 0.001:
+        out.append(
+            f"up and down frames differ: mean error up minus down is "
+            f"{up_down['diff_x_nm']:+.2f} nm in x, {up_down['diff_y_nm']:+.2f} nm in y "
+            f"(Welch p = {up_down['p_value']:.2g})"
+        )
+    return out
 
 
 def _num(v: float | int | None) -> float | None:
@@ -536,6 +591,7 @@ def diagnose(
         periodogram=pg,
         up_down=up_down,
         failures=failures,
+        patterns=_patterns(data, run, burn, lb, pg, up_down),
         candidates=results,
         n_tests=n_tests,
         thresholds=options.thresholds,

@@ -146,6 +146,10 @@ def _fig_acf_periodogram(dg: Diagnosis) -> Figure:
     axes[0].set_xlabel("lag (frames)")
     axes[0].set_ylabel("autocorrelation")
     axes[0].legend(fontsize=8)
+    from matplotlib.ticker import NullFormatter, ScalarFormatter
+
+    axes[1].xaxis.set_major_formatter(ScalarFormatter())
+    axes[1].xaxis.set_minor_formatter(NullFormatter())
     axes[1].set_xlabel("period (h)")
     axes[1].set_ylabel("normalised power")
     axes[1].legend(fontsize=8)
@@ -393,6 +397,8 @@ def render_report(
         )
     else:
         parts.append("<p>No failure episode found.</p>")
+    if dg.patterns:
+        parts.append("<ul>" + "".join(f"<li>{_h(p)}</li>" for p in dg.patterns) + "</ul>")
     lb = j["ljung_box"]
     pg = j["periodogram"]
     parts.append(

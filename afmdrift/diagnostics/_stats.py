@@ -45,8 +45,8 @@ FloatArray = npt.NDArray[np.float64]
 #: Robust z-score above which a frame's error counts as a failure.
 OUTLIER_Z = 3.5
 #: CUSUM reference value κ and decision interval h (in robust σ units).
-CUSUM_KAPPA = 0.5
-CUSUM_H = 6.0
+CUSUM_KAPPA = 1.0
+CUSUM_H = 5.0
 
 
 def error_summary(e_nm: FloatArray) -> dict[str, float]:
