@@ -148,14 +148,12 @@ class BlockEngine:
         self._fy = ky / ey
         self._fx = kx / ex
         # Hermitian weight: columns kx > 0 stand for themselves and -kx.
-        self._band_w = np.where(kx == 0, 1.0, 2.0)[None, None, :] * np.ones((1, ky.size, 1))
+        self._band_w = np.where(kx == 0, 1.0, 2.0)[None, :]
         off5 = np.arange(-2.0, 3.0)
         self._ex5 = np.exp(2j * np.pi * self._fx[:, None] * off5[None, :])  # (Lx, 5)
         self._ey5 = np.exp(2j * np.pi * self._fy[:, None] * off5[None, :])  # (Ly, 5)
-        gy_, gx_ = np.meshgrid(self._fy, self._fx, indexing="ij")
-        self._moments = np.stack(
-            [np.ones_like(gx_), gx_, gx_**2, gy_, gx_ * gy_, gy_**2], axis=-1
-        ).reshape(-1, 6)  # (Ly·Lx, 6), real
+        self._fx_pow = np.stack([np.ones_like(self._fx), self._fx, self._fx**2], axis=1)
+        self._fy_pow = np.stack([np.ones_like(self._fy), self._fy, self._fy**2], axis=1)
         # Curvature κ of the window autocorrelation A(s) = Σ w(x) w(x+s) / Σ w²
         # near s = 0 (per axis): the correlation of windowed blocks is about
         # A(p)·C(p - d), so its maximum is pulled towards p = 0 unless A is
@@ -390,14 +388,16 @@ class BlockEngine:
         fy, fx = self._fy, self._fx
         two_pi_i = 2j * np.pi
         two_pi = 2.0 * np.pi
-        # Centre the band on the integer peak: r0 = w · R · exp(2πi k·s).
-        r0 = band.astype(np.complex128) * self._band_w
+        # Centre the band on the integer peak: r0 = w · R · exp(2πi k·s)
+        # (w: Hermitian weight of the half-spectrum columns).
+        r0 = band.astype(np.complex128)
         r0 *= np.exp(two_pi_i * fy[None, :] * sy[:, None])[:, :, None]
-        r0 *= np.exp(two_pi_i * fx[None, :] * sx[:, None])[:, None, :]
+        r0 *= (np.exp(two_pi_i * fx[None, :] * sx[:, None]) * self._band_w)[:, None, :]
+        r0_rows = r0.reshape(n * ly, lx)
         # Band-limited c at the 5×5 integer offsets around it (noise can put
-        # the full-band peak a pixel or two off): two matrix products for all
-        # blocks; quadratic start at the best of them.
-        a = _cmatmul(r0.reshape(n * ly, lx), self._ex5).reshape(n, ly, 5)
+        # the full-band peak a pixel or two off), by separable products for
+        # all blocks; quadratic start at the best of them.
+        a = _cmatmul(r0_rows, self._ex5).reshape(n, ly, 5)
         c5 = _cmatmul(a.transpose(0, 2, 1).reshape(n * 5, ly), self._ey5).real.reshape(n, 5, 5)
         c5 = c5.transpose(0, 2, 1)  # c5[n, y, x]
         best = np.argmax(c5.reshape(n, -1), axis=1)
@@ -419,26 +419,32 @@ class BlockEngine:
         dx = qx + (bx_ - 2)  # offset from the integer peak
         dy = qy + (by_ - 2)
         ky_env, kx_env = self._envelope
+        fy_pow = self._fy_pow  # (Ly, 3): 1, fy, fy²
         step = np.full(n, np.inf)
         for _ in range(_NEWTON_STEPS):
-            z = r0 * np.exp(two_pi_i * fy[None, :] * dy[:, None])[:, :, None]
-            z *= np.exp(two_pi_i * fx[None, :] * dx[:, None])[:, None, :]
-            # Σ z·{1, fx, fx², fy, fx·fy, fy²} in one product.
-            zz = z.reshape(n, ly * lx)
-            m = _small_gemm(zz.real, self._moments) + 1j * _small_gemm(zz.imag, self._moments)
-            c0 = m[:, 0].real
+            # t[n, y, j] = Σ_x r0 · exp(2πi fx dx) · fx^j, then the y sums
+            # Σ_y t · exp(2πi fy dy) · fy^i give every moment c needs.
+            ex_ = np.exp(two_pi_i * fx[None, :] * dx[:, None])
+            t = _cmatmul_real((r0 * ex_[:, None, :]).reshape(n * ly, lx), self._fx_pow).reshape(
+                n, ly, 3
+            )
+            t *= np.exp(two_pi_i * fy[None, :] * dy[:, None])[:, :, None]
+            m0 = t.sum(axis=1)  # (n, 3): Σ z, Σ z fx, Σ z fx²
+            my_ = np.einsum("nyj,y->nj", t[:, :, :2], fy_pow[:, 1])  # Σ z fy, Σ z fx fy
+            myy = t[:, :, 0] @ fy_pow[:, 2]  # Σ z fy²
+            c0 = m0[:, 0].real
             positive = c0 > 0
             inv = 1.0 / np.where(positive, c0, 1.0)
             # Derivatives of log c plus the window-envelope correction
             # (maximise c(p) / A(p), A(p) ≈ exp(-κx px²/2 - κy py²/2)).
-            gx = -two_pi * m[:, 1].imag * inv
-            gy = -two_pi * m[:, 3].imag * inv
-            hxx = -(two_pi**2) * m[:, 2].real * inv - gx * gx + kx_env
-            hyy = -(two_pi**2) * m[:, 5].real * inv - gy * gy + ky_env
-            hxy = -(two_pi**2) * m[:, 4].real * inv - gx * gy
-            px = sx + dx
-            py = sy + dy
-            step_x, step_y = _ascent_step(gx + kx_env * px, gy + ky_env * py, hxx, hyy, hxy)
+            gx = -two_pi * m0[:, 1].imag * inv
+            gy = -two_pi * my_[:, 0].imag * inv
+            hxx = -(two_pi**2) * m0[:, 2].real * inv - gx * gx + kx_env
+            hyy = -(two_pi**2) * myy.real * inv - gy * gy + ky_env
+            hxy = -(two_pi**2) * my_[:, 1].real * inv - gx * gy
+            step_x, step_y = _ascent_step(
+                gx + kx_env * (sx + dx), gy + ky_env * (sy + dy), hxx, hyy, hxy
+            )
             step_x = np.where(positive, step_x, 0.0)
             step_y = np.where(positive, step_y, 0.0)
             dx = dx + step_x
@@ -477,8 +483,10 @@ class BlockEngine:
         if bool(vy.all() and vx.all()):  # the usual case: every sample overlaps
             diff = grad[cy[:, :, None], cx[:, None, :]]
             diff -= ref.grad[ry[:, :, None], rx[:, None, :]]
-            mse: F64 = diff.var(axis=(1, 2), dtype=np.float64)
-            return mse
+            flat = diff.reshape(diff.shape[0], -1).astype(np.float64)
+            mean = flat.mean(axis=1)
+            mse: F64 = np.einsum("ps,ps->p", flat, flat) / flat.shape[1] - mean * mean
+            return np.maximum(mse, 0.0)
         np.clip(cy, 0, rows_img - 1, out=cy)
         np.clip(cx, 0, cols_img - 1, out=cx)
         diff = grad[cy[:, :, None], cx[:, None, :]]
@@ -531,6 +539,14 @@ def _cmatmul(
     out: npt.NDArray[np.complex128] = (_small_gemm(ar, br) - _small_gemm(ai, bi)) + 1j * (
         _small_gemm(ar, bi) + _small_gemm(ai, br)
     )
+    return out
+
+
+def _cmatmul_real(a: npt.NDArray[np.complex128], b: F64) -> npt.NDArray[np.complex128]:
+    """Complex ``a`` times real ``b`` from two single-threaded real products."""
+    out: npt.NDArray[np.complex128] = _small_gemm(
+        np.ascontiguousarray(a.real), b
+    ) + 1j * _small_gemm(np.ascontiguousarray(a.imag), b)
     return out
 
 

@@ -76,14 +76,14 @@ def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
         )
     if arr.dtype.kind != "f":
         arr = arr.astype(np.float64)
-    finite = np.isfinite(arr)
-    if not finite.all():
+    lo, hi = float(arr.min()), float(arr.max())  # NaN or Inf anywhere shows up here
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        finite = np.isfinite(arr)
         bad = int(arr.size - np.count_nonzero(finite))
         r, c = np.argwhere(~finite)[0]
         raise InvalidFrameError(
             f"{name} has {bad} NaN/Inf pixel(s), first at [row {r}, col {c}] = {arr[r, c]}"
         )
-    lo, hi = float(arr.min()), float(arr.max())
     if lo == hi:
         raise InvalidFrameError(f"{name} is constant (all pixels = {lo}): nothing to register")
     return arr
