@@ -5,7 +5,8 @@ group re-raises, cancelling the others):
 
 ``connect``   connects the instrument, and reconnects after a failure
 ``clock``     reads the instrument clock (for the offset stream and staleness)
-``frames``    polls for a new frame and runs the pipeline in the worker thread
+``frames``    polls for a new frame, reads the event log up to it, queues it
+``process``   runs the pipeline on queued frames in the worker thread, publishes
 ``channels``  polls temperature/humidity into the model history
 ``events``    polls the event log (offset moves, tip changes, ...)
 ``offset``    publishes d(t) at ``offset_rate_hz`` (never waits for a frame)
@@ -71,6 +72,9 @@ INSTRUMENT_ERRORS: tuple[type[BaseException], ...] = (
 )
 
 _T = TypeVar("_T")
+
+#: Frames waiting for the worker before the oldest is dropped (and logged).
+_FRAME_QUEUE = 32
 
 #: Consecutive failed calls (garbled replies, timeouts) before a reconnect.
 _FAILURES_BEFORE_RECONNECT = 3
@@ -157,6 +161,8 @@ class DriftService:
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
         self._last_offset: OffsetMsg | None = None
         self._frame_done = asyncio.Event()
+        self._frames: asyncio.Queue[tuple[Frame, float]] = asyncio.Queue(maxsize=_FRAME_QUEUE)
+        self.frames_dropped = 0
         self._consecutive_failures = 0
         self.instrument_errors = 0
 
@@ -201,6 +207,7 @@ class DriftService:
                     "connect": self._connect_loop,
                     "clock": self._clock_loop,
                     "frames": self._frame_loop,
+                    "process": self._process_loop,
                     "channels": self._channel_loop,
                     "events": self._event_loop,
                     "offset": self._offset_loop,
@@ -487,9 +494,25 @@ class DriftService:
                 t_start_s=self._shift(frame.t_start_s),
                 t_end_s=self._shift(frame.t_end_s),
             )
-            await self._handle_frame(shifted, detected)
+            if self._frames.full():
+                dropped, _ = self._frames.get_nowait()
+                self.frames_dropped += 1
+                log.warning(
+                    "processing is %d frames behind; frame %d dropped",
+                    self._frames.qsize() + 1,
+                    dropped.index,
+                )
+            # The event-log entries read so far belong with this frame.
+            self._frames.put_nowait((shifted, detected))
 
         await self._every(self.svc.frame_poll_interval_s, tick)
+
+    async def _process_loop(self) -> None:
+        """Process queued frames in order; polling goes on meanwhile, so a frame that
+        takes longer than the frame period does not make the next one be missed."""
+        while True:
+            frame, detected = await self._frames.get()
+            await self._handle_frame(frame, detected)
 
     async def _in_worker(self, fn: Callable[[], _T]) -> _T:
         assert self._executor is not None

@@ -1,0 +1,162 @@
+"""Soak: a week of simulated instrument time through the whole service.
+
+The simulator (``afmdrift sim serve``) and the daemon (``afmdrift run``) run as
+separate processes on loopback TCP; this test subscribes to the offsets and
+samples the daemon's memory. It checks that no frame is lost (the store holds
+every frame the instrument produced while the daemon ran, in order), that the
+daemon's resident memory is flat after warm-up (< 5 % growth), and that the
+offset stream is continuous (no sequence gaps, no step above the rate limit).
+
+Small frames (128² px) at a high simulator speed keep the wall time to a few
+minutes: ``make soak`` or ``pytest -m soak``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import itertools
+import math
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+import zmq.asyncio
+from service_sim import REPO, SimProcess, scenario_data, write_scenario
+
+from afmdrift.client import Subscriber
+from afmdrift.service import OffsetMsg, RunStore, StatusMsg
+
+pytestmark = [pytest.mark.soak, pytest.mark.timeout(1800)]
+
+DAYS = 7.0
+FRAME_PERIOD_S = 256.0  # the paper's frame period
+SPEED = 2000.0  # virtual seconds per wall second: a week in about 5 min
+FRAMES = math.ceil(DAYS * 86400.0 / FRAME_PERIOD_S) + 1
+RATE_LIMIT_NM_S = 5.0
+
+
+def _config(path: Path, run: Path, pub_port: int, control_port: int) -> Path:
+    path.write_text(
+        f"""
+[service]
+run_dir = "{run}"
+pub_endpoint = "tcp://127.0.0.1:{pub_port}"
+control_endpoint = "tcp://127.0.0.1:{control_port}"
+frame_poll_interval_s = 0.01
+clock_sync_interval_s = 0.05
+channel_poll_interval_s = 0.5
+event_poll_interval_s = 0.5
+heartbeat_interval_s = 0.5
+offset_rate_hz = 100.0
+max_offset_rate_nm_s = {RATE_LIMIT_NM_S}
+[registration]
+block_size = 32
+extended_size = 64
+[model]
+predictor = "constant_velocity"
+""",
+        encoding="utf-8",
+    )
+    return path
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.asyncio
+async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
+    tmp_path: Path,
+) -> None:
+    data = scenario_data(
+        pixels=128,
+        frame_period_s=FRAME_PERIOD_S,
+        line_rate_hz=16.0,
+        drift_nm_per_sqrt_s=0.02,
+        warmup_nm=(400.0, -250.0),
+        warmup_tau_s=20000.0,
+    )
+    sim = SimProcess(write_scenario(tmp_path / "scenario.toml", data), speed=SPEED)
+    run = tmp_path / "run"
+    pub_port, control_port = _free_port(), _free_port()
+    cfg = _config(tmp_path / "soak.toml", run, pub_port, control_port)
+    ctx = zmq.asyncio.Context()
+    daemon: subprocess.Popen[bytes] | None = None
+    rss: list[tuple[float, int]] = []
+    offsets: list[OffsetMsg] = []
+    try:
+        url = sim.start()
+        daemon = subprocess.Popen(  # noqa: ASYNC220 (started once; not awaited on)
+            [sys.executable, "-m", "afmdrift", "run", "--config", str(cfg), "--instrument", url],
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        proc = psutil.Process(daemon.pid)
+        sub = Subscriber(f"tcp://127.0.0.1:{pub_port}", topics=("offset", "status"), ctx=ctx)
+        try:
+            wall_needed = 1.5 * DAYS * 86400.0 / SPEED + 30.0  # upper bound only
+            t0 = time.monotonic()
+            next_sample = t0
+            last_status: StatusMsg | None = None
+            while time.monotonic() - t0 < wall_needed:
+                assert daemon.poll() is None, "daemon died"
+                with contextlib.suppress(TimeoutError):
+                    msg = await sub.recv(timeout_s=1.0)
+                    if isinstance(msg, OffsetMsg):
+                        offsets.append(msg)
+                    else:
+                        last_status = msg
+                if time.monotonic() >= next_sample:
+                    rss.append((time.monotonic() - t0, proc.memory_info().rss))
+                    next_sample += 2.0
+                if last_status is not None and last_status.frames >= FRAMES:
+                    break
+        finally:
+            sub.close()
+        daemon.terminate()
+        assert daemon.wait(timeout=60) == 0
+    finally:
+        if daemon is not None and daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        sim.kill()
+        ctx.term()
+
+    with RunStore(run) as store:
+        assert store.check_consistency() == []
+        records = store.frames()
+    # a week of frames, every one stored once and in order
+    assert records[-1].t_end_s - records[0].t_start_s >= DAYS * 86400.0
+    idx = [r.instrument_frame for r in records]
+    assert idx == list(range(idx[0], idx[0] + len(idx))), "frames were lost"
+    assert sum(r.fed_model for r in records) >= 0.99 * len(records)
+    with contextlib.closing(sqlite3.connect(run / "run.sqlite")) as db:
+        assert db.execute("SELECT COUNT(*) FROM model_state").fetchone()[0] <= 100
+
+    # memory flat after warm-up (the first quarter of the run)
+    warm = [m for t, m in rss if t >= 0.25 * rss[-1][0]]
+    growth = (max(warm) - warm[0]) / warm[0]
+    assert growth < 0.05, f"RSS grew {100 * growth:.1f} % after warm-up"
+
+    # offsets continuous: gap-free sequence, steps within the rate limit
+    seqs = [o.seq for o in offsets]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    valid = [o for o in offsets if o.valid]
+    assert len(valid) > 0.9 * len(offsets)
+    for a, b in itertools.pairwise(offsets):
+        dt = max(b.t_s - a.t_s, 0.0)
+        step = math.hypot(b.x_nm - a.x_nm, b.y_nm - a.y_nm)
+        assert step <= RATE_LIMIT_NM_S * dt + 1e-6, (a, b)
+    # the week's drift was followed: the last offsets are near the last positions
+    assert math.hypot(records[-1].x_nm, records[-1].y_nm) > 100.0
+    await asyncio.sleep(0)
