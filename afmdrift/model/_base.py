@@ -145,6 +145,16 @@ class Predictor(abc.ABC):
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore the state produced by :meth:`state_dict`."""
 
+    def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
+        """Predict the sample position itself, without measurement artefacts.
+
+        :meth:`predict` says what the next frame will measure (scored against
+        measurements); this is what the tip should follow (used for d(t)). They
+        differ only for models that know a measurement artefact such as the
+        up/down scan bias; the default returns :meth:`predict`.
+        """
+        return self.predict(t_s, history)
+
     def observed(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Times (n,) and positions (n, 2) of the observations seen so far.
 

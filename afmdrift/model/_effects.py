@@ -112,6 +112,9 @@ class EffectTerm(abc.ABC):
     provides_intercept: ClassVar[bool] = False
     #: Names of the linear coefficients with units, for reports.
     coefficient_units: ClassVar[tuple[str, ...]] = ()
+    #: True if the term describes how frames measure the position (not where the
+    #: sample is): it is fitted, but left out of the offset d(t) the tip follows.
+    measurement_artefact: ClassVar[bool] = False
 
     @abc.abstractmethod
     def design(
@@ -395,6 +398,7 @@ class ScanDirectionBias(EffectTerm):
 
     name = "scan_direction"
     coefficient_units = ("bias_nm",)
+    measurement_artefact = True
 
     def design(
         self,

@@ -9,8 +9,9 @@ side by side. For every predictor it scores
 
 * the **one-step prediction error**: before frame i is shown to the
   predictor, its prediction at t_i (mid-scan) minus the measured p_i; and,
-  where the session has ``truth.csv``, minus the true p averaged over the
-  frame's row times (what an ideal measurement sees);
+  where the session has ``truth.csv``, its predicted sample position
+  (``predict_drift``, without measurement artefacts) minus the true p
+  averaged over the frame's row times;
 * the **continuous-offset error** (truth only): after frame i is complete
   (t_end_i) the predictor is updated and a curve d(t) is built; it is what
   the tip follows until the next frame completes, so it is compared with the
@@ -275,7 +276,9 @@ def _run_one(
             pred = predictor.predict([t_i], history).mean_nm[0]
             t_predict[k] = (time.perf_counter() - t0) * 1e3
             err_meas[k] = pred - series.xy_nm[i]
-            err_truth[k] = pred - frame_truth[i]
+            if truth_t is not None:
+                drift = predictor.predict_drift([t_i], history).mean_nm[0]
+                err_truth[k] = drift - frame_truth[i]
         obs = Observation(
             t_s=t_i,
             x_nm=float(series.xy_nm[i, 0]),

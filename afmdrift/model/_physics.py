@@ -358,8 +358,15 @@ class PhysicsPredictor(_LoggingPredictor):
             self.residual_net.fit(residuals, channel_matrix(history, self.nn_config.channels, t))
 
     # ---------------------------------------------------------------- predict
-    def model_at(self, t_s: npt.ArrayLike, history: History) -> tuple[FloatArray, FloatArray]:
-        """Deterministic part (terms only) and its parametric σ at ``t_s``, each (n, 2)."""
+    def model_at(
+        self, t_s: npt.ArrayLike, history: History, *, drift_only: bool = False
+    ) -> tuple[FloatArray, FloatArray]:
+        """Deterministic part (terms only) and its parametric σ at ``t_s``, each (n, 2).
+
+        With ``drift_only`` the terms that describe the measurement rather than
+        the sample position (:attr:`EffectTerm.measurement_artefact`, e.g.
+        ``scan_direction``) are left out.
+        """
         t = as_times(t_s)
         sign = future_scan_sign(t, self.log.t(), np.asarray(self.log.scan_sign))
         mean = np.zeros((t.size, 2))
@@ -367,7 +374,13 @@ class PhysicsPredictor(_LoggingPredictor):
         for axis, fit in enumerate(self.fits):
             blocks = self.design_blocks(t, history, sign, axis)
             widths = dict(self.columns[axis])
-            x = np.hstack([_conform(b, widths[name]) for name, b in blocks])[:, fit.keep]
+            parts = []
+            for name, b in blocks:
+                block = _conform(b, widths[name])
+                if drift_only and name != "intercept" and self._term(name).measurement_artefact:
+                    block = np.zeros_like(block)
+                parts.append(block)
+            x = np.hstack(parts)[:, fit.keep]
             mean[:, axis] = x @ fit.coef
             var[:, axis] = np.einsum("ij,jk,ik->i", x, fit.cov, x)
         return mean, np.sqrt(np.maximum(var, 0.0))
@@ -394,12 +407,19 @@ class PhysicsPredictor(_LoggingPredictor):
         return out
 
     def predict(self, t_s: npt.ArrayLike, history: History) -> Prediction:
+        return self._predict(t_s, history, drift_only=False)
+
+    def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
+        """The sample position, without the scan-direction bias of the measurements."""
+        return self._predict(t_s, history, drift_only=True)
+
+    def _predict(self, t_s: npt.ArrayLike, history: History, *, drift_only: bool) -> Prediction:
         self._require_data()
         t = as_times(t_s)
         if not self.fits:
             xy = self.log.xy()
             return Prediction(t, np.repeat(xy[-1:], t.size, axis=0), np.ones((t.size, 2)))
-        mean, sd = self.model_at(t, history)
+        mean, sd = self.model_at(t, history, drift_only=drift_only)
         mean = mean + self._residual_at(t, history)
         res_sd = np.where(np.isfinite(self.residual_sd), self.residual_sd, 0.0)
         sigma = np.sqrt(sd**2 + res_sd[None, :] ** 2)

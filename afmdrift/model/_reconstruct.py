@@ -300,7 +300,9 @@ def build_offset_curve(
     ----------
     method : {"hermite", "sinc"}
     predictor : Predictor
-        Already updated with the latest measurement.
+        Already updated with the latest measurement; its
+        :meth:`~Predictor.predict_drift` (position without measurement
+        artefacts) gives the predicted samples.
     history : History
     t_now_s : float
         Publication time (the curve is used from here on), s.
@@ -327,7 +329,7 @@ def build_offset_curve(
         raise ValueError("build_offset_curve needs at least one measured sample")
     future = tm[-1] + frame_period_s * np.arange(1, lookahead + 1)
     if method == "sinc":
-        pred = predictor.predict(future, history).mean_nm
+        pred = predictor.predict_drift(future, history).mean_nm
         return sinc_curve(
             np.concatenate([tm, future]),
             np.vstack([dm, pred]),
@@ -341,7 +343,7 @@ def build_offset_curve(
     if future.size == 0:
         future = np.array([t_now_s + frame_period_s])
     eps = 0.05 * frame_period_s
-    probe = predictor.predict(np.concatenate([future - eps, future, future + eps]), history)
+    probe = predictor.predict_drift(np.concatenate([future - eps, future, future + eps]), history)
     n = future.size
     values = probe.mean_nm[n : 2 * n]
     slopes = (probe.mean_nm[2 * n :] - probe.mean_nm[:n]) / (2 * eps)
@@ -349,7 +351,7 @@ def build_offset_curve(
         y0 = previous.at([t_now_s])[0]
         m0 = previous.derivative([t_now_s])[0]
     else:
-        start = predictor.predict([t_now_s - eps, t_now_s, t_now_s + eps], history).mean_nm
+        start = predictor.predict_drift([t_now_s - eps, t_now_s, t_now_s + eps], history).mean_nm
         y0 = start[1]
         m0 = (start[2] - start[0]) / (2 * eps)
     return hermite_curve(

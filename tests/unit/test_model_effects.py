@@ -191,6 +191,9 @@ def test_future_scan_direction_alternates() -> None:
     nxt = model.predict([t[-1] + PERIOD_S, t[-1] + 2 * PERIOD_S], History()).mean_nm
     assert nxt[0, 0] == pytest.approx(-2.0 * sign[-1], abs=1e-6)
     assert nxt[1, 0] == pytest.approx(2.0 * sign[-1], abs=1e-6)
+    # The tip follows the sample, not the measurement artefact.
+    drift = model.predict_drift([t[-1] + PERIOD_S], History()).mean_nm
+    assert drift[0, 0] == pytest.approx(0.0, abs=1e-6)
 
 
 def test_unknown_term_is_a_config_error_naming_it() -> None:
