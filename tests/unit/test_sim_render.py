@@ -10,6 +10,7 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 from scipy import ndimage, optimize
+from skimage.registration import phase_cross_correlation
 
 from afmdrift.drivers import ScanDirection
 from afmdrift.drivers.sim import Sample, Scenario, SimulatedAFM, parse_scenario
@@ -52,9 +53,14 @@ def analytic_heights(
 
 
 def fit_shift_px(
-    reference: npt.NDArray[np.float64], moving: npt.NDArray[np.float64], *, margin: int = 8
+    reference: npt.NDArray[np.float64],
+    moving: npt.NDArray[np.float64],
+    *,
+    margin: int = 8,
+    start: tuple[float, float] = (0.0, 0.0),
 ) -> tuple[float, float]:
-    """Shift (dx, dy) in px with moving(u) = reference(u - d), by least squares on the interior."""
+    """Shift (dx, dy) in px with moving(u) = reference(u - d), by least squares on the interior
+    (local: ``start`` must be within about a pixel)."""
     inner = (slice(margin, -margin), slice(margin, -margin))
     coeffs = ndimage.spline_filter(reference, order=3)
 
@@ -62,7 +68,7 @@ def fit_shift_px(
         shifted = ndimage.shift(coeffs, (d[1], d[0]), order=3, prefilter=False)
         return (shifted[inner] - moving[inner]).ravel()  # type: ignore[no-any-return]
 
-    fit = optimize.least_squares(residual, x0=np.zeros(2), x_scale=1.0)
+    fit = optimize.least_squares(residual, x0=np.array(start), x_scale=1.0)
     return float(fit.x[0]), float(fit.x[1])
 
 
@@ -323,3 +329,27 @@ def test_any_height_array_can_be_the_sample() -> None:
     np.testing.assert_allclose(frame.heights_nm, sample.base_nm[:32, :32], atol=1e-9)
     with pytest.raises(ValueError, match="16x16"):
         Sample.from_image(np.zeros((8, 8)), pixel_size_nm=(1.0, 1.0))
+
+
+def test_registered_shift_under_drift_follows_the_row_timing() -> None:
+    """docs/physics.md: a feature found dy rows away was scanned dy*T_l later, so whole-frame
+    registration measures p(t_mid' + dy T_l) - p(t_mid), not the mid-time increment."""
+    sc = gold_scenario(
+        scan={"pixels": [96, 96], "size_nm": [384.0, 384.0], "line_rate_hz": 8.0},
+        physics={
+            **QUIET,
+            "warmup": {"enabled": True, "amplitude_nm": [2.592e5, -1.728e5], "tau_s": 86400.0},
+        },
+    )
+    sim = SimulatedAFM(sc, seed=6)
+    f0, _, f2 = sim.advance_to(3 * 12.0 + 0.1)[:3]
+    assert f0.direction is f2.direction is ScanDirection.UP
+    coarse, _, _ = phase_cross_correlation(f2.heights_nm, f0.heights_nm, normalization=None)
+    start = (float(coarse[1]), float(coarse[0]))
+    dx_px, dy_px = fit_shift_px(f0.heights_nm, f2.heights_nm, margin=24, start=start)
+    measured = np.array([dx_px, dy_px]) * 4.0
+    line_s = 1.0 / 8.0
+    corrected = np.subtract(sim.truth_at(f2.t_mid_s + dy_px * line_s), sim.truth_at(f0.t_mid_s))
+    naive = np.subtract(sim.truth_at(f2.t_mid_s), sim.truth_at(f0.t_mid_s))
+    np.testing.assert_allclose(measured, corrected, atol=0.05 * 4.0)
+    assert abs(measured[0] - naive[0]) > 4.0  # > 1 px: the effect is real
