@@ -241,6 +241,10 @@ class NNSeriesModel:
                 self.chan_mean = np.nanmean(chans, axis=0)
                 sd = np.nanstd(chans, axis=0)
                 self.chan_scale = np.where(sd > 1e-3, sd, 1.0)
+        if self.trained:
+            # Online: only the most recent `window` pairs are used; build no more.
+            keep = cfg.window + cfg.lags + 1
+            values, chans = values[-keep:], chans[-keep:]
         z_inc, z_chan = self._standardise(values, chans)
         iterations = cfg.online_iterations if self.trained else cfg.initial_iterations
         shape = self._shape()
