@@ -153,3 +153,58 @@ async def test_closed_loop_keeps_the_image_on_the_same_spot(tmp_path: Path) -> N
     # the sample drifted by tens of nm, the compensated image by about 1 nm
     assert np.abs(p).max() > 20.0
     assert np.abs(m).max() < 2.0
+
+
+async def test_stream_goes_stale_without_frames_and_recovers(tmp_path: Path) -> None:
+    """No frame for more than stale_factor expected intervals: status 'stale' and
+    invalid offsets; scanning again clears it."""
+    ctx = zmq.asyncio.Context()
+    try:
+        async with sim_server(small_scenario(), speed=100.0) as (server, url):
+            cfg = service_config(tmp_path / "run")
+            async with running_service(cfg, driver(url), ctx) as service:
+                async with asyncio.timeout(30):
+                    await service.wait_for_frames(3)
+                server.sim.stop()  # the scanner stops; the clock goes on
+                async with asyncio.timeout(10):
+                    await service.wait_for_flag("stale")
+                status = service.status_msg()
+                assert status.state == "stale"
+                assert not service.offset_at(status.wall_s, status.t_s).valid
+                n = service.frames_processed
+                server.sim.start()
+                async with asyncio.timeout(30):
+                    await service.wait_for_frames(n + 2)
+                assert "stale" not in service.status_msg().flags
+    finally:
+        ctx.term()
+
+
+async def test_daemon_on_a_replayed_session_matches_afmdrift_replay(tmp_path: Path) -> None:
+    """The daemon over ``replay:SESSION`` and ``afmdrift replay`` run the same per-frame
+    code: the same frames give the same drift positions."""
+    from afmdrift.drivers.sim._record import record_session
+    from afmdrift.service import open_instrument, replay_session
+
+    session = record_session(
+        small_scenario(warmup_nm=(80.0, -50.0)), tmp_path / "session", frames=8
+    ).path
+    cfg = service_config(tmp_path / "daemon-run")
+    # replay_speed 0: one new frame each time the daemon polls, as fast as it can
+    cfg = cfg.model_copy(update={"driver": cfg.driver.model_copy(update={"replay_speed": 0.0})})
+    replay_session(session, tmp_path / "replay-run", config=cfg)
+    ctx = zmq.asyncio.Context()
+    try:
+        instrument = open_instrument(cfg, url=f"replay:{session}")
+        async with running_service(cfg, instrument, ctx) as service:
+            async with asyncio.timeout(60):
+                await service.wait_for_frames(8)
+    finally:
+        ctx.term()
+    daemon = RunStore(tmp_path / "daemon-run").frames()
+    replay = RunStore(tmp_path / "replay-run").frames()
+    assert [r.instrument_frame for r in daemon] == [r.instrument_frame for r in replay]
+    for a, b in zip(daemon, replay, strict=True):
+        assert a.x_nm == pytest.approx(b.x_nm, abs=1e-9, nan_ok=True)
+        assert a.y_nm == pytest.approx(b.y_nm, abs=1e-9, nan_ok=True)
+        assert a.fed_model == b.fed_model

@@ -4,6 +4,7 @@ and the CURVE requirement for non-loopback binds."""
 from __future__ import annotations
 
 import asyncio
+import io
 import socket
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from service_sim import driver, running_service, service_config
 from afmdrift.client import ClientError, Subscriber, control
 from afmdrift.config import parse_config
 from afmdrift.service import DriftService, OffsetMsg, StatusMsg
+from afmdrift.service._watch import watch
 from afmdrift.service._zmq import ServiceSocketError, load_curve_keys
 
 
@@ -164,3 +166,15 @@ def test_curve_keys_load_from_certificates(tmp_path: Path) -> None:
     with pytest.raises(ServiceSocketError, match="no secret key"):
         load_curve_keys(public_only.service)
     assert load_curve_keys(service_config(tmp_path).service) is None
+
+
+@pytest.mark.asyncio
+async def test_watch_prints_offsets_and_state(tmp_path: Path, ctx: zmq.asyncio.Context) -> None:
+    cfg = service_config(tmp_path / "run")
+    instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
+    out = io.StringIO()
+    async with running_service(cfg, instrument, ctx) as service:
+        await watch(service.pub_endpoint, interval_s=0.2, duration_s=1.0, out=out, ctx=ctx)
+    lines = out.getvalue().splitlines()
+    assert len(lines) >= 3
+    assert any("INVALID" in line and "instrument_error" in line for line in lines)
