@@ -160,13 +160,14 @@ def main() -> None:
     proc = psutil.Process()
 
     tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg)
-    tracker.update(frames[0])
-    for i in range(1, 11):  # warm-up (plans, caches)
-        tracker.update(frames[i % POOL])
-    tracker.reset()
-    tracker.update(frames[0])
     engine = BlockEngine(SHAPE, cfg)
     fft = bare_fft(engine, cfg)
+    tracker.update(frames[0])
+    for i in range(1, 2 * POOL + 1):  # warm-up: plans, allocator pools, caches
+        tracker.update(frames[i % POOL])
+        time_bare_fft(fft)
+    tracker.reset()
+    tracker.update(frames[0])
     gc.collect()
     rss_start = proc.memory_info().rss
     times = []
