@@ -113,12 +113,15 @@ def format_text(j: dict[str, Any]) -> str:
             lines.append(f"  {f['t_start_s']:8.0f}-{f['t_end_s']:.0f} s  {f['note']}")
     else:
         lines.append("where it fails: no failure episode found")
-    lines.append("candidates (rank, effect, significant, ΔAICc, CV drop, RMS after):")
+    lines.append(
+        "candidates (rank, effect, significant, ΔAICc, change of the cross-validated "
+        "error, one-step RMS with it):"
+    )
     for c in j["candidates"]:
         if not c["testable"]:
             lines.append(f"  {c['rank']:2d}. {c['effect']:<15} not testable: {c['reason']}")
             continue
-        cv = "-" if c["cv_drop"] is None else f"{100 * c['cv_drop']:+.0f}%"
+        cv = "-" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%"
         kind = "" if c["rmse_after_kind"] != "cv_estimate" else " (est.)"
         lines.append(
             f"  {c['rank']:2d}. {c['effect']:<15} {'YES' if c['significant'] else 'no ':<4} "

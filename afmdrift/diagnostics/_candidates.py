@@ -41,8 +41,10 @@ sum of squares over both axes:
    block) cannot be cross-validated; it then needs stronger ΔAICc and Wald
    evidence (see :class:`Thresholds`).
 
-A candidate is **significant** when all of its evidence passes; candidates
-are ranked significant first, then by ΔAICc (the score).
+A candidate is **significant** when ΔAICc and the Wald test pass and its
+out-of-sample error is lower by ``min_cv_drop``: in blocked CV here, or in
+the online re-run that :func:`afmdrift.diagnostics.diagnose` makes of the
+leading candidates (prequential evaluation, Dawid 1984).
 """
 
 from __future__ import annotations
@@ -156,6 +158,8 @@ class CandidateResult:
     nonlinear: dict[str, float] = field(default_factory=dict)
     rmse_after_nm: float | None = None
     rmse_after_kind: str | None = None
+    in_sample_ok: bool = False
+    prequential_drop: float | None = None
     profile: list[tuple[float, float]] = field(default_factory=list)
     av: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
 
@@ -169,9 +173,17 @@ class CandidateResult:
             cv = f"blocked-CV error {100 * self.cv_drop:.0f}% lower"
         else:
             cv = f"blocked-CV error {-100 * self.cv_drop:.0f}% higher"
+        online = ""
+        if self.prequential_drop is not None:
+            d = self.prequential_drop
+            online = (
+                f", online re-run one-step error {100 * d:.0f}% lower"
+                if d >= 0
+                else f", online re-run one-step error {-100 * d:.0f}% higher"
+            )
         return (
             f"ΔAICc = {self.delta_aicc:.1f}, HAC Wald χ²({self.df}) = {self.wald:.1f} "
-            f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}"
+            f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}{online}"
         )
 
 
@@ -430,12 +442,9 @@ def evaluate_candidate(
         term, design, design_c, history, b0.zm, basis.zm, grid, thresholds.folds
     )
     cv_drop = (1.0 - cv_cand / cv_base) if (cv_ok and cv_base > 0) else None
+    in_sample_ok = d_aicc > thresholds.min_delta_aicc and p_bonf < thresholds.alpha
     if cv_drop is not None:
-        significant = (
-            d_aicc > thresholds.min_delta_aicc
-            and p_bonf < thresholds.alpha
-            and cv_drop >= thresholds.min_cv_drop
-        )
+        significant = in_sample_ok and cv_drop >= thresholds.min_cv_drop
     else:
         significant = (
             d_aicc > thresholds.no_cv_factor * thresholds.min_delta_aicc
@@ -473,6 +482,7 @@ def evaluate_candidate(
         effect=term.name,
         testable=True,
         significant=bool(significant),
+        in_sample_ok=bool(in_sample_ok),
         score=float(d_aicc),
         delta_aicc=float(d_aicc),
         wald=float(wald),

@@ -434,8 +434,8 @@ def render_report(
                 "significant",
                 "ΔAICc",
                 "HAC p (Bonf.)",
-                "CV drop",
-                "RMS after (nm)",
+                "CV error",
+                "RMS with it (nm)",
                 "params",
             ],
             [
@@ -444,7 +444,7 @@ def render_report(
                     "yes" if c["significant"] else ("no" if c["testable"] else "not testable"),
                     _fmt(c["delta_aicc"], ".1f"),
                     _fmt(c["p_bonferroni"], ".2g"),
-                    "–" if c["cv_drop"] is None else f"{100 * c['cv_drop']:+.0f}%",
+                    "–" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%",
                     _fmt(c["rmse_after_nm"])
                     + (" (est.)" if c["rmse_after_kind"] == "cv_estimate" else ""),
                     ", ".join(f"{k} = {_fmt(v, '.3g')}" for k, v in c["params"].items())
