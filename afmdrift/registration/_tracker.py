@@ -238,25 +238,41 @@ class DriftTracker:
         self._count += 1
         ref_index = self._ref_index
         increment = self._increment(meas)
-        if not meas.valid:
-            pos = self.position_px
-            return TrackStep(
-                frame_index=index,
-                increment=increment,
-                measurement=meas,
-                reference_index=ref_index,
-                keyframe_index=self._ref_index,
-                position_px=pos,
-                position_nm=self._to_nm(pos),
-                accepted=False,
-                reanchored=False,
-            )
+        reanchor = False
+        if meas.valid:
+            reanchor = self._accept(engine, ref, grad, meas, index, gap, top, left)
+        pos = self.position_px
+        return TrackStep(
+            frame_index=index,
+            increment=increment,
+            measurement=meas,
+            reference_index=ref_index,
+            keyframe_index=self._ref_index,
+            position_px=pos,
+            position_nm=self._to_nm(pos),
+            accepted=meas.valid,
+            reanchored=reanchor and cfg.reference == "keyframe",
+        )
+
+    def _accept(
+        self,
+        engine: BlockEngine,
+        ref: ReferenceSpectra,
+        grad: npt.NDArray[np.float32],
+        meas: DriftResult,
+        index: int,
+        gap: int,
+        top: npt.NDArray[np.intp],
+        left: npt.NDArray[np.intp],
+    ) -> bool:
+        """Move the tracker on to a validly measured frame; True if it became
+        the new reference."""
+        cfg = self.config
         rel = np.array([meas.dx_px, meas.dy_px])
         self._velocity = (rel - self._rel) / gap
         self._rel = rel
         self._rel_sigma_nm = (meas.sigma_x_nm, meas.sigma_y_nm)
         self._last_index = index
-        pos = self.position_px
         reanchor = cfg.reference == "consecutive" or self._overlap(engine, ref, rel) < (
             cfg.keyframe_min_overlap
         )
@@ -270,17 +286,7 @@ class DriftTracker:
             self._ref_pos = self._ref_pos + rel
             self._rel = np.zeros(2)
             self._rel_sigma_nm = (0.0, 0.0)
-        return TrackStep(
-            frame_index=index,
-            increment=increment,
-            measurement=meas,
-            reference_index=ref_index,
-            keyframe_index=self._ref_index,
-            position_px=pos,
-            position_nm=self._to_nm(pos),
-            accepted=True,
-            reanchored=reanchor and cfg.reference == "keyframe",
-        )
+        return reanchor
 
     def _increment(self, meas: DriftResult) -> DriftResult:
         """The measurement re-expressed relative to the previous accepted frame."""
