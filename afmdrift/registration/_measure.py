@@ -18,6 +18,7 @@ from afmdrift.registration._result import BlockField, DriftResult
 
 __all__ = [
     "MIN_IMAGE_PX",
+    "REFINE_PX",
     "check_image",
     "check_pixel_size",
     "check_prior",

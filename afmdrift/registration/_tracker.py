@@ -4,7 +4,8 @@ Reference modes (``RegistrationConfig.reference``)
 --------------------------------------------------
 ``"consecutive"``
     Each frame is measured against the previous accepted frame, whose block
-    spectra are reused (no extra FFT when its windows sat on the grid).
+    spectra are reused (no extra FFT when its windows sat on the grid: they
+    stay there while the expected motion per frame is within 2 px).
     Cumulative drift is a sum of increments, so its error random-walks.
 ``"keyframe"`` (default)
     Frames are measured against a keyframe until the overlap between the
@@ -45,6 +46,7 @@ from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import RegistrationError
 from afmdrift.registration._measure import (
+    REFINE_PX,
     check_image,
     check_pixel_size,
     check_texture,
@@ -222,6 +224,10 @@ class DriftTracker:
         index = self._count
         gap = index - self._last_index
         prior = self._rel + self._velocity * gap
+        if cfg.reference == "consecutive" and float(np.max(np.abs(prior))) <= REFINE_PX:
+            # Small expected motion: leave the windows on the grid, so that
+            # this frame's spectra can serve as the next reference unchanged.
+            prior = np.zeros(2)
         meas_blocks, top, left = measure_blocks(
             engine, ref, grad, prior_px=(float(prior[0]), float(prior[1]))
         )
