@@ -62,6 +62,7 @@ def truth(s: Session) -> tuple[npt.NDArray[np.float64], ...]:
     return s.truth[:, 0], s.truth[:, 1], s.truth[:, 2]
 
 
+@pytest.mark.slow
 def test_thermal_drift_lags_head_temperature_by_first_order_response(tmp_path: Path) -> None:
     """dT_s/dt = (T_h - T_s)/tau: for a sine of period P the drift has gain
     1/sqrt(1+(w tau)^2) and lags by atan(w tau)/w (≈ tau when w tau << 1)."""
@@ -97,6 +98,7 @@ def test_thermal_drift_lags_head_temperature_by_first_order_response(tmp_path: P
     assert lags[int(np.argmax(xc))] == pytest.approx(lag_expected_s, abs=15.0)
 
 
+@pytest.mark.slow
 def test_ac_cycle_is_the_periodogram_peak_of_the_temperature_channel(tmp_path: Path) -> None:
     period = 1200.0
     s = record(
@@ -233,6 +235,7 @@ def test_tip_change_is_a_step_at_the_logged_event(tmp_path: Path) -> None:
     assert np.all(y[t > t_e] == step[1])
 
 
+@pytest.mark.slow
 def test_spontaneous_tip_changes_follow_the_configured_rate(tmp_path: Path) -> None:
     s = record(
         tmp_path,

@@ -233,6 +233,7 @@ def test_bad_texture_file_names_the_key(tmp_path: Any) -> None:
 
 
 @pytest.mark.realdata
+@pytest.mark.slow
 def test_real_nanoscope_image_as_texture(real_file: Any, tmp_path: Any) -> None:
     """A real AFM image drives the simulator through afmdrift.io (pixel size from the file)."""
     path = real_file("nanoscope3a_15um.002")
