@@ -259,11 +259,19 @@ class PhysicsPredictor(_LoggingPredictor):
                     _log.info("physics: term %r left out: %s", term.name, why)
                 continue
             k = 0
+            constant = False
             for axis in (0, 1):
                 block = term.design(
                     t, history, scan_sign=sign, params=self.params[term.name], axis=axis
                 )
-                k = max(k, int(np.count_nonzero(np.any(np.abs(block) > 1e-12, axis=0))))
+                nonzero = np.any(np.abs(block) > 1e-12, axis=0)
+                k = max(k, int(np.count_nonzero(nonzero)))
+                if n >= 2 and np.any(nonzero & (np.ptp(block, axis=0) < 1e-12)):
+                    constant = True
+            if constant and not term.provides_intercept:
+                # A constant column duplicates the intercept (e.g. scan_direction
+                # when every frame is scanned up): not identifiable, left out.
+                continue
             extra = 1 if (not chosen and not term.provides_intercept) else 0
             # The first term may be exactly determined (two points fix a trend);
             # later ones need min_points_per_column points per column.

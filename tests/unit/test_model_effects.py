@@ -305,3 +305,15 @@ def test_nonlinear_grid_spans_bounds() -> None:
     assert grid[0] == pytest.approx(p.lower)
     assert grid[-1] == pytest.approx(p.upper)
     assert LIBRARY["trend"]().nonlinear_grid() == [{}]
+
+
+def test_scan_direction_left_out_when_every_frame_scans_up() -> None:
+    """Regression: with only up frames the scan_direction column duplicated the intercept;
+    the minimum-norm split put an arbitrary offset into the term that d(t) leaves out."""
+    t = np.arange(128.0, 20 * PERIOD_S, PERIOD_S)
+    xy = np.column_stack([50.0 + 0.01 * t, -20.0 + 0.0 * t])
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "scan_direction"], residual="none"))
+    _feed(model, t, xy, History())
+    assert model.active == ["trend"]
+    drift = model.predict_drift([t[-1] + PERIOD_S], History()).mean_nm[0]
+    assert drift == pytest.approx([50.0 + 0.01 * (t[-1] + PERIOD_S), -20.0], abs=1e-6)
