@@ -47,7 +47,7 @@ _CONVERGED_PX = 0.02
 #: Candidate peaks lower than this fraction of a block's highest peak are
 #: not verified: at low SNR their MSE is as noisy as the right one's and would
 #: only add wrong picks.
-CANDIDATE_RATIO = 0.5
+CANDIDATE_RATIO = 0.7
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
 
@@ -152,7 +152,9 @@ class BlockEngine:
         off5 = np.arange(-2.0, 3.0)
         self._ex5 = np.exp(2j * np.pi * self._fx[:, None] * off5[None, :])  # (Lx, 5)
         self._ey5 = np.exp(2j * np.pi * self._fy[:, None] * off5[None, :])  # (Ly, 5)
-        self._fx_pow = np.stack([np.ones_like(self._fx), self._fx, self._fx**2], axis=1)
+        self._fx_pow = np.stack([np.ones_like(self._fx), self._fx, self._fx**2], axis=1).astype(
+            np.complex128
+        )
         self._fy_pow = np.stack([np.ones_like(self._fy), self._fy, self._fy**2], axis=1)
         # Curvature κ of the window autocorrelation A(s) = Σ w(x) w(x+s) / Σ w²
         # near s = 0 (per axis): the correlation of windowed blocks is about
@@ -192,7 +194,10 @@ class BlockEngine:
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
         mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
         np.reciprocal(mag, out=mag)
-        np.multiply(spec, mag, out=out)
+        # Real and imaginary parts separately: a complex-by-real product would
+        # first cast every magnitude to complex.
+        np.multiply(spec.real, mag, out=out.real)
+        np.multiply(spec.imag, mag, out=out.imag)
         return band_mag
 
     def grid_positions(self) -> tuple[IArr, IArr]:
@@ -384,7 +389,7 @@ class BlockEngine:
         Returns the offsets ``(fx, fy)`` from the integer peak and a mask of
         the blocks where the iteration converged within 3 px of it.
         """
-        n, ly, lx = band.shape
+        n = band.shape[0]
         fy, fx = self._fy, self._fx
         two_pi_i = 2j * np.pi
         two_pi = 2.0 * np.pi
@@ -393,13 +398,11 @@ class BlockEngine:
         r0 = band.astype(np.complex128)
         r0 *= np.exp(two_pi_i * fy[None, :] * sy[:, None])[:, :, None]
         r0 *= (np.exp(two_pi_i * fx[None, :] * sx[:, None]) * self._band_w)[:, None, :]
-        r0_rows = r0.reshape(n * ly, lx)
         # Band-limited c at the 5×5 integer offsets around it (noise can put
-        # the full-band peak a pixel or two off), by separable products for
-        # all blocks; quadratic start at the best of them.
-        a = _cmatmul(r0_rows, self._ex5).reshape(n, ly, 5)
-        c5 = _cmatmul(a.transpose(0, 2, 1).reshape(n * 5, ly), self._ey5).real.reshape(n, 5, 5)
-        c5 = c5.transpose(0, 2, 1)  # c5[n, y, x]
+        # the full-band peak a pixel or two off), by separable products
+        # (stacked per block: tiny products that BLAS runs on one thread);
+        # quadratic start at the best of them.
+        c5 = np.matmul(self._ey5.T, np.matmul(r0, self._ex5)).real  # c5[n, y, x]
         best = np.argmax(c5.reshape(n, -1), axis=1)
         by_, bx_ = np.divmod(best, 5)
         by_ = np.clip(by_, 1, 3)
@@ -425,9 +428,7 @@ class BlockEngine:
             # t[n, y, j] = Σ_x r0 · exp(2πi fx dx) · fx^j, then the y sums
             # Σ_y t · exp(2πi fy dy) · fy^i give every moment c needs.
             ex_ = np.exp(two_pi_i * fx[None, :] * dx[:, None])
-            t = _cmatmul_real((r0 * ex_[:, None, :]).reshape(n * ly, lx), self._fx_pow).reshape(
-                n, ly, 3
-            )
+            t = np.matmul(r0, ex_[:, :, None] * self._fx_pow[None, :, :])  # (n, Ly, 3)
             t *= np.exp(two_pi_i * fy[None, :] * dy[:, None])[:, :, None]
             m0 = t.sum(axis=1)  # (n, 3): Σ z, Σ z fx, Σ z fx²
             my_ = np.einsum("nyj,y->nj", t[:, :, :2], fy_pow[:, 1])  # Σ z fy, Σ z fx fy
@@ -511,43 +512,6 @@ class BlockEngine:
             mse = sq.sum(axis=(2, 3), dtype=np.float64) / cnt
         mse[cnt < 0.25 * total] = np.inf
         return mse
-
-
-#: OpenBLAS runs a matrix product on several threads when m·n·k exceeds
-#: 65536·4; on a shared machine its spinning threads make our small products
-#: 10-50 times slower, so :func:`_small_gemm` splits them below that size.
-_GEMM_SINGLE_THREAD_MNK = 65536 * 4 - 1
-
-
-def _small_gemm(a: F64, b: F64) -> F64:
-    """``a @ b`` for real 2-D arrays, in row chunks that BLAS runs on one thread."""
-    m, k = a.shape
-    n = b.shape[1]
-    rows = max(1, _GEMM_SINGLE_THREAD_MNK // max(1, k * n))
-    if m <= rows:
-        out: F64 = a @ b
-        return out
-    return np.concatenate([a[i : i + rows] @ b for i in range(0, m, rows)], axis=0)
-
-
-def _cmatmul(
-    a: npt.NDArray[np.complex128], b: npt.NDArray[np.complex128]
-) -> npt.NDArray[np.complex128]:
-    """Complex ``a @ b`` from four single-threaded real products."""
-    ar, ai = np.ascontiguousarray(a.real), np.ascontiguousarray(a.imag)
-    br, bi = np.ascontiguousarray(b.real), np.ascontiguousarray(b.imag)
-    out: npt.NDArray[np.complex128] = (_small_gemm(ar, br) - _small_gemm(ai, bi)) + 1j * (
-        _small_gemm(ar, bi) + _small_gemm(ai, br)
-    )
-    return out
-
-
-def _cmatmul_real(a: npt.NDArray[np.complex128], b: F64) -> npt.NDArray[np.complex128]:
-    """Complex ``a`` times real ``b`` from two single-threaded real products."""
-    out: npt.NDArray[np.complex128] = _small_gemm(
-        np.ascontiguousarray(a.real), b
-    ) + 1j * _small_gemm(np.ascontiguousarray(a.imag), b)
-    return out
 
 
 def _ascent_step(gx: F64, gy: F64, hxx: F64, hyy: F64, hxy: F64) -> tuple[F64, F64]:
