@@ -21,7 +21,8 @@ regression of Mosteller & Tukey 1977)::
     ε₀ = (I − H_M) ỹ,    Z̃_C = (I − H_M) Z_C(θ),    ε₀ ≈ Z̃_C γ + ε₁
 
 and three pieces of evidence are computed at the θ with the smallest residual
-sum of squares over both axes:
+sum of squares over both axes (the best grid point, refined by a bounded 1-D
+search between its grid neighbours):
 
 1. **ΔAICc** = AICc(M) − AICc(M + C) (Hurvich & Tsai 1989), Gaussian
    likelihood per axis with its own variance, N = 2n points, the candidate
@@ -353,6 +354,36 @@ def _scan(
     return out
 
 
+def _refine(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    basis: _Basis,
+    grid: list[dict[str, float]],
+    i_best: int,
+    best: tuple[dict[str, float], list[FloatArray], list[float]],
+) -> tuple[dict[str, float], list[FloatArray], list[float]]:
+    """Bounded 1-D refinement (Brent, on log θ) between the grid neighbours of
+    the best grid point; keeps the grid point if the refinement is not better."""
+    from scipy.optimize import minimize_scalar
+
+    name = term.nonlinear_params[0].name
+    values = [g[name] for g in grid]
+    lo = math.log10(values[max(i_best - 1, 0)])
+    hi = math.log10(values[min(i_best + 1, len(values) - 1)])
+    if hi <= lo:
+        return best
+
+    def total(log_v: float) -> float:
+        _, zc, rss = _scan(term, design, history, basis, [{name: 10.0**log_v}])[0]
+        return sum(rss) if sum(z.shape[1] for z in zc) else math.inf
+
+    res = minimize_scalar(total, bounds=(lo, hi), method="bounded", options={"xatol": 0.005})
+    if not (math.isfinite(float(res.fun)) and float(res.fun) < sum(best[2])):
+        return best
+    return _scan(term, design, history, basis, [{name: 10.0 ** float(res.x)}])[0]
+
+
 def evaluate_candidate(
     term: EffectTerm,
     design: ModelDesign,
@@ -429,6 +460,10 @@ def evaluate_candidate(
         per_theta.append((params, zc, rss1, d))
     i_best = int(np.argmin(totals))
     params, zc, rss1, d_aicc = per_theta[i_best]
+    if n_theta == 1:
+        params, zc, rss1 = _refine(term, design_c, history, basis, grid, i_best, scan[i_best])
+        k_c = sum(z.shape[1] for z in zc)
+        d_aicc = aicc0 - _aicc(rss1, n, k_model + k_c + n_theta)
     lags = newey_west_lags(n)
     wald = 0.0
     df = 0

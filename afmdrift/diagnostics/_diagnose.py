@@ -312,7 +312,6 @@ class Diagnosis:
     config_terms: list[str] | None
     after: ModelRun | None = None
     after_summary: dict[str, float] | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     @property
     def top(self) -> CandidateResult | None:
