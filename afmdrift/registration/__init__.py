@@ -21,11 +21,18 @@ Public API
 See ``docs/registration.md`` for the method, design choices and accuracy.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
-from afmdrift.registration._measure import measure_drift
-from afmdrift.registration._result import BlockField, DriftResult
-from afmdrift.registration._tracker import DriftTracker, TrackStep
+
+if TYPE_CHECKING:
+    from afmdrift.registration._measure import measure_drift
+    from afmdrift.registration._result import BlockField, DriftResult
+    from afmdrift.registration._tracker import DriftTracker, TrackStep
 
 __all__ = [
     "BlockField",
@@ -37,3 +44,22 @@ __all__ = [
     "TrackStep",
     "measure_drift",
 ]
+
+# The engine (pyFFTW, work arrays) loads on first use, so that importing the
+# configuration (afmdrift.config) or the CLI stays light.
+_LAZY = {
+    "measure_drift": "afmdrift.registration._measure",
+    "BlockField": "afmdrift.registration._result",
+    "DriftResult": "afmdrift.registration._result",
+    "DriftTracker": "afmdrift.registration._tracker",
+    "TrackStep": "afmdrift.registration._tracker",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
