@@ -35,7 +35,7 @@ pytestmark = [pytest.mark.soak, pytest.mark.timeout(1800)]
 
 DAYS = 7.0
 FRAME_PERIOD_S = 256.0  # the paper's frame period
-SPEED = 2000.0  # virtual seconds per wall second: a week in about 5 min
+SPEED = 1500.0  # virtual seconds per wall second: a week in under 7 min
 FRAMES = math.ceil(DAYS * 86400.0 / FRAME_PERIOD_S) + 1
 RATE_LIMIT_NM_S = 5.0
 
@@ -92,14 +92,26 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     ctx = zmq.asyncio.Context()
     daemon: subprocess.Popen[bytes] | None = None
     rss: list[tuple[float, int]] = []
+    daemon_log = tmp_path / "daemon.log"
+    log_file = daemon_log.open("w", encoding="utf-8")
     offsets: list[OffsetMsg] = []
     try:
         url = sim.start()
         daemon = subprocess.Popen(  # noqa: ASYNC220 (started once; not awaited on)
-            [sys.executable, "-m", "afmdrift", "run", "--config", str(cfg), "--instrument", url],
+            [
+                sys.executable,
+                "-m",
+                "afmdrift",
+                "-v",
+                "run",
+                "--config",
+                str(cfg),
+                "--instrument",
+                url,
+            ],
             cwd=REPO,
             stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
+            stderr=log_file,
         )
         proc = psutil.Process(daemon.pid)
         sub = Subscriber(f"tcp://127.0.0.1:{pub_port}", topics=("offset", "status"), ctx=ctx)
@@ -131,6 +143,7 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
             daemon.wait()
         sim.kill()
         ctx.term()
+        log_file.close()
 
     with RunStore(run) as store:
         assert store.check_consistency() == []
@@ -138,7 +151,8 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     # a week of frames, every one stored once and in order
     assert records[-1].t_end_s - records[0].t_start_s >= DAYS * 86400.0
     idx = [r.instrument_frame for r in records]
-    assert idx == list(range(idx[0], idx[0] + len(idx))), "frames were lost"
+    warnings = [ln for ln in daemon_log.read_text().splitlines() if "WARNING" in ln]
+    assert idx == list(range(idx[0], idx[0] + len(idx))), f"frames were lost: {warnings[:10]}"
     assert sum(r.fed_model for r in records) >= 0.99 * len(records)
     with contextlib.closing(sqlite3.connect(run / "run.sqlite")) as db:
         assert db.execute("SELECT COUNT(*) FROM model_state").fetchone()[0] <= 100
