@@ -23,7 +23,8 @@ exp(−age/``memory_s``)):
    the parametric part of the prediction uncertainty.
 4. **Residual**: ``none``; ``ar1``, r̂(t_n + h·Δ) = φ^h·r_n with φ the lag-1
    regression coefficient of the recent in-sample residuals clipped to [0, 1]
-   (slow unmodelled wander persists, white noise does not); or ``nn``, the
+   (slow unmodelled wander persists, white noise does not; φ = 1 until
+   eight residuals exist); or ``nn``, the
    paper's network trained online on the residual series.
 
 Scan direction at future times is extrapolated from the last frames
@@ -354,12 +355,13 @@ class PhysicsPredictor(_LoggingPredictor):
         self._residuals = [(float(a), float(b)) for a, b in residuals]
         if self.config.residual == "ar1":
             r = residuals[-50:]
-            if r.shape[0] >= 4:
+            if r.shape[0] >= 8:
                 num = np.sum(r[1:] * r[:-1], axis=0)
                 den = np.sum(r[:-1] ** 2, axis=0)
                 self.phi = np.clip(np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0), 0, 1)
             else:
-                self.phi = np.zeros(2)
+                # Too few residuals to estimate φ: stay anchored to the last point.
+                self.phi = np.ones(2)
         elif self.config.residual == "nn" and self.residual_net is not None:
             from afmdrift.model._nn import channel_matrix
 
