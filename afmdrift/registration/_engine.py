@@ -132,6 +132,10 @@ class BlockEngine:
         by, bx = lay.block
         self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
         self._mse_cols = np.arange(0, bx, stride, dtype=np.intp)
+        # Flat offsets of the sample lattice in the gradient image.
+        self._lattice = (
+            self._mse_rows[:, None] * lay.grad_shape[1] + self._mse_cols[None, :]
+        ).ravel()
         self._inner = ((ey - by) // 2, (ex - bx) // 2)
         off_x, off_y = gradient_offset_px(config.gradient)
         self._centre_offset = (off_x + (ex - 1) / 2.0, off_y + (ey - 1) / 2.0)
@@ -474,20 +478,31 @@ class BlockEngine:
         """
         rows_img, cols_img = grad.shape
         iy0, ix0 = self._inner
-        ry = (ref.top[block] + iy0)[:, None] + self._mse_rows[None, :]  # (P, Ly)
-        rx = (ref.left[block] + ix0)[:, None] + self._mse_cols[None, :]  # (P, Lx)
+        y0 = ref.top[block] + iy0  # inner block corner in the reference, (P,)
+        x0 = ref.left[block] + ix0
+        total = self._mse_rows.size * self._mse_cols.size
+        by, bx = self._mse_rows[-1], self._mse_cols[-1]
+        inside = (
+            (y0 + shift_y >= 0)
+            & (y0 + shift_y + by < rows_img)
+            & (x0 + shift_x >= 0)
+            & (x0 + shift_x + bx < cols_img)
+        )
+        if bool(inside.all()):  # the usual case: every sample overlaps
+            # One flat gather per image: corner index plus the sample lattice.
+            base = (y0 * cols_img + x0)[:, None] + self._lattice
+            diff = grad.reshape(-1).take(base + (shift_y * cols_img + shift_x)[:, None])
+            diff -= ref.grad.reshape(-1).take(base)
+            mean = diff.mean(axis=1, dtype=np.float64)
+            sq = np.einsum("ps,ps->p", diff, diff, dtype=np.float64) / total
+            mse: F64 = np.maximum(sq - mean * mean, 0.0)
+            return mse
+        ry = y0[:, None] + self._mse_rows[None, :]  # (P, Ly)
+        rx = x0[:, None] + self._mse_cols[None, :]  # (P, Lx)
         cy = ry + shift_y[:, None]
         cx = rx + shift_x[:, None]
         vy = (cy >= 0) & (cy < rows_img)
         vx = (cx >= 0) & (cx < cols_img)
-        total = self._mse_rows.size * self._mse_cols.size
-        if bool(vy.all() and vx.all()):  # the usual case: every sample overlaps
-            diff = grad[cy[:, :, None], cx[:, None, :]]
-            diff -= ref.grad[ry[:, :, None], rx[:, None, :]]
-            flat = diff.reshape(diff.shape[0], -1).astype(np.float64)
-            mean = flat.mean(axis=1)
-            mse: F64 = np.einsum("ps,ps->p", flat, flat) / flat.shape[1] - mean * mean
-            return np.maximum(mse, 0.0)
         np.clip(cy, 0, rows_img - 1, out=cy)
         np.clip(cx, 0, cols_img - 1, out=cx)
         diff = grad[cy[:, :, None], cx[:, None, :]]
