@@ -198,10 +198,7 @@ class BlockEngine:
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
         mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
         np.reciprocal(mag, out=mag)
-        # Real and imaginary parts separately: a complex-by-real product would
-        # first cast every magnitude to complex.
-        np.multiply(spec.real, mag, out=out.real)
-        np.multiply(spec.imag, mag, out=out.imag)
+        np.multiply(spec, mag, out=out)
         return band_mag
 
     def grid_positions(self) -> tuple[IArr, IArr]:
