@@ -423,14 +423,29 @@ class DriftService:
 
     # ------------------------------------------------------------------ loops
 
-    async def _every(self, period_s: float, body: Callable[[], Awaitable[None]]) -> None:
+    async def _every(
+        self,
+        period_s: float,
+        body: Callable[[], Awaitable[None]],
+        *,
+        catch_up_s: float = 0.0,
+    ) -> None:
+        """Run ``body`` every ``period_s`` on an absolute schedule.
+
+        A tick that comes late by up to ``catch_up_s`` is followed by the
+        missed ones at once, so the average rate holds (the offset stream: the
+        event loop's sleeps are rounded up to whole milliseconds, which alone
+        would turn 1 kHz into about 700 Hz). Later than that, the schedule
+        restarts from now rather than bursting (polls after a reconnect).
+        """
         loop = asyncio.get_running_loop()
         next_t = loop.time()
         while True:
             next_t += period_s
-            await asyncio.sleep(max(0.0, next_t - loop.time()))
-            if loop.time() - next_t > period_s:
-                next_t = loop.time()  # fell behind (frame processing, reconnect): no burst
+            delay = next_t - loop.time()
+            await asyncio.sleep(delay if delay > 0 else 0.0)
+            if loop.time() - next_t > max(period_s, catch_up_s):
+                next_t = loop.time()
             try:
                 await body()
             except _InstrumentDownError:
@@ -653,7 +668,7 @@ class DriftService:
             self._last_offset = msg
             await publisher.send(msg)
 
-        await self._every(1.0 / self.svc.offset_rate_hz, tick)
+        await self._every(1.0 / self.svc.offset_rate_hz, tick, catch_up_s=0.05)
 
     def offset_at(self, wall_s: float, t_s: float | None) -> OffsetMsg:
         """The limited offset sample at instrument time ``t_s`` (flags included)."""
