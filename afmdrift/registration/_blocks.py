@@ -42,7 +42,10 @@ def gradient_offset_px(gradient: Gradient) -> tuple[float, float]:
 
 
 def gradient_image(
-    heights: npt.NDArray[np.floating], gradient: Gradient
+    heights: npt.NDArray[np.floating],
+    gradient: Gradient,
+    *,
+    out: npt.NDArray[np.float32] | None = None,
 ) -> npt.NDArray[np.float32]:
     """Gradient image of eq. (2) of Yang et al. (2008), in float32.
 
@@ -56,6 +59,8 @@ def gradient_image(
     ----------
     heights : ndarray, shape (rows, cols)
     gradient : {"x", "y", "both", "none"}
+    out : ndarray, float32, optional
+        Array to write into (shape :func:`gradient_shape`); default: a new one.
 
     Returns
     -------
@@ -63,7 +68,8 @@ def gradient_image(
     """
     h = heights
     rows, cols = gradient_shape((int(h.shape[0]), int(h.shape[1])), gradient)
-    out: npt.NDArray[np.float32] = np.empty((rows, cols), dtype=np.float32)
+    if out is None:
+        out = np.empty((rows, cols), dtype=np.float32)
     # Differences are taken in the input precision and only then rounded to
     # float32, so a large z offset does not eat the texture's digits.
     if gradient == "x":

@@ -173,9 +173,10 @@ class BlockEngine:
 
     # -- spectra ---------------------------------------------------------------
 
-    def gradient(self, heights: npt.NDArray[np.floating]) -> F32:
-        """Gradient image of ``heights`` per the configured mode (float32)."""
-        return gradient_image(heights, self.config.gradient)
+    def gradient(self, heights: npt.NDArray[np.floating], *, out: F32 | None = None) -> F32:
+        """Gradient image of ``heights`` per the configured mode (float32),
+        written into ``out`` if given."""
+        return gradient_image(heights, self.config.gradient, out=out)
 
     def _normalised_spectra(
         self, grad: F32, top: IArr, left: IArr, out: npt.NDArray[np.complex64]

@@ -134,6 +134,7 @@ class DriftTracker:
         The FFT plans of the current frame shape are kept.
         """
         self._ref: ReferenceSpectra | None = None
+        self._spare: npt.NDArray[np.float32] | None = None
         self._count = 0
         self._ref_index = 0
         self._ref_pos = np.zeros(2)  # cumulative position of the reference, px
@@ -185,7 +186,17 @@ class DriftTracker:
                 f"{self._engine.image_shape}; call reset() to start over"
             )
         engine = self._engine_for(shape)
-        grad = engine.gradient(heights)
+        # Reuse the last frame's gradient buffer unless that frame became the
+        # reference (which keeps its gradient image).
+        spare = self._spare
+        if (
+            spare is None
+            or spare.shape != engine.layout.grad_shape
+            or (self._ref is not None and spare is self._ref.grad)
+        ):
+            spare = None
+        grad = engine.gradient(heights, out=spare)
+        self._spare = grad
         check_texture(grad, "frame")
         if self._ref is None:
             self._ref = engine.reference(grad)
