@@ -295,12 +295,17 @@ class BlockEngine:
         cand_v = np.empty((n, k), dtype=np.float32)
         rows = self._rows
         offs = np.arange(-NMS_RADIUS, NMS_RADIUS + 1)
+        cand_v.fill(-np.inf)
+        cand_y.fill(0)
+        cand_x.fill(0)
         for j in range(k):
             idx = np.argmax(flat, axis=1)
             cand_v[:, j] = flat[rows, idx]
             iy, ix = np.divmod(idx, wx)
             cand_y[:, j] = iy - my
             cand_x[:, j] = ix - mx
+            if j > 0 and not bool(np.any(cand_v[:, j] >= CANDIDATE_RATIO * cand_v[:, 0])):
+                break  # lower peaks would not be verified anyway
             if j + 1 < k:
                 yy = np.clip(iy[:, None] + offs, 0, hy - 1)
                 xx = np.clip(ix[:, None] + offs, 0, wx - 1)
