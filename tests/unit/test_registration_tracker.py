@@ -28,9 +28,7 @@ def _sequence(
         (shape[0] + 2 * margin, shape[1] + 2 * margin), pixel_size_nm=PIXEL_NM, rng=rng
     )
     shifter = TextureShifter(tex)
-    return [
-        add_noise(shifter.crop(shape, dx_px=dx, dy_px=dy), snr=snr, rng=rng) for dx, dy in path
-    ]
+    return [add_noise(shifter.crop(shape, dx_px=dx, dy_px=dy), snr=snr, rng=rng) for dx, dy in path]
 
 
 @pytest.fixture(scope="module")
