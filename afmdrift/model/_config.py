@@ -61,6 +61,9 @@ class PhysicsConfig(BaseModel):
     memory_s: float = Field(
         7200.0, ge=0, description="Exponential forgetting time of old points, s (0: keep all)."
     )
+    max_points: int = Field(
+        2000, ge=10, le=1_000_000, description="Most recent observations used by each fit."
+    )
     sigma_floor_nm: float = Field(
         0.1, gt=0, le=100, description="Smallest per-point uncertainty used as weight."
     )

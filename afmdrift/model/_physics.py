@@ -8,6 +8,7 @@ with B the basis functions of :mod:`afmdrift.model._effects`. The fit, redone
 at every frame over all points (optionally down-weighted with age by
 exp(−age/``memory_s``)):
 
+0. **Which points**: the most recent ``max_points`` observations.
 1. **Which terms**: a configured term whose inputs are absent (channel not
    logged, no event of its kind) is left out and logged once. Terms enter in
    configured order once there are ``min_points_per_column`` points per basis
@@ -283,10 +284,13 @@ class PhysicsPredictor(_LoggingPredictor):
         return chosen
 
     def _fit(self, history: History) -> None:
-        t = self.log.t()
-        xy = self.log.xy()
-        sign = np.asarray(self.log.scan_sign, dtype=np.float64)
-        w = self._weights()
+        # The most recent max_points observations (bounded cost per frame at
+        # HS-AFM frame rates); older ones are down-weighted by memory_s anyway.
+        k0 = max(len(self.log) - self.config.max_points, 0)
+        t = self.log.t()[k0:]
+        xy = self.log.xy()[k0:]
+        sign = np.asarray(self.log.scan_sign[k0:], dtype=np.float64)
+        w = self._weights()[k0:]
         active = self._choose_active(history, t, sign)
         params = {k: dict(v) for k, v in self.params.items()}
         nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]

@@ -317,3 +317,13 @@ def test_scan_direction_left_out_when_every_frame_scans_up() -> None:
     assert model.active == ["trend"]
     drift = model.predict_drift([t[-1] + PERIOD_S], History()).mean_nm[0]
     assert drift == pytest.approx([50.0 + 0.01 * (t[-1] + PERIOD_S), -20.0], abs=1e-6)
+
+
+def test_fit_uses_only_the_most_recent_max_points() -> None:
+    """Bounded cost per frame: with max_points=10 an old jump no longer biases the trend."""
+    t = np.arange(128.0, 40 * PERIOD_S, PERIOD_S)
+    xy = np.column_stack([0.02 * t + np.where(t < 3000, 100.0, 0.0), np.zeros_like(t)])
+    cfg = PhysicsConfig(terms=["trend"], residual="none", memory_s=0, max_points=10)
+    model = PhysicsPredictor(cfg)
+    _feed(model, t, xy, History())
+    assert model.coefficients()["trend"]["x"][1] == pytest.approx(0.02 * 3600, abs=1e-6)

@@ -204,6 +204,19 @@ def test_state_dict_round_trip_through_json(name: str) -> None:
     )
 
 
+def test_joint_nn_round_trips_and_predicts_both_axes() -> None:
+    s = synthetic_series(hours=3.0, seed=6)
+    cfg = ModelConfig(nn=NNConfig(joint=True, initial_points=12, initial_iterations=20))
+    a = make_predictor("nn", cfg)
+    for o in s.observations:
+        a.update(o, s.history)
+    b = make_predictor("nn", cfg)
+    b.load_state_dict(json.loads(json.dumps(a.state_dict())))
+    t = [s.observations[-1].t_s + PERIOD_S]
+    np.testing.assert_array_equal(a.predict(t, s.history).mean_nm, b.predict(t, s.history).mean_nm)
+    assert len(a.state_dict()["net"]["theta"]) == 1
+
+
 def test_unknown_predictor_name_lists_the_known_ones() -> None:
     from afmdrift.errors import ConfigError
 
