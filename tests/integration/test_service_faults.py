@@ -268,3 +268,43 @@ def test_bad_configuration_exits_at_once_naming_the_key(
     assert proc.returncode == 2
     assert named in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.asyncio
+async def test_nan_frames_from_the_instrument_are_recorded_and_skipped(tmp_path: Path) -> None:
+    """NaN pixels in frames coming from an instrument (here a replayed session) never
+    stop the daemon or reach the model; the frames after them are measured normally."""
+    import dataclasses
+
+    import numpy as np
+
+    from afmdrift.drivers.sim._record import record_session
+    from afmdrift.service import open_instrument
+    from afmdrift.session import read_session, write_session
+
+    recorded = read_session(
+        record_session(small_scenario(), tmp_path / "session", frames=8).path, mmap=False
+    )
+    frames = np.array(recorded.frames)
+    frames[3, 40:60, 40:60] = np.nan
+    frames[5, :, :] = np.nan
+    nan_session = write_session(
+        dataclasses.replace(recorded, frames=frames), tmp_path / "nan-session"
+    )
+    cfg = service_config(tmp_path / "run")
+    cfg = cfg.model_copy(update={"driver": cfg.driver.model_copy(update={"replay_speed": 0.0})})
+    ctx = zmq.asyncio.Context()
+    try:
+        instrument = open_instrument(cfg, url=f"replay:{nan_session}")
+        async with running_service(cfg, instrument, ctx) as service:
+            async with asyncio.timeout(60):
+                await service.wait_for_frames(8)
+            assert "low_confidence" not in service.status_msg().flags  # cleared by frame 7
+    finally:
+        ctx.term()
+    records = _check_store(tmp_path / "run")
+    assert len(records) == 8
+    for k in (3, 5):
+        assert not records[k].fed_model
+        assert records[k].reason.startswith("registration failed")
+    assert all(records[k].fed_model for k in (1, 2, 4, 6, 7))
