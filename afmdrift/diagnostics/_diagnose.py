@@ -471,6 +471,46 @@ def _patterns(
             f"{up_down['diff_x_nm']:+.2f} nm in x, {up_down['diff_y_nm']:+.2f} nm in y "
             f"(Welch p = {up_down['p_value']:.2g})"
         )
+    for k, jump in jumps(run):
+        out.append(
+            f"the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
+            f"t = {run.t_s[k]:.0f} s (frame {int(run.frames[k])}), far beyond its other "
+            "frame-to-frame changes: a registration mis-lock or a tip change? Check the "
+            "worst frame's vector field before trusting a finding"
+        )
+    return out
+
+
+#: A frame-to-frame change of p this many robust σ beyond the median is a jump.
+JUMP_Z = 20.0
+#: After an offset move, a change of p larger than this fraction of the move
+#: is a jump (creep and hysteresis stay well below it).
+JUMP_MOVE_FRACTION = 0.5
+
+
+def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
+    """Frames whose measured position jumps implausibly, as (index into the
+    run, jump (x, y) in nm): a robust z of the Euclidean increment above
+    :data:`JUMP_Z`, or, across an offset move, an increment larger than
+    :data:`JUMP_MOVE_FRACTION` of the move."""
+    from afmdrift.diagnostics._stats import robust_z
+    from afmdrift.drivers._base import EventKind
+
+    inc = np.diff(run.measured_nm, axis=0)
+    if inc.shape[0] < 8:
+        return []
+    size = np.hypot(inc[:, 0], inc[:, 1])
+    z = robust_z(size)
+    moves = [e for e in run.history.events if e.kind is EventKind.OFFSET_MOVE]
+    out: list[tuple[int, FloatArray]] = []
+    for i in range(inc.shape[0]):
+        t0, t1 = run.t_s[i], run.t_s[i + 1]
+        moved = sum(math.hypot(e.x_nm, e.y_nm) for e in moves if t0 < e.t_s <= t1)
+        if moved > 0:
+            if size[i] > JUMP_MOVE_FRACTION * moved:
+                out.append((i + 1, inc[i]))
+        elif z[i] > JUMP_Z:
+            out.append((i + 1, inc[i]))
     return out
 
 
@@ -594,6 +634,14 @@ def diagnose(
     finding, config_terms = _finding(
         top, results, physics, summary, after_summary, n_tests, options
     )
+    found_jumps = jumps(run)
+    if found_jumps:
+        k, jump = found_jumps[0]
+        finding = (
+            f"Caution: the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
+            f"t = {run.t_s[k]:.0f} s ({len(found_jumps)} such jump(s)); if that is a "
+            f"measurement error, what follows may explain it rather than physics. {finding}"
+        )
     return Diagnosis(
         model_effects=list(physics.terms),
         active_effects=list(run.predictor.active),

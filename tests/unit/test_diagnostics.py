@@ -201,3 +201,25 @@ def test_thresholds_are_documented_in_the_json() -> None:
         assert key in j
     for c in j["candidates"]:
         assert set(c) >= {"effect", "significant", "score", "params", "rmse_after_nm"}
+
+
+def test_a_registration_jump_is_called_out_before_the_finding() -> None:
+    """Regression guard: a mis-locked frame (a 250 nm step in the measured drift)
+    must be flagged, since the candidate tests would otherwise 'explain' it."""
+    data, xy = _synthetic(humidity_nm_per_pct=0.0, seed=16, n=40)
+    stepped = xy.copy()
+    stepped[25:] += [250.0, -80.0]
+    broken = RunData.from_arrays(
+        t_s=data.t_s,
+        xy_nm=stepped,
+        scan_sign=data.scan_sign,
+        t_end_s=data.t_end_s,
+        channels=data.channels,
+        events=data.events,
+    )
+    dg = diagnose(broken, PhysicsConfig(terms=["trend"]))
+    assert dg.finding.startswith("Caution: the measured drift jumps by (+25")
+    assert "at t = 7516 s (1 such jump(s))" in dg.finding
+    assert any("t = 7516 s (frame 25)" in p for p in dg.patterns)
+    clean = diagnose(data, PhysicsConfig(terms=["trend"]))
+    assert not clean.finding.startswith("Caution")
