@@ -1,14 +1,19 @@
 """Speed and memory of the block phase-correlation engine on a 512×512 stream.
 
-Run: ``.venv/bin/python benchmarks/bench_registration.py [--frames N] [--threads T]``
+Run: ``.venv/bin/python benchmarks/bench_registration.py [--frames N] [--threads T ...]``
 
-Prints, all measured in this one run:
+Prints, all measured in this one run, for each thread count (default 1 and
+2, interleaved frame by frame so that all see the same machine load):
 
 * median time of :meth:`DriftTracker.update` per new frame (target ≤ 5 ms);
 * median time of the bare FFTW work one frame needs (one forward and one
-  inverse batched real FFT of the same sizes, on separately planned arrays,
-  timed right after each frame) and the ratio of the two (target ≤ 2×),
-  also as CPU time of this process, which a busy shared machine disturbs less;
+  inverse real FFT of every block, on separately planned arrays, split into
+  the engine's chunks and run on the same number of threads, timed right
+  after each frame) and the ratio of the two (target ≤ 2×); also the bare
+  transforms as one plan with FFTW's own threads (the alternative way to use
+  two cores; timed in a pass after the stream, because FFTW's threads spin
+  for a while after each transform and slow what runs next), and the CPU
+  time of this process;
 * the time of a loop of scikit-image ``phase_cross_correlation`` over the same
   windowed blocks (upsample factor 20) and our speed-up over it;
 * resident memory (psutil RSS) at the start and end of the stream (flat).
@@ -28,6 +33,8 @@ import argparse
 import gc
 import statistics
 import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
 
 import numpy as np
 import psutil
@@ -57,28 +64,61 @@ def make_pool(rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
     return frames, path
 
 
-def bare_fft(engine: BlockEngine, cfg: RegistrationConfig) -> BatchedRealFFT:
-    """Separately planned arrays of the sizes one frame's transforms need."""
-    fft = BatchedRealFFT(
-        engine.layout.n_blocks,
-        engine.layout.ext,
-        threads=cfg.threads,
-        planner=cfg.fftw_planner,
-        wisdom_path=resolve_wisdom_path(cfg.fftw_wisdom),
-    )
-    fft.real[:] = np.random.default_rng(0).standard_normal(fft.real.shape)
-    fft.forward()
-    return fft
+class BareFFT:
+    """The bare transforms one frame needs, on separately planned arrays:
+    one forward and one inverse batched real FFT over every block.
 
+    ``chunked``: the engine's split (chunks of ``CHUNK_BLOCKS`` blocks, one
+    single-threaded plan pair each) run on ``threads`` threads the way the
+    engine runs them; otherwise one plan over all blocks with FFTW's own
+    ``threads``.
+    """
 
-def time_bare_fft(fft: BatchedRealFFT) -> tuple[float, float]:
-    """Wall and CPU seconds for one forward plus one inverse batched FFT (the
-    copy that refills the inverse's input, which FFTW destroys, is not counted)."""
-    fft.cross[:] = fft.spectrum
-    t0, c0 = time.perf_counter(), time.process_time()
-    fft.forward()
-    fft.inverse()
-    return time.perf_counter() - t0, time.process_time() - c0
+    def __init__(self, engine: BlockEngine, cfg: RegistrationConfig, *, chunked: bool) -> None:
+        n = engine.layout.n_blocks
+        sizes = [c.sl.stop - c.sl.start for c in engine._chunks] if chunked else [n]
+        self.threads = cfg.threads
+        self.ffts = [
+            BatchedRealFFT(
+                size,
+                engine.layout.ext,
+                threads=1 if chunked else cfg.threads,
+                planner=cfg.fftw_planner,
+                wisdom_path=resolve_wisdom_path(cfg.fftw_wisdom),
+            )
+            for size in sizes
+        ]
+        rng = np.random.default_rng(0)
+        for fft in self.ffts:
+            fft.real[:] = rng.standard_normal(fft.real.shape)
+            fft.forward()
+        self.pool = (
+            ThreadPoolExecutor(max_workers=cfg.threads - 1)
+            if chunked and cfg.threads > 1 and len(sizes) > 1
+            else None
+        )
+
+    @staticmethod
+    def _run(fft: BatchedRealFFT) -> None:
+        fft.forward()
+        fft.inverse()
+
+    def time(self) -> tuple[float, float]:
+        """Wall and CPU seconds for one frame's forward plus inverse transforms
+        (the copy that refills the inverse's input, which FFTW destroys, is
+        not counted)."""
+        for fft in self.ffts:
+            fft.cross[:] = fft.spectrum
+        t0, c0 = time.perf_counter(), time.process_time()
+        if self.pool is None:
+            for fft in self.ffts:
+                self._run(fft)
+        else:
+            futures = [self.pool.submit(self._run, fft) for fft in self.ffts[1:]]
+            self._run(self.ffts[0])
+            for f in futures:
+                f.result()
+        return time.perf_counter() - t0, time.process_time() - c0
 
 
 def skimage_ms(engine: BlockEngine, ref: np.ndarray, cur: np.ndarray, repeats: int) -> float:
@@ -142,10 +182,37 @@ def accuracy_table(pairs: int) -> None:
             )
 
 
+@dataclass
+class StreamTimes:
+    """Per-frame wall and CPU seconds of one configuration in the stream."""
+
+    threads: int
+    tracker: DriftTracker
+    bare_chunked: BareFFT
+    bare_fftw: BareFFT
+    wall: list[float] = field(default_factory=list)
+    cpu: list[float] = field(default_factory=list)
+    bare_wall: list[float] = field(default_factory=list)
+    bare_cpu: list[float] = field(default_factory=list)
+    fftw_wall: list[float] = field(default_factory=list)
+    errors: list[np.ndarray] = field(default_factory=list)
+    positions: list[tuple[float, float]] = field(default_factory=list)
+
+
+def ms(values: list[float]) -> float:
+    return 1e3 * statistics.median(values)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=1000, help="frames in the stream (1000)")
-    ap.add_argument("--threads", type=int, default=1, help="FFTW threads (1)")
+    ap.add_argument(
+        "--threads",
+        type=int,
+        nargs="+",
+        default=[1, 2],
+        help="thread counts timed side by side (default: 1 2)",
+    )
     ap.add_argument("--skimage-repeats", type=int, default=3, help="skimage frames timed (3)")
     ap.add_argument(
         "--accuracy", action="store_true", help="print the sub-pixel method comparison instead"
@@ -157,66 +224,90 @@ def main() -> None:
 
     rng = np.random.default_rng(2008)
     frames, path = make_pool(rng)
-    cfg = RegistrationConfig(threads=args.threads)
     proc = psutil.Process()
-
-    tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg)
-    engine = BlockEngine(SHAPE, cfg)
-    fft = bare_fft(engine, cfg)
-    tracker.update(frames[0])
-    for i in range(1, 2 * POOL + 1):  # warm-up: plans, allocator pools, caches
-        tracker.update(frames[i % POOL])
-        time_bare_fft(fft)
-    tracker.reset()
-    tracker.update(frames[0])
+    runs = []
+    for threads in args.threads:
+        cfg = RegistrationConfig(threads=threads)
+        engine = BlockEngine(SHAPE, cfg)
+        runs.append(
+            StreamTimes(
+                threads=threads,
+                tracker=DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg),
+                bare_chunked=BareFFT(engine, cfg, chunked=True),
+                bare_fftw=BareFFT(engine, cfg, chunked=False),
+            )
+        )
+    for run in runs:
+        run.tracker.update(frames[0])
+        for i in range(1, 2 * POOL + 1):  # warm-up: plans, allocator pools, caches
+            run.tracker.update(frames[i % POOL])
+            run.bare_chunked.time()
+            run.bare_fftw.time()
+        run.tracker.reset()
+        run.tracker.update(frames[0])
     gc.collect()
     rss_start = proc.memory_info().rss
-    times = []
-    cpu_times = []
-    bare_times = []
-    bare_cpu_times = []
-    errors = []
+    load_start = psutil.getloadavg()[0]
     for i in range(1, args.frames + 1):
         frame = frames[i % POOL]
-        t0, c0 = time.perf_counter(), time.process_time()
-        step = tracker.update(frame)
-        times.append(time.perf_counter() - t0)
-        cpu_times.append(time.process_time() - c0)
-        # The bare transforms, timed right after each frame so both see the
-        # same machine load.
-        wall, cpu = time_bare_fft(fft)
-        bare_times.append(wall)
-        bare_cpu_times.append(cpu)
-        if step is not None and step.accepted:
-            errors.append(np.subtract(step.position_px, path[i % POOL] - path[0]))
+        # Interleaved frame by frame, so every configuration and its bare
+        # transforms see the same machine load.
+        for run in runs:
+            t0, c0 = time.perf_counter(), time.process_time()
+            step = run.tracker.update(frame)
+            run.wall.append(time.perf_counter() - t0)
+            run.cpu.append(time.process_time() - c0)
+            wall, cpu = run.bare_chunked.time()
+            run.bare_wall.append(wall)
+            run.bare_cpu.append(cpu)
+            if step is not None and step.accepted:
+                run.errors.append(np.subtract(step.position_px, path[i % POOL] - path[0]))
+                run.positions.append(step.position_px)
     rss_end = proc.memory_info().rss
+    load_end = psutil.getloadavg()[0]
+    # FFTW's own threads keep spinning for a few ms after each transform,
+    # which slowed whatever ran next by up to 50 % in CPU time: time them in
+    # a pass of their own after the stream.
+    for run in runs:
+        for _ in range(args.frames):
+            run.fftw_wall.append(run.bare_fftw.time()[0])
 
-    bare = 1e3 * statistics.median(bare_times)
-    ours = 1e3 * statistics.median(times)
-    bare_cpu = 1e3 * statistics.median(bare_cpu_times)
-    ours_cpu = 1e3 * statistics.median(cpu_times)
-    sk = skimage_ms(engine, frames[0], frames[1], args.skimage_repeats)
-    err = np.asarray(errors)
+    engine = BlockEngine(SHAPE, RegistrationConfig())
     lay = engine.layout
-
     print(
         f"frames: {args.frames} of {SHAPE[1]}x{SHAPE[0]} px, {lay.n_blocks} blocks of "
-        f"{lay.ext[1]}x{lay.ext[0]}, FFTW threads {args.threads}, CPUs {psutil.cpu_count()}, "
-        f"load average {psutil.getloadavg()[0]:.2f}"
+        f"{lay.ext[1]}x{lay.ext[0]} in {engine.n_chunks} chunks, CPUs {psutil.cpu_count()}, "
+        f"load average {load_start:.2f} at start, {load_end:.2f} at end"
     )
-    print(f"DriftTracker.update median:          {ours:8.2f} ms/frame   (target <= 5 ms)")
-    print(f"bare FFTW forward+inverse batch:     {bare:8.2f} ms/frame")
-    print(f"ratio to bare FFT:                   {ours / bare:8.2f} x        (target <= 2x)")
     print(
-        f"CPU time (process_time) ours / bare: {ours_cpu:8.2f} / {bare_cpu:.2f} ms = "
-        f"{ours_cpu / bare_cpu:.2f} x (less sensitive to other processes)"
+        f"{'threads':>7s} {'update ms':>10s} {'bare ms':>8s} {'ratio':>6s} "
+        f"{'FFTW-own-threads bare ms':>25s} {'CPU ms ours/bare':>17s} {'RMS err px':>11s}"
     )
-    print(f"skimage phase_cross_correlation x{lay.n_blocks}: {sk:8.2f} ms/frame")
-    print(f"speed-up over skimage loop:          {sk / ours:8.1f} x")
+    for run in runs:
+        ours, bare = ms(run.wall), ms(run.bare_wall)
+        err = np.asarray(run.errors)
+        rms = float(np.sqrt(np.mean(err**2))) if err.size else float("nan")
+        print(
+            f"{run.threads:7d} {ours:10.2f} {bare:8.2f} {ours / bare:5.2f}x "
+            f"{ms(run.fftw_wall):25.2f} {ms(run.cpu):8.2f}/{ms(run.bare_cpu):<8.2f} {rms:11.4f}"
+        )
+    best = min(runs, key=lambda r: ms(r.wall))
     print(
-        f"RSS start / end / growth:            {rss_start / 2**20:.1f} / "
-        f"{rss_end / 2**20:.1f} / {(rss_end - rss_start) / 2**20:+.2f} MiB"
+        f"targets: <= 5 ms/frame -> {ms(best.wall):.2f} ms with {best.threads} thread(s); "
+        f"<= 2x bare -> {ms(best.wall) / ms(best.bare_wall):.2f}x"
     )
+    same = all(r.positions == runs[0].positions for r in runs)
+    print(f"tracks identical across thread counts: {same}")
+    sk = skimage_ms(engine, frames[0], frames[1], args.skimage_repeats)
+    print(
+        f"skimage phase_cross_correlation x{lay.n_blocks}: {sk:.2f} ms/frame "
+        f"({sk / ms(best.wall):.1f}x slower)"
+    )
+    print(
+        f"RSS start / end / growth: {rss_start / 2**20:.1f} / {rss_end / 2**20:.1f} / "
+        f"{(rss_end - rss_start) / 2**20:+.2f} MiB"
+    )
+    err = np.asarray(best.errors)
     if err.size:
         print(
             f"position error vs truth: RMS {np.sqrt(np.mean(err**2)):.4f} px, "

@@ -80,7 +80,14 @@ class RegistrationConfig(BaseModel):
     mse_stride_px: int = Field(
         4, ge=1, le=8, description="Lattice step of the MSE peak verification."
     )
-    threads: int = Field(1, ge=1, le=64, description="FFTW threads.")
+    threads: int = Field(
+        2,
+        ge=1,
+        le=64,
+        description="Threads for the per-frame block work (chunks of 32 blocks run "
+        "concurrently; results do not depend on it). Default 2: the cores of the reference "
+        "machine, and a 512² frame has two chunks.",
+    )
     fftw_planner: Literal["estimate", "measure", "patient"] = Field(
         "measure", description="FFTW planner effort (plans are made once per shape)."
     )

@@ -14,6 +14,10 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 
 from __future__ import annotations
 
+import itertools
+import threading
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import TypeVar
 
@@ -33,6 +37,7 @@ from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
 _Scalar = TypeVar("_Scalar", bound=np.generic)
+_T = TypeVar("_T")
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 IArr = npt.NDArray[np.intp]
@@ -50,6 +55,30 @@ _CONVERGED_PX = 0.02
 CANDIDATE_RATIO = 0.7
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
+#: Blocks per chunk: the block batch is split into chunks of at most this many
+#: blocks (64 blocks of a 512² frame: two chunks of 32), each with its own
+#: FFTW plans and work arrays. The split depends only on the layout, never on
+#: the thread count, so results are bit-for-bit the same for any ``threads``.
+CHUNK_BLOCKS = 32
+
+_pool_lock = threading.Lock()
+_pools: dict[int, ThreadPoolExecutor] = {}
+
+
+def _worker_pool(workers: int) -> ThreadPoolExecutor:
+    """Process-wide persistent pool of ``workers`` threads (made on first use).
+
+    The calling thread always runs one chunk itself, so a frame split into
+    ``k`` chunks on ``threads`` threads uses ``threads - 1`` pool workers.
+    Chunks never submit work themselves, so sharing the pool between engines
+    and calling threads cannot deadlock.
+    """
+    with _pool_lock:
+        pool = _pools.get(workers)
+        if pool is None:
+            pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="afmdrift-reg")
+            _pools[workers] = pool
+        return pool
 
 
 @dataclass(frozen=True)
@@ -84,10 +113,39 @@ class BlockMeasurement:
     in_overlap: BArr
 
 
+@dataclass(frozen=True)
+class _Chunk:
+    """Blocks ``sl`` of the layout with their own FFT plans and work arrays."""
+
+    sl: slice
+    fft: BatchedRealFFT
+    mag: F32
+    region: F32
+
+
+@dataclass(frozen=True)
+class _ChunkPeaks:
+    """Integer peak, sub-pixel offset and checks of one chunk's blocks."""
+
+    sx: IArr
+    sy: IArr
+    fx: F64
+    fy: F64
+    ok: BArr
+    peak: F64
+    mse: F64
+    band_mag: F32
+
+
 class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
-    Not thread-safe: use one engine per thread.
+    The blocks are processed in chunks of at most :data:`CHUNK_BLOCKS`, each
+    with its own single-threaded FFTW plans and work arrays; with
+    ``config.threads > 1`` the chunks run concurrently (pyFFTW and NumPy
+    release the GIL), the calling thread taking one of them.
+
+    Not thread-safe: use one engine per calling thread.
 
     Parameters
     ----------
@@ -108,15 +166,27 @@ class BlockEngine:
         lay = self.layout
         n = lay.n_blocks
         ey, ex = lay.ext
+        my, mx = lay.max_shift
         self.window = raised_cosine(ey, ex)
-        self.fft = BatchedRealFFT(
-            n,
-            (ey, ex),
-            threads=config.threads,
-            planner=config.fftw_planner,
-            wisdom_path=resolve_wisdom_path(config.fftw_wisdom),
-        )
-        spec_shape = self.fft.spectrum.shape
+        wisdom = resolve_wisdom_path(config.fftw_wisdom)
+        n_chunks = -(-n // CHUNK_BLOCKS)
+        bounds = [round(i * n / n_chunks) for i in range(n_chunks + 1)]
+        chunks = []
+        for a, b in itertools.pairwise(bounds):
+            fft = BatchedRealFFT(
+                b - a, (ey, ex), threads=1, planner=config.fftw_planner, wisdom_path=wisdom
+            )
+            chunks.append(
+                _Chunk(
+                    sl=slice(a, b),
+                    fft=fft,
+                    mag=np.empty(fft.spectrum.shape, dtype=np.float32),
+                    region=np.empty((b - a, 2 * my + 1, 2 * mx + 1), dtype=np.float32),
+                )
+            )
+        self._chunks: tuple[_Chunk, ...] = tuple(chunks)
+        self._threads = min(config.threads, len(chunks))
+        spec_shape = (n, ey, ex // 2 + 1)
         # The periodic raised cosine has a DFT with only a few non-zero terms;
         # removing the window-weighted block mean is a subtraction on them.
         wspec = np.fft.rfft2(self.window.astype(np.float64))
@@ -124,10 +194,7 @@ class BlockEngine:
         self._w_rows, self._w_cols = (a.astype(np.intp) for a in np.nonzero(nz))
         self._w_vals = wspec[nz].astype(np.complex64)
         self._w_sum = float(wspec[0, 0].real)
-        self._mag: F32 = np.empty(spec_shape, dtype=np.float32)
         self._current: npt.NDArray[np.complex64] = np.empty(spec_shape, dtype=np.complex64)
-        my, mx = lay.max_shift
-        self._region: F32 = np.empty((n, 2 * my + 1, 2 * mx + 1), dtype=np.float32)
         stride = config.mse_stride_px
         by, bx = lay.block
         self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
@@ -139,7 +206,6 @@ class BlockEngine:
         self._inner = ((ey - by) // 2, (ex - bx) // 2)
         off_x, off_y = gradient_offset_px(config.gradient)
         self._centre_offset = (off_x + (ex - 1) / 2.0, off_y + (ey - 1) / 2.0)
-        self._rows = np.arange(n, dtype=np.intp)
         self._cur_band_mag: F32 = np.zeros((n, 1, 1), dtype=np.float32)
         # Low-frequency band of the cross-power spectrum used by the "dft"
         # sub-pixel method (rfft layout: all ky in the band, kx >= 0).
@@ -171,6 +237,28 @@ class BlockEngine:
             float(np.sum(np.diff(wx) ** 2) / np.sum(wx**2)),
         )
 
+    @property
+    def n_chunks(self) -> int:
+        """Number of block chunks (each with its own FFT plans)."""
+        return len(self._chunks)
+
+    def _each_chunk(self, work: Callable[[_Chunk], _T]) -> list[_T]:
+        """``work(chunk)`` for every chunk, in chunk order; concurrently on
+        ``threads`` threads (the caller's among them) when that is above 1."""
+        chunks = self._chunks
+        if self._threads <= 1:
+            return [work(c) for c in chunks]
+        pool = _worker_pool(self._threads - 1)
+        futures: list[Future[_T]] = [pool.submit(work, c) for c in chunks[1:]]
+        try:
+            first = work(chunks[0])
+        finally:
+            # The chunks write into shared arrays: never return (or raise)
+            # while one is still running.
+            for f in futures:
+                f.exception()
+        return [first, *(f.result() for f in futures)]
+
     # -- spectra ---------------------------------------------------------------
 
     def gradient(self, heights: npt.NDArray[np.floating], *, out: F32 | None = None) -> F32:
@@ -179,27 +267,35 @@ class BlockEngine:
         return gradient_image(heights, self.config.gradient, out=out)
 
     def _normalised_spectra(
-        self, grad: F32, top: IArr, left: IArr, out: npt.NDArray[np.complex64]
+        self,
+        chunk: _Chunk,
+        grad: F32,
+        top: IArr,
+        left: IArr,
+        out: npt.NDArray[np.complex64],
     ) -> F32:
-        """Window the blocks at ``(top, left)``, remove each block's
-        window-weighted mean, FFT, and write ``S / (|S| + eps·max|S|)`` to
-        ``out``. Returns ``|S|`` in the sub-pixel band, shape (n, Ly, Lx)."""
+        """Window the chunk's blocks at ``(top, left)`` (full-layout arrays),
+        remove each block's window-weighted mean, FFT, and write
+        ``S / (|S| + eps·max|S|)`` to ``out[chunk]``. Returns ``|S|`` in the
+        sub-pixel band, shape (chunk blocks, Ly, Lx)."""
         ey, ex = self.layout.ext
-        real = self.fft.real
+        fft = chunk.fft
+        real = fft.real
         win = self.window
-        for i in range(top.size):
-            t, le = top[i], left[i]
+        a = chunk.sl.start
+        for i in range(real.shape[0]):
+            t, le = top[a + i], left[a + i]
             np.multiply(grad[t : t + ey, le : le + ex], win, out=real[i])
-        self.fft.forward()
-        spec = self.fft.spectrum
+        fft.forward()
+        spec = fft.spectrum
         mean = spec[:, 0, 0].real / self._w_sum
         spec[:, self._w_rows, self._w_cols] -= mean[:, None] * self._w_vals[None, :]
-        mag = np.abs(spec, out=self._mag)
+        mag = np.abs(spec, out=chunk.mag)
         band_mag = self._band(mag)
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
         mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
         np.reciprocal(mag, out=mag)
-        np.multiply(spec, mag, out=out)
+        np.multiply(spec, mag, out=out[chunk.sl])
         return band_mag
 
     def grid_positions(self) -> tuple[IArr, IArr]:
@@ -210,8 +306,13 @@ class BlockEngine:
         """Spectra of a new reference at the layout's grid positions."""
         top, left = self.grid_positions()
         spectra = np.empty_like(self._current)
-        band_mag = self._normalised_spectra(grad, top, left, spectra)
-        np.conjugate(spectra, out=spectra)
+
+        def work(chunk: _Chunk) -> F32:
+            band = self._normalised_spectra(chunk, grad, top, left, spectra)
+            np.conjugate(spectra[chunk.sl], out=spectra[chunk.sl])
+            return band
+
+        band_mag = np.concatenate(self._each_chunk(work), axis=0)
         return ReferenceSpectra(
             grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=band_mag
         )
@@ -267,37 +368,74 @@ class BlockEngine:
         Returns the measurement and the window corners ``(top, left)`` used in
         the current frame (so its spectra can become the next reference).
         """
-        lay = self.layout
-        cfg = self.config
-        n = lay.n_blocks
-        ey, ex = lay.ext
-        my, mx = lay.max_shift
+        my, mx = self.layout.max_shift
         top, left, placed, near = self.positions_for(ref, prior_px)
-        self._cur_band_mag = self._normalised_spectra(grad, top, left, self._current)
-        np.multiply(self._current, ref.conj_spectra, out=self.fft.cross)
+
+        def work(chunk: _Chunk) -> _ChunkPeaks:
+            return self._measure_chunk(chunk, ref, grad, top, left)
+
+        parts = self._each_chunk(work)
+        self._cur_band_mag = np.concatenate([p.band_mag for p in parts], axis=0)
+        sx = np.concatenate([p.sx for p in parts])
+        sy = np.concatenate([p.sy for p in parts])
+        best_mse = np.concatenate([p.mse for p in parts])
+        vec = np.empty((sx.size, 2), dtype=np.float64)
+        vec[:, 0] = (left - ref.left) + sx + np.concatenate([p.fx for p in parts])
+        vec[:, 1] = (top - ref.top) + sy + np.concatenate([p.fy for p in parts])
+        measured = (
+            near
+            & np.isfinite(best_mse)
+            & np.concatenate([p.ok for p in parts])
+            & (np.abs(sy) < my)
+            & (np.abs(sx) < mx)
+        )
+        cx, cy = self._centre_offset
+        centres = np.column_stack([ref.left + cx, ref.top + cy]).astype(np.float64)
+        result = BlockMeasurement(
+            centres_px=centres,
+            vectors_px=vec,
+            confidence=np.concatenate([p.peak for p in parts]),
+            mse=np.where(np.isfinite(best_mse), best_mse, np.nan),
+            measured=measured,
+            placed=placed,
+            in_overlap=near,
+        )
+        return result, top, left
+
+    def _measure_chunk(
+        self, chunk: _Chunk, ref: ReferenceSpectra, grad: F32, top: IArr, left: IArr
+    ) -> _ChunkPeaks:
+        """Spectra, correlation, candidate peaks, MSE verification and
+        sub-pixel offsets of one chunk's blocks (``top``, ``left``: window
+        corners of every block in the current frame)."""
+        cfg = self.config
+        sl = chunk.sl
+        fft = chunk.fft
+        ey, ex = self.layout.ext
+        my, mx = self.layout.max_shift
+        band_mag = self._normalised_spectra(chunk, grad, top, left, self._current)
+        np.multiply(self._current[sl], ref.conj_spectra[sl], out=fft.cross)
         band = None
         if cfg.subpixel == "dft":
             # Cross-power weights |S_cur||S_ref| turn the phase-only band back
             # into a matched filter: noise-only frequencies get little weight.
-            band = self._band(self.fft.cross)
-            band *= self._cur_band_mag * ref.band_mag
-        self.fft.inverse()
-        corr = self.fft.real  # (n, ey, ex), scaled by ey·ex
+            band = self._band(fft.cross)
+            band *= band_mag * ref.band_mag[sl]
+        fft.inverse()
+        corr = fft.real  # (n, ey, ex), scaled by ey·ex
         scale = 1.0 / (ey * ex)
 
         # Top-K peaks in the search region, with non-maximum suppression.
-        region = self._search_region(corr)
+        region = self._search_region(corr, chunk.region)
+        n = region.shape[0]
+        rows = np.arange(n, dtype=np.intp)
         hy, wx = region.shape[1:]
         flat = region.reshape(n, -1)  # a view: suppression below is seen by argmax
         k = cfg.peaks
-        cand_y = np.empty((n, k), dtype=np.intp)
-        cand_x = np.empty((n, k), dtype=np.intp)
-        cand_v = np.empty((n, k), dtype=np.float32)
-        rows = self._rows
+        cand_y = np.zeros((n, k), dtype=np.intp)
+        cand_x = np.zeros((n, k), dtype=np.intp)
+        cand_v = np.full((n, k), -np.inf, dtype=np.float32)
         offs = np.arange(-NMS_RADIUS, NMS_RADIUS + 1)
-        cand_v.fill(-np.inf)
-        cand_y.fill(0)
-        cand_x.fill(0)
         for j in range(k):
             idx = np.argmax(flat, axis=1)
             cand_v[:, j] = flat[rows, idx]
@@ -316,49 +454,39 @@ class BlockEngine:
         # two gradient blocks; the lowest MSE wins.
         plausible = np.isfinite(cand_v) & (cand_v > 0) & (cand_v >= CANDIDATE_RATIO * cand_v[:, :1])
         bi, ki = np.nonzero(plausible)
+        blk = bi + sl.start
         mse = np.full((n, k), np.inf)
         mse[bi, ki] = self._candidate_mse(
             ref,
             grad,
-            bi,
-            (top - ref.top)[bi] + cand_y[bi, ki],
-            (left - ref.left)[bi] + cand_x[bi, ki],
+            blk,
+            (top - ref.top)[blk] + cand_y[bi, ki],
+            (left - ref.left)[blk] + cand_x[bi, ki],
         )
         best = np.argmin(mse, axis=1)
         sy = cand_y[rows, best]
         sx = cand_x[rows, best]
-        best_mse = mse[rows, best]
-        peak = cand_v[rows, best].astype(np.float64) * scale
 
         # Sub-pixel refinement around the chosen peak.
         if band is not None:
             fx, fy, ok = self._dft_peak(band, sx, sy)
-            ok_x = ok_y = ok
         else:
             ny = (sy[:, None] + np.array([-1, 0, 1])) % ey
             nx = (sx[:, None] + np.array([-1, 0, 1])) % ex
             nb = corr[rows[:, None, None], ny[:, :, None], nx[:, None, :]].astype(np.float64)
             fy, ok_y = _subpixel(nb[:, :, 1] * scale, cfg.subpixel)
             fx, ok_x = _subpixel(nb[:, 1, :] * scale, cfg.subpixel)
-
-        vec = np.empty((n, 2), dtype=np.float64)
-        vec[:, 0] = (left - ref.left) + sx + fx
-        vec[:, 1] = (top - ref.top) + sy + fy
-        measured = (
-            near & np.isfinite(best_mse) & ok_x & ok_y & (np.abs(sy) < my) & (np.abs(sx) < mx)
+            ok = ok_x & ok_y
+        return _ChunkPeaks(
+            sx=sx,
+            sy=sy,
+            fx=fx,
+            fy=fy,
+            ok=ok,
+            peak=cand_v[rows, best].astype(np.float64) * scale,
+            mse=mse[rows, best],
+            band_mag=band_mag,
         )
-        cx, cy = self._centre_offset
-        centres = np.column_stack([ref.left + cx, ref.top + cy]).astype(np.float64)
-        result = BlockMeasurement(
-            centres_px=centres,
-            vectors_px=vec,
-            confidence=peak,
-            mse=np.where(np.isfinite(best_mse), best_mse, np.nan),
-            measured=measured,
-            placed=placed,
-            in_overlap=near,
-        )
-        return result, top, left
 
     def _band(self, spec: npt.NDArray[_Scalar]) -> npt.NDArray[_Scalar]:
         """Copy of the sub-pixel band of half-spectra ``spec``, shape
@@ -366,13 +494,13 @@ class BlockEngine:
         ky, kx = self._band_ky, self._band_kx
         return np.concatenate([spec[:, -ky:, : kx + 1], spec[:, : ky + 1, : kx + 1]], axis=1)
 
-    def _search_region(self, corr: F32) -> F32:
+    def _search_region(self, corr: F32, reg: F32) -> F32:
         """Correlation at shifts ``-max..+max`` (wrapped), shape (n, 2my+1, 2mx+1).
 
-        Copied by four slices into a work array (element [my, mx] is shift 0).
+        Copied by four slices into the work array ``reg`` (element [my, mx]
+        is shift 0).
         """
         my, mx = self.layout.max_shift
-        reg = self._region
         reg[:, :my, :mx] = corr[:, -my:, -mx:]
         reg[:, :my, mx:] = corr[:, -my:, : mx + 1]
         reg[:, my:, :mx] = corr[:, : my + 1, -mx:]
@@ -419,7 +547,7 @@ class BlockEngine:
         bx_ = np.clip(bx_, 1, 3)
         d3 = np.arange(-1, 2)
         c = c5[
-            self._rows[:, None, None],
+            np.arange(n)[:, None, None],
             (by_[:, None] + d3)[:, :, None],
             (bx_[:, None] + d3)[:, None, :],
         ]
@@ -519,18 +647,6 @@ class BlockEngine:
             mean = (diff * w).sum(axis=(1, 2), dtype=np.float64) / cnt
             sq = np.square(diff - mean[:, None, None].astype(np.float32)) * w
             mse = sq.sum(axis=(1, 2), dtype=np.float64) / cnt
-        mse[cnt < 0.25 * total] = np.inf
-        return mse
-        np.clip(cy, 0, rows_img - 1, out=cy)
-        np.clip(cx, 0, cols_img - 1, out=cx)
-        diff = grad[cy[:, :, :, None], cx[:, :, None, :]]
-        diff -= ref.grad[ry[:, None, :, None], rx[:, None, None, :]]
-        w = (vy[:, :, :, None] & vx[:, :, None, :]).astype(np.float32)
-        cnt = w.sum(axis=(2, 3), dtype=np.float64)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = (diff * w).sum(axis=(2, 3), dtype=np.float64) / cnt
-            sq = np.square(diff - mean[:, :, None, None].astype(np.float32)) * w
-            mse = sq.sum(axis=(2, 3), dtype=np.float64) / cnt
         mse[cnt < 0.25 * total] = np.inf
         return mse
 
