@@ -13,11 +13,13 @@ reference, so one bad frame does not break the cumulative track.
 
 Coarse pre-alignment: the block engine only finds shifts up to
 ``(extended_size - block_size) / 2`` px around its prior. Unless
-``--no-coarse`` is given, a whole-image phase correlation of the two
-line-levelled images first finds the integer shift; when it is significant
-and the x-gradient images agree (:func:`coarse_shift_px`), the block engine
-measures around it (``prior_px``, ``prior`` in the output) within
-``--search-px`` (default 6 px), else around zero.
+``--no-coarse`` is given, the engine's whole-image alignment
+(:func:`afmdrift.registration.coarse_shift`, the one ``measure_drift`` uses
+by default: phase correlation of the line-levelled images, checked against
+the x-gradient images) first finds the integer shift; when it is trusted,
+the block engine measures around it (``prior_px``, ``prior`` in the output)
+within ``--search-px`` (default ``[registration] coarse_search_px``, 6 px),
+else around zero.
 ``--prior-px`` sets the prior by hand. A narrow search matters on periodic
 samples: on the real NanoScope pair (a lattice with a period of about 10 px)
 a ±16 or ±32 px search lets blocks lock onto different lattice peaks, so the
@@ -36,22 +38,12 @@ import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 from afmdrift.cli._import import add_file_options, pixel_size_option
 from afmdrift.errors import ConfigError, InputError
 
-#: Half-width (px) of the block search around a coarse or given prior.
-DEFAULT_SEARCH_PX = 6.0
-#: Smallest coarse correlation peak (in standard deviations of the surface) that is used.
-COARSE_MIN_Z = 6.0
-#: Smallest x-gradient correlation at the coarse shift (one location, so 3 sigma suffices).
-COARSE_MIN_GRADIENT_Z = 3.0
-
 if TYPE_CHECKING:
-    import numpy as np
-    import numpy.typing as npt
-
     from afmdrift.io import AfmImage
     from afmdrift.registration import DriftResult, RegistrationConfig
 
@@ -88,8 +80,8 @@ def register(sub: Any) -> None:
         type=float,
         metavar="R",
         help="half-width of the block search around the prior, px (default: "
-        f"{DEFAULT_SEARCH_PX:g} with the coarse pre-alignment or --prior-px unless the "
-        "config sets max_shift_px; else (extended_size - block_size) / 2)",
+        "[registration] coarse_search_px (6) with the coarse pre-alignment or --prior-px "
+        "unless the config sets max_shift_px; else (extended_size - block_size) / 2)",
     )
     p.add_argument(
         "--no-coarse",
@@ -160,7 +152,8 @@ def measurement_config(
 
     When the search is ``centred`` on a coarse or given prior and neither
     ``search_px`` nor ``base.max_shift_px`` is set, the search half-width
-    becomes :data:`DEFAULT_SEARCH_PX`.
+    becomes ``base.coarse_search_px`` (what ``measure_drift`` uses around a
+    trusted coarse prior).
 
     Raises
     ------
@@ -178,8 +171,8 @@ def measurement_config(
     if search_px is not None:
         overrides["max_shift_px"] = search_px
     elif base.max_shift_px is None and centred:
-        # extended_size >= 16, so this never exceeds the engine's limit extended / 2 - 2.
-        overrides["max_shift_px"] = DEFAULT_SEARCH_PX
+        ext = extended_size or base.extended_size
+        overrides["max_shift_px"] = min(base.coarse_search_px, ext / 2 - 2)
     if not overrides:
         return base
     try:
@@ -216,8 +209,9 @@ def measure_pair(
     """Drift of ``cur`` relative to ``ref`` as ``afmdrift measure`` computes it.
 
     The block search is centred on ``prior_px`` if given, else on the coarse
-    whole-image shift (:func:`coarse_shift_px`) when ``coarse`` and its peak is
-    trusted (:attr:`CoarseShift.trusted`), else on zero.
+    whole-image shift (:func:`afmdrift.registration.coarse_shift`) when
+    ``coarse`` and it is trusted (:attr:`~afmdrift.registration.CoarseShift.trusted`),
+    else on zero.
 
     Raises
     ------
@@ -225,7 +219,7 @@ def measure_pair(
         Pixel sizes differ; or the engine's ``RegistrationError`` /
         ``InvalidFrameError`` (shapes differ, image too small, blank, NaN).
     """
-    from afmdrift.registration import RegistrationError, measure_drift
+    from afmdrift.registration import RegistrationError, coarse_shift, measure_drift
 
     if not all(
         math.isclose(a, b, rel_tol=1e-6)
@@ -240,7 +234,7 @@ def measure_pair(
     elif not coarse or ref.shape != cur.shape:
         prior, how = (0.0, 0.0), "none"
     else:
-        c = coarse_shift_px(ref.heights_nm, cur.heights_nm)
+        c = coarse_shift(ref.heights_nm, cur.heights_nm)
         scores = f"peak z={c.peak_z:.1f}, gradient z={c.gradient_z:.1f}"
         if c.trusted:
             prior, how = (c.dx_px, c.dy_px), f"coarse ({scores})"
@@ -328,94 +322,6 @@ def track_stack(
             )
             ref_i = i
         yield doc
-
-
-# --------------------------------------------------------------------------- numerics
-
-
-class CoarseShift(NamedTuple):
-    """Result of :func:`coarse_shift_px`."""
-
-    dx_px: float
-    dy_px: float
-    peak_z: float
-    """Peak of the line-levelled correlation over its surface's standard deviation."""
-    gradient_z: float
-    """The x-gradient correlation at the same shift, in its surface's standard deviations."""
-
-    @property
-    def trusted(self) -> bool:
-        """Both correlations agree that the shift is real (see :func:`coarse_shift_px`)."""
-        return self.peak_z >= COARSE_MIN_Z and self.gradient_z >= COARSE_MIN_GRADIENT_Z
-
-
-def _phase_correlation(
-    reference: npt.NDArray[np.float64], current: npt.NDArray[np.float64]
-) -> npt.NDArray[np.float64]:
-    """Inverse FFT of ``F(cur)·conj(F(ref)) / |…|``: a peak at ``d`` for ``cur(u) = ref(u − d)``."""
-    import numpy as np
-
-    cross = np.fft.rfft2(current) * np.conj(np.fft.rfft2(reference))
-    mag = np.abs(cross)
-    cross /= np.maximum(mag, mag.max() * 1e-12 + np.finfo(np.float64).tiny)
-    corr: npt.NDArray[np.float64] = np.fft.irfft2(cross, s=reference.shape)
-    return corr
-
-
-def coarse_shift_px(
-    reference: npt.NDArray[np.floating], current: npt.NDArray[np.floating]
-) -> CoarseShift:
-    """Integer drift ``(dx, dy)`` in px from whole-image phase correlations.
-
-    The shift is the highest peak of the phase correlation of the two images
-    with their per-line medians removed (line levelling, which takes out the
-    line-to-line offsets of AFM scans), without a window (a Hann window moved
-    the peak from 28 to 18 px on the real NanoScope pair). Shifts beyond half
-    the image wrap around, so the result only centres the block search.
-
-    Two significances, each in standard deviations of its correlation
-    surface: ``peak_z`` of that peak (unrelated images give about
-    ``sqrt(2 ln N)``, 4.1 for 200×200 px; consecutive HS-AFM frames 7–12; the
-    NanoScope pair 19) and ``gradient_z``, the correlation of the two
-    x-gradient images (eq. 2 of Yang et al. 2008, what the block engine sees)
-    at the same shift. Scan-line artefacts (streaks) correlate strongly in
-    the levelled heights at spurious shifts (z 14–37 on HS-AFM frames 22–31)
-    but not in the x-gradient (z about 0 there, 5–10 on good frames), so
-    :attr:`CoarseShift.trusted` requires both.
-
-    Parameters
-    ----------
-    reference, current : ndarray, shape (rows, cols)
-        Height images of equal shape.
-
-    Returns
-    -------
-    CoarseShift
-        Integer-valued ``dx_px`` in ``(-cols/2, cols/2]``, ``dy_px`` in
-        ``(-rows/2, rows/2]``, ``peak_z`` and ``gradient_z``.
-    """
-    import numpy as np
-
-    def levelled(h: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
-        g = np.asarray(h, dtype=np.float64)
-        return g - np.median(g, axis=1, keepdims=True)
-
-    def gradient(h: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
-        g: npt.NDArray[np.float64] = np.diff(np.asarray(h, dtype=np.float64), axis=1)
-        return g - float(g.mean())
-
-    def z(corr: npt.NDArray[np.float64], r: int, c: int) -> float:
-        spread = float(corr.std())
-        return float(corr[r, c]) / spread if spread > 0 else 0.0
-
-    corr = _phase_correlation(levelled(reference), levelled(current))
-    rows, cols = corr.shape
-    r, c = (int(v) for v in np.unravel_index(int(np.argmax(corr)), corr.shape))
-    dy = r - rows if r > rows // 2 else r
-    dx = c - cols if c > cols // 2 else c
-    g_corr = _phase_correlation(gradient(reference), gradient(current))
-    g_z = z(g_corr, dy % g_corr.shape[0], dx % g_corr.shape[1])
-    return CoarseShift(float(dx), float(dy), z(corr, r, c), g_z)
 
 
 # --------------------------------------------------------------------------- plots

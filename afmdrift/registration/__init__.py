@@ -13,6 +13,9 @@ Public API
     keyframe references).
 :class:`DriftResult`, :class:`BlockField`, :class:`TrackStep`
     Result records.
+:func:`coarse_shift`, :class:`CoarseShift`
+    The whole-image integer pre-alignment ``measure_drift`` uses when no
+    prior is given (line-levelled heights, checked by the x-gradient).
 :class:`RegistrationConfig`
     The ``[registration]`` configuration section.
 :class:`RegistrationError`, :class:`InvalidFrameError`
@@ -30,18 +33,21 @@ from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 
 if TYPE_CHECKING:
+    from afmdrift.registration._coarse import CoarseShift, coarse_shift
     from afmdrift.registration._measure import measure_drift
     from afmdrift.registration._result import BlockField, DriftResult
     from afmdrift.registration._tracker import DriftTracker, TrackStep
 
 __all__ = [
     "BlockField",
+    "CoarseShift",
     "DriftResult",
     "DriftTracker",
     "InvalidFrameError",
     "RegistrationConfig",
     "RegistrationError",
     "TrackStep",
+    "coarse_shift",
     "measure_drift",
 ]
 
@@ -50,6 +56,8 @@ __all__ = [
 _LAZY = {
     "measure_drift": "afmdrift.registration._measure",
     "BlockField": "afmdrift.registration._result",
+    "CoarseShift": "afmdrift.registration._coarse",
+    "coarse_shift": "afmdrift.registration._coarse",
     "DriftResult": "afmdrift.registration._result",
     "DriftTracker": "afmdrift.registration._tracker",
     "TrackStep": "afmdrift.registration._tracker",

@@ -74,6 +74,14 @@ class RegistrationConfig(BaseModel):
     coarse: bool = Field(
         True, description="Whole-frame coarse alignment when no expected drift is known."
     )
+    coarse_search_px: float = Field(
+        6.0,
+        ge=1,
+        le=1022,
+        description="Block search half-width (px) around a trusted coarse prior (capped at "
+        "max_shift_px): on periodic samples a wider search lets blocks lock onto "
+        "different lattice peaks.",
+    )
     refine: bool = Field(
         True, description="Second block pass when the drift is over 2 px off the prior."
     )

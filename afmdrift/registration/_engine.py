@@ -362,17 +362,23 @@ class BlockEngine:
         grad: F32,
         *,
         prior_px: tuple[float, float] = (0.0, 0.0),
+        search_px: float | None = None,
     ) -> tuple[BlockMeasurement, IArr, IArr]:
         """Measure every block's motion vector from ``ref`` to ``grad``.
+
+        ``search_px`` narrows the peak search to ±``search_px`` around the
+        prior (never wider than the layout's ``max_shift``).
 
         Returns the measurement and the window corners ``(top, left)`` used in
         the current frame (so its spectra can become the next reference).
         """
         my, mx = self.layout.max_shift
+        if search_px is not None:
+            my, mx = min(my, int(search_px)), min(mx, int(search_px))
         top, left, placed, near = self.positions_for(ref, prior_px)
 
         def work(chunk: _Chunk) -> _ChunkPeaks:
-            return self._measure_chunk(chunk, ref, grad, top, left)
+            return self._measure_chunk(chunk, ref, grad, top, left, (my, mx))
 
         parts = self._each_chunk(work)
         self._cur_band_mag = np.concatenate([p.band_mag for p in parts], axis=0)
@@ -403,16 +409,24 @@ class BlockEngine:
         return result, top, left
 
     def _measure_chunk(
-        self, chunk: _Chunk, ref: ReferenceSpectra, grad: F32, top: IArr, left: IArr
+        self,
+        chunk: _Chunk,
+        ref: ReferenceSpectra,
+        grad: F32,
+        top: IArr,
+        left: IArr,
+        search: tuple[int, int],
     ) -> _ChunkPeaks:
         """Spectra, correlation, candidate peaks, MSE verification and
         sub-pixel offsets of one chunk's blocks (``top``, ``left``: window
-        corners of every block in the current frame)."""
+        corners of every block in the current frame; ``search``: half-widths
+        ``(y, x)`` of the peak search, at most the layout's)."""
         cfg = self.config
         sl = chunk.sl
         fft = chunk.fft
         ey, ex = self.layout.ext
         my, mx = self.layout.max_shift
+        ry, rx = search
         band_mag = self._normalised_spectra(chunk, grad, top, left, self._current)
         np.multiply(self._current[sl], ref.conj_spectra[sl], out=fft.cross)
         band = None
@@ -427,6 +441,11 @@ class BlockEngine:
 
         # Top-K peaks in the search region, with non-maximum suppression.
         region = self._search_region(corr, chunk.region)
+        if (ry, rx) != (my, mx):  # a narrower search: mask the rest out
+            region[:, : my - ry] = -np.inf
+            region[:, my + ry + 1 :] = -np.inf
+            region[:, :, : mx - rx] = -np.inf
+            region[:, :, mx + rx + 1 :] = -np.inf
         n = region.shape[0]
         rows = np.arange(n, dtype=np.intp)
         hy, wx = region.shape[1:]

@@ -219,7 +219,9 @@ def measure_drift(
     prior_px : (float, float), optional
         Expected drift ``(dx, dy)`` in px. Windows in ``current`` are moved by
         its rounded value, so drifts up to ``prior ± max shift`` are measured.
-        Default: a whole-frame coarse alignment (``config.coarse``), or zero.
+        Default: the whole-image coarse alignment :func:`coarse_shift` when
+        ``config.coarse`` and its peak is trusted (the block search is then
+        narrowed to ±``config.coarse_search_px``), else zero.
 
     Returns
     -------
@@ -253,13 +255,15 @@ def measure_drift(
         g_cur = engine.gradient(cur)
         check_texture(g_ref, "reference")
         check_texture(g_cur, "current")
+        search = None
         if prior is None:
             prior = (0.0, 0.0)
             if cfg.coarse:
-                cx, cy = coarse_shift(g_ref, g_cur, eps_rel=cfg.eps_rel)
-                prior = (float(cx), float(cy))
+                coarse = coarse_shift(ref, cur)
+                if coarse.trusted:
+                    prior, search = coarse.prior_px, cfg.coarse_search_px
         ref_spec = engine.reference(g_ref)
-        meas, _, _ = measure_blocks(engine, ref_spec, g_cur, prior_px=prior)
+        meas, _, _ = measure_blocks(engine, ref_spec, g_cur, prior_px=prior, search_px=search)
     finally:
         _give_engine(engine)
     return combine(meas, engine=engine, pixel_size_nm=pixel, dtype=result_dtype(ref, cur))
@@ -284,13 +288,15 @@ def measure_blocks(
     grad: npt.NDArray[np.float32],
     *,
     prior_px: tuple[float, float],
+    search_px: float | None = None,
 ) -> tuple[BlockMeasurement, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Block pass around ``prior_px``, repeated once around the measured
     drift when that is more than ``REFINE_PX`` away (``config.refine``):
     windows then sit within half a pixel of their content, where the
     window-envelope correction of the sub-pixel estimate is most exact and
-    no content is lost at the window edges."""
-    meas, top, left = engine.measure(ref, grad, prior_px=prior_px)
+    no content is lost at the window edges. ``search_px`` narrows the peak
+    search (see :meth:`BlockEngine.measure`)."""
+    meas, top, left = engine.measure(ref, grad, prior_px=prior_px, search_px=search_px)
     if not engine.config.refine:
         return meas, top, left
     ok = meas.measured
@@ -299,7 +305,7 @@ def measure_blocks(
     est = np.median(meas.vectors_px[ok], axis=0)
     if float(np.max(np.abs(est - np.asarray(prior_px)))) > REFINE_PX:
         again = (float(est[0]), float(est[1]))
-        meas, top, left = engine.measure(ref, grad, prior_px=again)
+        meas, top, left = engine.measure(ref, grad, prior_px=again, search_px=search_px)
     return meas, top, left
 
 

@@ -29,7 +29,9 @@ comes out invalid (too few agreeing blocks) is reported in the returned
 the prediction are kept, the frame is skipped, and the next frame is
 measured against the same reference with the prediction extrapolated over
 the skipped frame. Before giving up on a frame, the tracker retries once
-from a whole-frame coarse alignment (``config.coarse``).
+from the whole-image coarse alignment (:func:`coarse_shift`, when trusted
+and ``config.coarse``); the first frame after the reference, whose motion
+is not known yet, starts from it, as :func:`measure_drift` does.
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.registration._coarse import coarse_shift
+from afmdrift.registration._coarse import CoarseShift, coarse_shift
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import RegistrationError
@@ -134,6 +136,8 @@ class DriftTracker:
         The FFT plans of the current frame shape are kept.
         """
         self._ref: ReferenceSpectra | None = None
+        self._ref_heights: npt.NDArray[np.float32] | None = None
+        self._motion_known = False  # True once a frame was accepted
         self._spare: npt.NDArray[np.float32] | None = None
         self._count = 0
         self._ref_index = 0
@@ -200,11 +204,12 @@ class DriftTracker:
         check_texture(grad, "frame")
         if self._ref is None:
             self._ref = engine.reference(grad)
+            self._ref_heights = heights.astype(np.float32)
             self._ref_index = self._count
             self._last_index = self._count
             self._count += 1
             return None
-        return self._step(engine, self._ref, grad, result_dtype(heights))
+        return self._step(engine, self._ref, grad, heights)
 
     # -- internals ---------------------------------------------------------------
 
@@ -229,25 +234,36 @@ class DriftTracker:
         engine: BlockEngine,
         ref: ReferenceSpectra,
         grad: npt.NDArray[np.float32],
-        dtype: np.dtype[np.floating],
+        heights: npt.NDArray[np.floating],
     ) -> TrackStep:
         cfg = self.config
+        dtype = result_dtype(heights)
         index = self._count
         gap = index - self._last_index
         prior = self._rel + self._velocity * gap
-        if cfg.reference == "consecutive" and float(np.max(np.abs(prior))) <= REFINE_PX:
+        search: float | None = None
+        coarse: CoarseShift | None = None
+        if cfg.coarse and not self._motion_known and self._ref_heights is not None:
+            # No accepted frame yet, so no expected motion: start from the
+            # coarse alignment, as measure_drift does.
+            coarse = coarse_shift(self._ref_heights, heights)
+            if coarse.trusted:
+                prior, search = np.asarray(coarse.prior_px), cfg.coarse_search_px
+        elif cfg.reference == "consecutive" and float(np.max(np.abs(prior))) <= REFINE_PX:
             # Small expected motion: leave the windows on the grid, so that
             # this frame's spectra can serve as the next reference unchanged.
             prior = np.zeros(2)
         meas_blocks, top, left = measure_blocks(
-            engine, ref, grad, prior_px=(float(prior[0]), float(prior[1]))
+            engine, ref, grad, prior_px=(float(prior[0]), float(prior[1])), search_px=search
         )
         meas = combine(meas_blocks, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
-        if not meas.valid and cfg.coarse:
-            cx, cy = coarse_shift(ref.grad, grad, eps_rel=cfg.eps_rel)
-            if (cx, cy) != (round(prior[0]), round(prior[1])):
+        if not meas.valid and cfg.coarse and self._ref_heights is not None:
+            if coarse is None:
+                coarse = coarse_shift(self._ref_heights, heights)
+            cx, cy = coarse.dx_px, coarse.dy_px
+            if coarse.trusted and search is None:
                 retry, top2, left2 = measure_blocks(
-                    engine, ref, grad, prior_px=(float(cx), float(cy))
+                    engine, ref, grad, prior_px=(cx, cy), search_px=cfg.coarse_search_px
                 )
                 again = combine(retry, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
                 if again.valid:
@@ -258,6 +274,10 @@ class DriftTracker:
         reanchor = False
         if meas.valid:
             reanchor = self._accept(engine, ref, grad, meas, index, gap, top, left)
+            self._motion_known = True
+            if reanchor:
+                # Kept (as float32) for the coarse retry of later frames.
+                self._ref_heights = heights.astype(np.float32)
         pos = self.position_px
         return TrackStep(
             frame_index=index,

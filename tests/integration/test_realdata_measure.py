@@ -25,10 +25,16 @@ import pytest
 from scipy.ndimage import fourier_shift
 
 from afmdrift.cli import main
-from afmdrift.cli._measure import coarse_shift_px, measure_pair, track_stack
+from afmdrift.cli._measure import measure_pair, track_stack
 from afmdrift.cli._measure import measurement_config as _config
 from afmdrift.io import AfmImage, load_image, load_stack
-from afmdrift.registration import InvalidFrameError, RegistrationConfig
+from afmdrift.registration import (
+    DriftTracker,
+    InvalidFrameError,
+    RegistrationConfig,
+    coarse_shift,
+    measure_drift,
+)
 
 pytestmark = pytest.mark.realdata
 
@@ -123,6 +129,33 @@ def test_nanoscope_pair_cli(real_file: RealFile, capsys: pytest.CaptureFixture[s
     assert doc["sigma_nm"] < 30.0  # half a pixel
 
 
+@pytest.mark.parametrize("config", [RegistrationConfig(), SMALL], ids=["64-128", "32-64"])
+def test_nanoscope_pair_measure_drift_default_coarse(
+    nanoscope: tuple[AfmImage, AfmImage], config: RegistrationConfig
+) -> None:
+    """Regression: the engine's own coarse alignment (2×2-binned gradient
+    images under a window) put the prior at (2, 18), a wrong lattice peak of
+    this ~10 px-period sample, so measure_drift without a prior came out
+    invalid or wrong. The checked coarse alignment finds (0, 28), and the
+    block search around it gives the README's shift of about 28 px along y,
+    for measure_drift and for a DriftTracker (used by the service)."""
+    a, b = nanoscope
+    assert a.pixel_size_nm == pytest.approx((58.59, 58.59), abs=0.01)
+    c = coarse_shift(a.heights_nm, b.heights_nm)
+    assert c.trusted
+    assert (c.dx_px, c.dy_px) == (0.0, 28.0)
+    r = measure_drift(a.heights_nm, b.heights_nm, pixel_size_nm=a.pixel_size_nm, config=config)
+    assert r.valid, r.reason
+    assert r.dy_px == pytest.approx(28.0, abs=1.0)
+    assert r.dx_px == pytest.approx(0.0, abs=1.0)
+    tracker = DriftTracker(pixel_size_nm=a.pixel_size_nm, config=config)
+    tracker.update(a.heights_nm)
+    step = tracker.update(b.heights_nm)  # prior 0 fails; the coarse retry finds it
+    assert step is not None
+    assert step.accepted, step.measurement.reason
+    assert step.position_px[1] == pytest.approx(r.dy_px, abs=0.05)
+
+
 # --------------------------------------------------------------------------- HS-AFM movie
 
 
@@ -150,7 +183,7 @@ def _closures(movie: list[AfmImage], last: int) -> list[tuple[int, float, float,
     for j in range(2, last + 1):
         if j not in chain:
             continue
-        if not coarse_shift_px(movie[0].heights_nm, movie[j].heights_nm).trusted:
+        if not coarse_shift(movie[0].heights_nm, movie[j].heights_nm).trusted:
             continue
         r = measure_pair(movie[0], movie[j], SMALL).result
         if not r.valid:

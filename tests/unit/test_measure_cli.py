@@ -11,12 +11,7 @@ import pytest
 from scipy.ndimage import fourier_shift, gaussian_filter
 
 from afmdrift.cli import main
-from afmdrift.cli._measure import (
-    COARSE_MIN_GRADIENT_Z,
-    COARSE_MIN_Z,
-    coarse_shift_px,
-    measurement_config,
-)
+from afmdrift.cli._measure import measurement_config
 from afmdrift.errors import ConfigError
 from afmdrift.registration import RegistrationConfig
 
@@ -180,36 +175,6 @@ def test_unrelated_images_are_not_a_confident_drift(
     main(["measure", a, b, "--pixel-size-nm", "1", "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert "not used" in doc["prior"]
-
-
-def test_coarse_shift_integer_and_significance() -> None:
-    ref = _texture(seed=9)
-    c = coarse_shift_px(ref, _shifted(ref, 17.0, -23.0))
-    assert (c.dx_px, c.dy_px) == (17.0, -23.0)
-    assert c.peak_z > 3 * COARSE_MIN_Z
-    assert c.gradient_z > 3 * COARSE_MIN_GRADIENT_Z
-    assert c.trusted
-    noise = coarse_shift_px(_texture(seed=10), _texture(seed=11))
-    assert noise.peak_z < COARSE_MIN_Z
-    assert not noise.trusted
-
-
-def test_coarse_streaks_are_not_trusted() -> None:
-    """Regression: scan-line streaks (here a random tilt per line, different in each
-    frame, as on HS-AFM frames 22-31) give a strong levelled-height peak at a
-    spurious shift but no x-gradient support; they must not steer the search."""
-    rng = np.random.default_rng(12)
-    x = np.arange(SIZE) - SIZE / 2
-
-    def streaks() -> np.ndarray:
-        return rng.normal(size=(SIZE, 1)) * x[None, :] * (5.0 / SIZE)
-
-    texture = _texture(seed=13)
-    c = coarse_shift_px(texture + streaks(), _shifted(texture, 0.3, 0.2) + streaks())
-    assert c.peak_z >= COARSE_MIN_Z
-    assert abs(c.dy_px) > 10  # the spurious peak the levelled heights pick
-    assert c.gradient_z < COARSE_MIN_GRADIENT_Z
-    assert not c.trusted
 
 
 def test_measurement_config_search_width() -> None:

@@ -139,7 +139,12 @@ def test_z_offset_tilt_and_line_offsets_do_not_change_the_result(
 
 
 def test_line_offsets_would_hurt_without_the_x_gradient(particles_640: np.ndarray) -> None:
-    """The invariance above comes from the x gradient: heights ('none') are hurt."""
+    """The invariance above comes from the x gradient: heights ('none') are hurt.
+
+    The coarse alignment levels the lines itself and the MSE check still
+    picks the right peaks, so the damage shows in the block stage: fewer
+    blocks agree and the uncertainty grows tenfold (measured: 46 against 59
+    valid blocks, sigma 0.18 against 0.017 nm)."""
     rng = np.random.default_rng(12)
     ref, cur = _pair(particles_640, (7.4, 2.2), rng=rng)
     cur = add_line_offsets(cur, rms_nm=8.0, rng=rng)
@@ -147,12 +152,10 @@ def test_line_offsets_would_hurt_without_the_x_gradient(particles_640: np.ndarra
     without = measure_drift(
         ref, cur, pixel_size_nm=PIXEL_NM, config=RegistrationConfig(gradient="none")
     )
-    err_with = math.hypot(with_grad.dx_px - 7.4, with_grad.dy_px - 2.2)
-    err_without = (
-        math.inf if not without.valid else math.hypot(without.dx_px - 7.4, without.dy_px - 2.2)
-    )
-    assert err_with < 0.05
-    assert err_without > 2 * err_with
+    assert with_grad.valid, with_grad.reason
+    assert math.hypot(with_grad.dx_px - 7.4, with_grad.dy_px - 2.2) < 0.05
+    assert without.valid_blocks < with_grad.valid_blocks - 5
+    assert not without.valid or without.sigma_nm > 5 * with_grad.sigma_nm
 
 
 @pytest.mark.parametrize("gradient", ["x", "y", "both", "none"])

@@ -6,6 +6,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import pyfftw
 import pytest
 
 from afmdrift.registration import RegistrationConfig, _fftw
@@ -14,8 +15,12 @@ from afmdrift.registration._fftw import BatchedRealFFT, default_wisdom_path, res
 
 @pytest.fixture(autouse=True)
 def _fresh_wisdom_state(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Each test sees wisdom files as never loaded in this process."""
+    """Each test sees wisdom files as never loaded in this process, and FFTW
+    with no wisdom in memory: wisdom loaded earlier in the process (e.g. the
+    default file, which may hold this module's own shapes from an earlier
+    run) would otherwise make planning add nothing, so nothing is written."""
     monkeypatch.setattr(_fftw, "_loaded", set())
+    pyfftw.forget_wisdom()
 
 
 def test_wisdom_path_precedence(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
