@@ -53,6 +53,9 @@ _CONVERGED_PX = 0.02
 #: not verified: at low SNR their MSE is as noisy as the right one's and would
 #: only add wrong picks.
 CANDIDATE_RATIO = 0.7
+#: Absolute floor of the spectrum magnitude (its reciprocal, 1e30, is finite
+#: in float32; any textured block's spectrum is many orders above it).
+_MAG_FLOOR = 1e-30
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
 #: Blocks per chunk: the block batch is split into chunks of at most this many
@@ -293,7 +296,11 @@ class BlockEngine:
         mag = np.abs(spec, out=chunk.mag)
         band_mag = self._band(mag)
         peak = mag.reshape(mag.shape[0], -1).max(axis=1)
-        mag += (self.config.eps_rel * np.maximum(peak, np.finfo(np.float32).tiny))[:, None, None]
+        # The floor keeps 1 / (|S| + floor) finite in float32 for blocks
+        # without texture (flat windows of near-blank frames: S = 0 exactly,
+        # or denormal); their normalised spectrum is then (about) zero, so
+        # they give no positive correlation peak and are not measured.
+        mag += np.maximum(self.config.eps_rel * peak, _MAG_FLOOR)[:, None, None]
         np.reciprocal(mag, out=mag)
         np.multiply(spec, mag, out=out[chunk.sl])
         return band_mag

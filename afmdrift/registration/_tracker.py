@@ -201,7 +201,7 @@ class DriftTracker:
             spare = None
         grad = engine.gradient(heights, out=spare)
         self._spare = grad
-        check_texture(grad, "frame")
+        check_texture(grad, "frame", gradient=self.config.gradient)
         if self._ref is None:
             self._ref = engine.reference(grad)
             self._ref_heights = heights.astype(np.float32)

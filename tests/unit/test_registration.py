@@ -384,6 +384,34 @@ def test_constant_and_textureless_images_are_rejected(good: np.ndarray) -> None:
         measure_drift(good, plane, pixel_size_nm=PIXEL_NM)
 
 
+def test_nearly_blank_frame_is_rejected(good: np.ndarray) -> None:
+    """A flat frame with a few isolated pixel steps (1 % of its x-gradient
+    non-zero) is refused: a handful of deltas once gave agreeing blocks."""
+    blank = np.zeros_like(good)
+    blank.flat[np.random.default_rng(1).choice(blank.size, 40, replace=False)] = 0.06
+    with pytest.raises(InvalidFrameError, match=r"nearly blank.*%"):
+        measure_drift(good, blank, pixel_size_nm=PIXEL_NM)
+
+
+def test_flat_windows_are_not_measured_and_raise_no_warnings(
+    particles_640: np.ndarray,
+) -> None:
+    """Regression: a window whose gradient is exactly zero has an all-zero
+    spectrum; normalising it overflowed (numpy RuntimeWarnings, errors in
+    this suite). Its blocks must simply not be measured while the textured
+    rest of the frame still gives the drift."""
+    ref, cur = _pair(particles_640, (3.3, -1.6), rng=np.random.default_rng(5))
+    ref[:, :200] = 7.0  # the left 200 columns flat in both frames
+    cur[:, :200] = 7.0
+    r = measure_drift(ref, cur, pixel_size_nm=PIXEL_NM)
+    assert r.valid, r.reason
+    assert abs(r.dx_px - 3.3) < 0.05
+    assert abs(r.dy_px + 1.6) < 0.05
+    left = r.field.centres_px[:, 0] < 100
+    assert left.any()
+    assert not r.field.measured[left].any()
+
+
 def test_shape_mismatch_names_both_shapes(good: np.ndarray) -> None:
     with pytest.raises(RegistrationError, match=r"\(96, 96\).*\(96, 80\)"):
         measure_drift(good, good[:, :80], pixel_size_nm=PIXEL_NM)
