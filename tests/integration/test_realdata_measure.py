@@ -40,6 +40,8 @@ pytestmark = pytest.mark.realdata
 
 RealFile = Callable[[str], Path]
 SMALL = _config(RegistrationConfig(), block_size=32, extended_size=64)
+#: Heights instead of the x gradient: better on the quantised HS-AFM movie (see below).
+HSAFM = _config(RegistrationConfig(gradient="none"), block_size=32, extended_size=64)
 #: Agreement required between a direct and a chained measurement (brief: 0.3 px).
 CLOSURE_PX = 0.3
 #: Border removed after Fourier shifting, so the periodic wrap-around never enters.
@@ -167,14 +169,16 @@ def movie(real_data_dir: Path) -> list[AfmImage]:
     return load_stack(path)
 
 
-def _closures(movie: list[AfmImage], last: int) -> list[tuple[int, float, float, float, float]]:
+def _closures(
+    movie: list[AfmImage], last: int, config: RegistrationConfig
+) -> list[tuple[int, float, float, float, float]]:
     """(j, error_x_px, error_y_px, sigma_x_px, sigma_y_px) of direct 0→j minus the chained
     consecutive track, for every j <= last where both are valid and frame j still
     correlates with frame 0 (coarse peak above its cut-off). Sigmas combine the
     engine's reported uncertainties of all measurements involved."""
     chain: dict[int, tuple[float, float, float, float]] = {}
     var = np.zeros(2)
-    for d in track_stack(movie[: last + 1], SMALL):
+    for d in track_stack(movie[: last + 1], config):
         if d["valid"]:
             px, py = movie[0].pixel_size_nm
             var += np.array([d["sigma_x_nm"] / px, d["sigma_y_nm"] / py]) ** 2
@@ -185,7 +189,7 @@ def _closures(movie: list[AfmImage], last: int) -> list[tuple[int, float, float,
             continue
         if not coarse_shift(movie[0].heights_nm, movie[j].heights_nm).trusted:
             continue
-        r = measure_pair(movie[0], movie[j], SMALL).result
+        r = measure_pair(movie[0], movie[j], config).result
         if not r.valid:
             continue
         px, py = movie[0].pixel_size_nm
@@ -199,15 +203,31 @@ def _closures(movie: list[AfmImage], last: int) -> list[tuple[int, float, float,
 @pytest.mark.slow
 def test_hsafm_direct_equals_sum_of_consecutive(movie: list[AfmImage]) -> None:
     """Frame 0→j measured directly agrees with the sum of the consecutive
-    measurements, for every j up to 21 where both are valid and frame j still
-    correlates with frame 0 (later frames are line artefacts or blank).
+    measurements within 0.3 px, for every j up to 21 where both are valid and
+    frame j still correlates with frame 0 (coarse alignment trusted: frames
+    2–13; later frames decorrelate, are line artefacts or blank).
 
-    The bound is 0.3 px plus three combined standard uncertainties. A flat
-    0.3 px is not attainable on this movie: each measurement carries about
-    0.15–0.3 px of random error (the engine's sigma, which the observed
-    closures confirm), so a chain of j steps is uncertain by that times
-    sqrt(j + 1); observed closures were 0.1–0.5 px for j <= 13."""
-    checked = _closures(movie, last=21)
+    This holds with heights (``gradient = "none"``) and 32/64 px blocks:
+    closures 0.06–0.27 px, 37–44 of 49 blocks valid. With the default x
+    gradient it does not (0.14–0.52 px over frames 2–13, growing with j, 23–37
+    valid blocks): the movie's heights are quantised to about 30 levels, and
+    differentiating them whitens and doubles that quantisation noise, which
+    these smooth, small (200 px) frames cannot average away; each x-gradient
+    step carries 0.15–0.2 px of noise and the chain random-walks. Line
+    offsets, which the x gradient exists to cancel, are small in this movie."""
+    checked = _closures(movie, last=21, config=HSAFM)
+    assert len(checked) >= 10, f"too few comparable frames: {[c[0] for c in checked]}"
+    for j, ex, ey, _sx, _sy in checked:
+        assert abs(ex) <= CLOSURE_PX, f"frame {j}: x {ex:+.3f} px"
+        assert abs(ey) <= CLOSURE_PX, f"frame {j}: y {ey:+.3f} px"
+
+
+@pytest.mark.slow
+def test_hsafm_x_gradient_closures_stay_within_their_uncertainty(movie: list[AfmImage]) -> None:
+    """With the default x gradient the closures exceed 0.3 px (see above) but
+    stay within 0.3 px plus three combined standard uncertainties: the
+    engine's sigma accounts for the extra quantisation noise."""
+    checked = _closures(movie, last=21, config=SMALL)
     assert len(checked) >= 10, f"too few comparable frames: {[c[0] for c in checked]}"
     for j, ex, ey, sx, sy in checked:
         assert abs(ex) <= CLOSURE_PX + 3 * sx, f"frame {j}: x {ex:+.3f} px, sigma {sx:.3f}"
