@@ -664,14 +664,22 @@ class DriftService:
         async def tick() -> None:
             wall = time.time()
             t = self.clock.at(wall)
-            msg = self.offset_at(wall, t)
+            msg = self._offset_sample(wall, t)
             self._last_offset = msg
             await publisher.send(msg)
 
         await self._every(1.0 / self.svc.offset_rate_hz, tick, catch_up_s=0.05)
 
-    def offset_at(self, wall_s: float, t_s: float | None) -> OffsetMsg:
-        """The limited offset sample at instrument time ``t_s`` (flags included)."""
+    @property
+    def last_offset(self) -> OffsetMsg | None:
+        """The offset sample published last (``None`` before the first)."""
+        return self._last_offset
+
+    def _offset_sample(self, wall_s: float, t_s: float | None) -> OffsetMsg:
+        """The next offset sample: d(t_s) through the limiter, with its flags.
+
+        Advances the limiter and the sequence number: only the offset loop calls it.
+        """
         seq = self._next("offset")
         if t_s is None or self.curve is None:
             return OffsetMsg(
