@@ -17,8 +17,8 @@ import annotated_types
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
-from afmdrift.errors import ConfigError
 from afmdrift.drivers._config import DriverConfig
+from afmdrift.errors import ConfigError
 from afmdrift.model._config import ModelConfig
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.service._config import ServiceConfig
