@@ -15,6 +15,7 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 from __future__ import annotations
 
 import itertools
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -66,6 +67,17 @@ CHUNK_BLOCKS = 32
 
 _pool_lock = threading.Lock()
 _pools: dict[int, ThreadPoolExecutor] = {}
+
+
+def _forget_pools_after_fork() -> None:
+    # A forked child has none of the parent's worker threads: a pool taken
+    # over from the parent would queue work that never runs.
+    global _pool_lock
+    _pool_lock = threading.Lock()
+    _pools.clear()
+
+
+os.register_at_fork(after_in_child=_forget_pools_after_fork)
 
 
 def _worker_pool(workers: int) -> ThreadPoolExecutor:

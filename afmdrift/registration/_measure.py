@@ -320,7 +320,7 @@ def check_texture(grad: npt.NDArray[np.float32], name: str, *, gradient: str) ->
     InvalidFrameError
         The image is constant (a plane or a constant frame), or, for the
         gradient modes (``gradient`` not ``"none"``), fewer than
-        :data:`MIN_TEXTURE_FRACTION` of its pixels are non-zero: a
+        :data:`MIN_TEXTURE_FRACTION` of its pixels (every 4th row) are non-zero: a
         near-blank frame, e.g. HS-AFM frame 27 of ``hsafm_sample_0.asd``
         (9 height levels, 0.18 % non-zero x-gradient; good frames of that
         movie 70–75 %), on which a few blocks once agreed on a confident
@@ -332,7 +332,8 @@ def check_texture(grad: npt.NDArray[np.float32], name: str, *, gradient: str) ->
             "nothing to register"
         )
     if gradient != "none":
-        fraction = np.count_nonzero(grad) / grad.size
+        sample = grad[::4]  # every 4th row: the share, at a quarter of the cost
+        fraction = np.count_nonzero(sample) / sample.size
         if fraction < MIN_TEXTURE_FRACTION:
             raise InvalidFrameError(
                 f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "

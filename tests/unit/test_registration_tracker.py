@@ -225,3 +225,26 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(reference: str)
         out.append((pair.dx_px, pair.dy_px, pair.field.vectors_px.tobytes()))
         runs.append(out)
     assert runs[0] == runs[1] == runs[2]
+
+
+def test_forked_child_can_measure_after_the_parent_started_its_worker_pool() -> None:
+    """Regression guard: a child forked after the parent's worker threads
+    started must not inherit the pool (its work would never run: a hang)."""
+    import os
+    import signal
+
+    t = np.arange(3)
+    frames = _sequence(np.column_stack([1.5 * t, 0.5 * t]), shape=(512, 512), seed=4)
+    cfg = RegistrationConfig(threads=2)
+    parent = measure_drift(frames[0], frames[2], pixel_size_nm=2.0, config=cfg)
+    assert parent.valid, parent.reason
+    pid = os.fork()
+    if pid == 0:  # child: exit code 0 only if the same result comes out
+        signal.alarm(60)  # a hang (the failure guarded against) kills the child
+        try:
+            child = measure_drift(frames[0], frames[2], pixel_size_nm=2.0, config=cfg)
+            os._exit(0 if child.dx_px == parent.dx_px else 1)
+        finally:
+            os._exit(2)
+    _, status = os.waitpid(pid, 0)
+    assert os.waitstatus_to_exitcode(status) == 0, "child failed or hung (SIGALRM = -14)"
