@@ -18,14 +18,15 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
-from types import MappingProxyType
-from typing import Protocol, runtime_checkable
+from types import MappingProxyType, TracebackType
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 import numpy.typing as npt
 
 __all__ = [
     "ChannelSample",
+    "ConnectOnEnter",
     "Event",
     "EventKind",
     "Frame",
@@ -165,3 +166,29 @@ class Instrument(Protocol):
         ...
 
     async def get_offset(self) -> tuple[float, float]: ...
+
+
+class _Connectable(Protocol):
+    async def connect(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+
+_C = TypeVar("_C", bound=_Connectable)
+
+
+class ConnectOnEnter:
+    """Mixin for instruments: ``async with instrument:`` connects on entry and
+    closes on exit, whatever happened inside the block."""
+
+    async def __aenter__(self: _C) -> _C:
+        await self.connect()
+        return self
+
+    async def __aexit__(
+        self: _Connectable,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.close()

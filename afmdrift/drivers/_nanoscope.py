@@ -32,10 +32,9 @@ import logging
 import threading
 import time
 from collections.abc import Callable
-from types import TracebackType
-from typing import Self, TypeVar
+from typing import TypeVar
 
-from afmdrift.drivers._base import ChannelSample, Event, Frame, InstrumentInfo
+from afmdrift.drivers._base import ChannelSample, ConnectOnEnter, Event, Frame, InstrumentInfo
 from afmdrift.drivers._protocol import (
     COMMANDS,
     InstrumentDisconnected,
@@ -64,7 +63,7 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
-class NanoScopeDriver:
+class NanoScopeDriver(ConnectOnEnter):
     """A NanoScope/SCPI-style controller seen through the :class:`Instrument` interface.
 
     Parameters
@@ -144,18 +143,6 @@ class NanoScopeDriver:
     def _close_sync(self) -> None:
         with self._io_lock:
             self.transport.close()
-
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     async def _open_with_backoff(self) -> None:
         last: InstrumentDisconnected | None = None

@@ -25,13 +25,20 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from pathlib import Path
-from types import MappingProxyType, TracebackType
-from typing import TYPE_CHECKING, Self
+from types import MappingProxyType
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from afmdrift._version import __version__
-from afmdrift.drivers._base import ChannelSample, Event, EventKind, Frame, InstrumentInfo
+from afmdrift.drivers._base import (
+    ChannelSample,
+    ConnectOnEnter,
+    Event,
+    EventKind,
+    Frame,
+    InstrumentInfo,
+)
 
 if TYPE_CHECKING:
     from afmdrift.session import Session
@@ -39,7 +46,7 @@ if TYPE_CHECKING:
 __all__ = ["ReplayInstrument"]
 
 
-class ReplayInstrument:
+class ReplayInstrument(ConnectOnEnter):
     """A recorded session behaving as an instrument.
 
     Parameters
@@ -93,18 +100,6 @@ class ReplayInstrument:
 
     async def close(self) -> None:
         return None
-
-    async def __aenter__(self) -> Self:
-        await self.connect()
-        return self
-
-    async def __aexit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        await self.close()
 
     def _now(self) -> float:
         if self.speed is None:
