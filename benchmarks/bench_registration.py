@@ -66,56 +66,77 @@ def make_pool(rng: np.random.Generator) -> tuple[list[np.ndarray], np.ndarray]:
 
 class BareFFT:
     """The bare transforms one frame needs, on separately planned arrays:
-    one forward and one inverse batched real FFT over every block.
+    one forward and one inverse batched real FFT over every block (the
+    inverse pruned to the rows of the search region, as the engine's).
 
-    ``chunked``: the engine's split (chunks of ``CHUNK_BLOCKS`` blocks, one
-    single-threaded plan pair each) run on ``threads`` threads the way the
-    engine runs them; otherwise one plan over all blocks with FFTW's own
-    ``threads``.
+    ``chunked``: the engine's split (chunks of up to ``CHUNK_BLOCKS`` blocks,
+    each a run of batches of ``BATCH_BLOCKS`` on single-threaded plans whose
+    arrays the chunk's batches of one size share) run on ``threads`` threads
+    the way the engine runs them; otherwise one plan over all blocks with
+    FFTW's own ``threads``.
     """
 
     def __init__(self, engine: BlockEngine, cfg: RegistrationConfig, *, chunked: bool) -> None:
         n = engine.layout.n_blocks
-        sizes = [c.sl.stop - c.sl.start for c in engine._chunks] if chunked else [n]
-        self.threads = cfg.threads
-        self.ffts = [
-            BatchedRealFFT(
+        wisdom = resolve_wisdom_path(cfg.fftw_wisdom)
+
+        def plan(size: int, threads: int) -> BatchedRealFFT:
+            return BatchedRealFFT(
                 size,
                 engine.layout.ext,
-                threads=1 if chunked else cfg.threads,
+                threads=threads,
                 planner=cfg.fftw_planner,
-                wisdom_path=resolve_wisdom_path(cfg.fftw_wisdom),
+                wisdom_path=wisdom,
+                out_rows=2 * engine.layout.max_shift[0] + 1,
             )
-            for size in sizes
-        ]
-        rng = np.random.default_rng(0)
-        for fft in self.ffts:
-            fft.real[:] = rng.standard_normal(fft.real.shape)
-            fft.forward()
+
+        self.chunks: list[list[BatchedRealFFT]] = []
+        if chunked:
+            for chunk in engine._chunks:
+                shared: dict[int, BatchedRealFFT] = {}
+                runs = []
+                for batch in chunk.batches:
+                    size = batch.sl.stop - batch.sl.start
+                    if size not in shared:
+                        shared[size] = plan(size, 1)
+                    runs.append(shared[size])
+                self.chunks.append(runs)
+        else:
+            self.chunks.append([plan(n, cfg.threads)])
+        self.inputs = {
+            id(fft): np.random.default_rng(0).standard_normal(fft.real.shape).astype(np.float32)
+            for runs in self.chunks
+            for fft in runs
+        }
         self.pool = (
             ThreadPoolExecutor(max_workers=cfg.threads - 1)
-            if chunked and cfg.threads > 1 and len(sizes) > 1
+            if chunked and cfg.threads > 1 and len(self.chunks) > 1
             else None
         )
 
     @staticmethod
-    def _run(fft: BatchedRealFFT) -> None:
-        fft.forward()
-        fft.inverse()
+    def _run(runs: list[BatchedRealFFT]) -> None:
+        for fft in runs:
+            fft.forward()
+            fft.inverse()
 
     def time(self) -> tuple[float, float]:
-        """Wall and CPU seconds for one frame's forward plus inverse transforms
-        (the copy that refills the inverse's input, which FFTW destroys, is
-        not counted)."""
-        for fft in self.ffts:
-            fft.cross[:] = fft.spectrum
+        """Wall and CPU seconds for one frame's forward plus inverse transforms.
+
+        The inputs are refilled before timing (not counted): each round trip
+        scales the data by the block size, and a chunk runs at most 8 batches
+        through the same arrays, so the values stay finite (×2^112 at most).
+        """
+        for runs in self.chunks:
+            for fft in runs:
+                fft.real[:] = self.inputs[id(fft)]
         t0, c0 = time.perf_counter(), time.process_time()
         if self.pool is None:
-            for fft in self.ffts:
-                self._run(fft)
+            for runs in self.chunks:
+                self._run(runs)
         else:
-            futures = [self.pool.submit(self._run, fft) for fft in self.ffts[1:]]
-            self._run(self.ffts[0])
+            futures = [self.pool.submit(self._run, runs) for runs in self.chunks[1:]]
+            self._run(self.chunks[0])
             for f in futures:
                 f.result()
         return time.perf_counter() - t0, time.process_time() - c0

@@ -122,14 +122,25 @@ class BatchedRealFFT:
     wisdom_path : Path or None
         Wisdom file to load before and update after planning.
 
+    out_rows : int, optional
+        Rows of the inverse transform's output that are needed, from the
+        first (default: all). Fewer rows make :meth:`inverse` a pruned
+        transform: the column transforms run over the whole spectrum, the
+        row transforms only for the first ``out_rows`` rows (with half the
+        rows, about 30 % less work than the full 2-D inverse).
+
     Attributes
     ----------
     real : ndarray, shape (n_blocks, rows, cols), float32
-        Aligned input of :meth:`forward` and output of :meth:`inverse`.
+        Aligned input of :meth:`forward`.
     spectrum : ndarray, shape (n_blocks, rows, cols // 2 + 1), complex64
-        Aligned output of :meth:`forward`.
-    cross : ndarray, shape (n_blocks, rows, cols // 2 + 1), complex64
-        Aligned input of :meth:`inverse` (overwritten by the transform).
+        Aligned output of :meth:`forward` and input of :meth:`inverse`
+        (overwritten by the inverse transform): the caller turns the spectra
+        into what is to be transformed back in place, so that one batch's
+        arrays stay small enough for the core's cache.
+    out : ndarray, shape (n_blocks, out_rows, cols), float32
+        Output of :meth:`inverse` (``real`` itself when all rows are
+        needed).
     """
 
     def __init__(
@@ -140,6 +151,7 @@ class BatchedRealFFT:
         threads: int = 1,
         planner: Planner = "measure",
         wisdom_path: Path | None = None,
+        out_rows: int | None = None,
     ) -> None:
         rows, cols = block_shape
         spec_shape = (n_blocks, rows, cols // 2 + 1)
@@ -147,7 +159,12 @@ class BatchedRealFFT:
             (n_blocks, rows, cols), dtype="float32"
         )
         self.spectrum: npt.NDArray[np.complex64] = pyfftw.empty_aligned(spec_shape, "complex64")
-        self.cross: npt.NDArray[np.complex64] = pyfftw.empty_aligned(spec_shape, "complex64")
+        pruned = out_rows is not None and out_rows < rows
+        self.out: npt.NDArray[np.float32] = (
+            pyfftw.empty_aligned((n_blocks, out_rows, cols), dtype="float32")
+            if pruned
+            else self.real
+        )
         flags = (_FLAGS[planner], "FFTW_DESTROY_INPUT")
         with _lock:
             if wisdom_path is not None:
@@ -161,22 +178,48 @@ class BatchedRealFFT:
                 flags=flags,
                 threads=threads,
             )
-            self._inverse = pyfftw.FFTW(
-                self.cross,
-                self.real,
-                axes=(1, 2),
-                direction="FFTW_BACKWARD",
-                flags=flags,
-                threads=threads,
-            )
+            self._inverse: tuple[pyfftw.FFTW, ...]
+            if pruned:
+                self._inverse = (
+                    pyfftw.FFTW(
+                        self.spectrum,
+                        self.spectrum,
+                        axes=(1,),
+                        direction="FFTW_BACKWARD",
+                        flags=flags,
+                        threads=threads,
+                    ),
+                    pyfftw.FFTW(
+                        self.spectrum[:, :out_rows, :],
+                        self.out,
+                        axes=(2,),
+                        direction="FFTW_BACKWARD",
+                        flags=flags,
+                        threads=threads,
+                    ),
+                )
+            else:
+                self._inverse = (
+                    pyfftw.FFTW(
+                        self.spectrum,
+                        self.real,
+                        axes=(1, 2),
+                        direction="FFTW_BACKWARD",
+                        flags=flags,
+                        threads=threads,
+                    ),
+                )
             if wisdom_path is not None and pyfftw.export_wisdom() != before:
                 _save_wisdom(wisdom_path)
         self.real.fill(0.0)
+        self.out.fill(0.0)
 
     def forward(self) -> None:
         """``spectrum = rfft2(real)`` over the last two axes (unnormalised)."""
         self._forward.execute()
 
     def inverse(self) -> None:
-        """``real = irfft2(cross) · rows · cols`` (unnormalised; destroys ``cross``)."""
-        self._inverse.execute()
+        """``out = irfft2(spectrum)[:, :out_rows] · rows · cols`` (unnormalised;
+        destroys ``spectrum``)."""
+        for plan in self._inverse:
+            plan.execute()

@@ -48,7 +48,6 @@ def test_new_plans_write_wisdom_that_a_later_run_reads(tmp_path: Path) -> None:
     fft.real[:] = x
     fft.forward()
     np.testing.assert_allclose(fft.spectrum[1], np.fft.rfft2(x[1]), rtol=1e-4, atol=1e-3)
-    fft.cross[:] = fft.spectrum
     fft.inverse()
     np.testing.assert_allclose(fft.real / (42 * 38), x, atol=1e-4)
 

@@ -1,0 +1,553 @@
+"""Compiled per-block passes of the block engine (Numba, no GIL).
+
+NumPy runs each step of the per-frame work (cut out and window the blocks,
+normalise the spectra, multiply by the reference, search the peaks, verify
+them by MSE, refine to sub-pixel) as a separate pass over the whole block
+stack, each holding the GIL for its many small operations. These kernels do
+the same arithmetic block by block in one or two passes, release the GIL,
+and so run concurrently on the engine's chunk threads beside the FFTW
+transforms. Each kernel works on one chunk's blocks and writes into arrays
+the caller owns; none allocates per frame.
+
+Complex spectra are passed as float32 views with interleaved real and
+imaginary parts (``spectrum.view(np.float32)``: shape ``(n, rows,
+2 * (cols // 2 + 1))``), so that the loops are plain float32 arithmetic the
+compiler vectorises.
+
+Results do not depend on how the blocks are split or on the thread count:
+every block is computed on its own, in a fixed order.
+
+The kernels are compiled on first use and cached on disk by Numba
+(``__pycache__`` beside this file, or ``$NUMBA_CACHE_DIR``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = [
+    "dft_subpixel",
+    "normalise_cross",
+    "normalise_reference",
+    "pick_peaks",
+    "window_blocks",
+]
+
+_CACHE = True
+_jit = numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False)
+
+#: Newton iterations of the ``dft`` sub-pixel method after the quadratic start
+#: (quadratic convergence: the second step checks that the first converged).
+NEWTON_STEPS = 2
+#: Largest Newton step (px) and the last step below which it has converged.
+MAX_STEP_PX = 1.0
+CONVERGED_PX = 0.02
+
+
+@_jit
+def window_blocks(grad, top, left, window, out):  # type: ignore[no-untyped-def]
+    """``out[i] = grad[top[i]:top[i]+E, left[i]:left[i]+E] * window``.
+
+    grad : (rows, cols) float32; top, left : (n,) intp; window : (Ey, Ex)
+    float32; out : (n, Ey, Ex) float32.
+    """
+    n, ey, ex = out.shape
+    for i in range(n):
+        t = top[i]
+        le = left[i]
+        for r in range(ey):
+            src = grad[t + r, le : le + ex]
+            w = window[r]
+            dst = out[i, r]
+            for c in range(ex):
+                dst[c] = src[c] * w[c]
+
+
+@_jit
+def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-untyped-def]
+    """Subtract block ``i``'s window-weighted mean: the window's DFT (a few
+    non-zero terms ``w_vals`` at ``(w_rows, w_cols)``) times the mean."""
+    mean = spec[i, 0, 0] / w_sum
+    for j in range(w_rows.size):
+        r = w_rows[j]
+        c = 2 * w_cols[j]
+        spec[i, r, c] -= mean * w_vals[j, 0]
+        spec[i, r, c + 1] -= mean * w_vals[j, 1]
+
+
+@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+def _max_abs2(row):  # type: ignore[no-untyped-def]
+    """Largest ``re² + im²`` of an interleaved complex row (finite input;
+    fastmath lets the compiler vectorise the maximum, which is exact in any
+    order)."""
+    peak2 = np.float32(0.0)
+    for k in range(row.size // 2):
+        m2 = row[2 * k] * row[2 * k] + row[2 * k + 1] * row[2 * k + 1]
+        peak2 = max(peak2, m2)
+    return peak2
+
+
+@_jit
+def _floor(spec, i, eps_rel, floor):  # type: ignore[no-untyped-def]
+    """Magnitude floor of block ``i``: ``max(eps_rel · max|S|, floor)``."""
+    peak2 = np.float32(0.0)
+    for r in range(spec.shape[1]):
+        peak2 = max(peak2, _max_abs2(spec[i, r]))
+    return np.float32(max(eps_rel * math.sqrt(peak2), floor))
+
+
+@_jit
+def _band_row(r, rows, ky):  # type: ignore[no-untyped-def]
+    """Band row (``ky = -ky_max .. +ky_max``) of spectrum row ``r``, or -1."""
+    if r <= ky:
+        return r + ky
+    if r >= rows - ky:
+        return r - (rows - ky)
+    return -1
+
+
+@_jit
+def _magnitudes(row, out):  # type: ignore[no-untyped-def]
+    """``out[k] = |row[k]|`` for the first ``out.size`` elements of an
+    interleaved complex row."""
+    for k in range(out.size):
+        re = row[2 * k]
+        im = row[2 * k + 1]
+        out[k] = math.sqrt(re * re + im * im)
+
+
+@_jit
+def _normalised(re, im, a):  # type: ignore[no-untyped-def]
+    """``(re, im) / (|re + i im| + a)``."""
+    inv = np.float32(1.0) / (np.float32(math.sqrt(re * re + im * im)) + a)
+    return re * inv, im * inv
+
+
+@_jit
+def _reference_row(s, ramp, o, a):  # type: ignore[no-untyped-def]
+    """``o = conj(s / (|s| + a)) · ramp`` over an interleaved complex row."""
+    for k in range(s.size // 2):
+        re, im = _normalised(s[2 * k], s[2 * k + 1], a)
+        o[2 * k] = re * ramp[2 * k] + im * ramp[2 * k + 1]
+        o[2 * k + 1] = re * ramp[2 * k + 1] - im * ramp[2 * k]
+
+
+@_jit
+def normalise_reference(  # type: ignore[no-untyped-def]
+    spec, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx, ramp, out, band_mag
+):
+    """Reference spectra: remove each block's weighted mean from ``spec`` (in
+    place), write ``out = conj(S / (|S| + a)) · ramp`` and ``band_mag = |S|``
+    in the sub-pixel band (rows ``-ky..ky``, columns ``0..kx``).
+
+    The phase ramp ``exp(-2πi k·m)`` (``ramp``: one block's spectrum shape)
+    shifts every correlation by ``m``, the search radius, so that shifts
+    ``-m..m`` come out of the inverse FFT as rows and columns ``0..2m``.
+
+    spec, ramp, out : (n, rows, 2·half) float32 (interleaved complex);
+    w_vals : (m, 2) float32; band_mag : (n, 2·ky + 1, kx + 1) float32.
+    """
+    n, rows = spec.shape[0], spec.shape[1]
+    for i in range(n):
+        _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
+        a = _floor(spec, i, eps_rel, floor)
+        for r in range(rows):
+            b = _band_row(r, rows, ky)
+            if b >= 0:
+                _magnitudes(spec[i, r], band_mag[i, b])
+            _reference_row(spec[i, r], ramp[r], out[i, r], a)
+
+
+@_jit
+def _cross_row(s, q, a):  # type: ignore[no-untyped-def]
+    """``s = s / (|s| + a) · q`` in place over an interleaved complex row."""
+    for k in range(s.size // 2):
+        re, im = _normalised(s[2 * k], s[2 * k + 1], a)
+        s[2 * k] = re * q[2 * k] - im * q[2 * k + 1]
+        s[2 * k + 1] = re * q[2 * k + 1] + im * q[2 * k]
+
+
+@_jit
+def normalise_cross(  # type: ignore[no-untyped-def]
+    spec,
+    w_rows,
+    w_cols,
+    w_vals,
+    w_sum,
+    eps_rel,
+    floor,
+    ky,
+    kx,
+    ref,
+    ref_band_mag,
+    ramp,
+    keep,
+    band_mag,
+    band,
+):
+    """Current spectra against a reference, in one pass per block.
+
+    Removes each block's window-weighted mean from ``spec`` and turns it in
+    place into the normalised cross-power spectrum ``Ŝ · ref`` with
+    ``Ŝ = S / (|S| + a)`` and ``ref`` the reference's ``conj(R̂) · ramp``
+    (see :func:`normalise_reference`): the input of the inverse FFT. Also
+    writes ``band_mag = |S|`` in the sub-pixel band; if ``keep`` has blocks,
+    ``keep = conj(Ŝ) · ramp`` (the frame is to become the next reference);
+    and, if ``band`` has blocks, the weighted band ``band = Ŝ · ref · |S| ·
+    |R|`` of the ``dft`` sub-pixel method. ``spec``, ``ref``, ``ramp``,
+    ``keep`` and ``band`` are interleaved complex.
+    """
+    n, rows = spec.shape[0], spec.shape[1]
+    keeping = keep.shape[0] > 0
+    with_band = band.shape[0] > 0
+    for i in range(n):
+        _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
+        a = _floor(spec, i, eps_rel, floor)
+        for r in range(rows):
+            s = spec[i, r]
+            b = _band_row(r, rows, ky)
+            if b >= 0:
+                _magnitudes(s, band_mag[i, b])
+            if keeping:
+                _reference_row(s, ramp[r], keep[i, r], a)
+            _cross_row(s, ref[i, r], a)
+            if b >= 0 and with_band:
+                for k in range(kx + 1):
+                    w = band_mag[i, b, k] * ref_band_mag[i, b, k]
+                    band[i, b, 2 * k] = s[2 * k] * w
+                    band[i, b, 2 * k + 1] = s[2 * k + 1] * w
+
+
+@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+def _row_max(row, x0, x1):  # type: ignore[no-untyped-def]
+    """Highest value of ``row[x0..x1]`` and its first column.
+
+    The row holds finite values; fastmath lets the compiler vectorise the
+    maximum (exact in any order), and a second scan finds its first column.
+    """
+    m = row[x0]
+    for c in range(x0, x1 + 1):
+        m = max(m, row[c])
+    for c in range(x0, x1 + 1):
+        if row[c] == m:
+            return m, c
+    return m, x0
+
+
+@_jit
+def _row_max_masked(row, iy, x0, x1, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-def]
+    """As :func:`_row_max`, skipping the squares of half-size ``nms`` around
+    the ``n_acc`` accepted peaks ``(acc_y, acc_x)`` that cover row ``iy``."""
+    best = -np.inf
+    arg = -1
+    for ix in range(x0, x1 + 1):
+        skip = False
+        for q in range(n_acc):
+            if abs(iy - acc_y[q]) <= nms and abs(ix - acc_x[q]) <= nms:
+                skip = True
+        if not skip and row[ix] > best:
+            best = row[ix]
+            arg = ix
+    return best, arg
+
+
+@_jit
+def _block_mse(  # type: ignore[no-untyped-def]
+    grad, ref_grad, y0, x0, shift_y, shift_x, mse_rows, mse_cols
+):
+    """Mean squared difference (mean removed) between the reference's inner
+    block at ``(y0, x0)`` and the current frame shifted by ``(shift_y,
+    shift_x)``, on the lattice ``mse_rows × mse_cols``. Samples falling
+    outside the current image are left out; fewer than a quarter inside
+    gives ``inf``."""
+    rows_img, cols_img = grad.shape
+    total = mse_rows.size * mse_cols.size
+    s1 = 0.0
+    s2 = 0.0
+    cnt = 0
+    for a in range(mse_rows.size):
+        ry = y0 + mse_rows[a]
+        cy = ry + shift_y
+        if cy < 0 or cy >= rows_img:
+            continue
+        for b in range(mse_cols.size):
+            rx = x0 + mse_cols[b]
+            cx = rx + shift_x
+            if cx < 0 or cx >= cols_img:
+                continue
+            d = np.float64(grad[cy, cx] - ref_grad[ry, rx])
+            s1 += d
+            s2 += d * d
+            cnt += 1
+    if cnt < 0.25 * total:
+        return np.inf
+    mean = s1 / cnt
+    return max(s2 / cnt - mean * mean, 0.0)
+
+
+@_jit
+def pick_peaks(  # type: ignore[no-untyped-def]
+    corr,
+    search,
+    peaks,
+    ratio,
+    nms,
+    grad,
+    ref_grad,
+    ref_top,
+    ref_left,
+    top,
+    left,
+    inner,
+    mse_rows,
+    mse_cols,
+    out_sy,
+    out_sx,
+    out_peak,
+    out_mse,
+):
+    """Top-K correlation peaks per block, verified by MSE.
+
+    ``corr[i, iy, ix]`` is block ``i``'s correlation at the shift ``(iy - my,
+    ix - mx)`` (rows and columns ``0..2m``; ``search = (ry, rx, my, mx)``).
+    Searches shifts within ``±(ry, rx)`` (``ry ≤ my``, ``rx ≤ mx``) for up
+    to ``peaks`` maxima, greedily, each at least ``nms`` px (per axis)
+    from the previous ones; a peak is a candidate while it is positive and
+    at least ``ratio`` of the block's highest. Each candidate is verified by
+    :func:`_block_mse` of the inner blocks (``inner = (iy0, ix0)`` offset in
+    the window) at the total shift ``window move + peak``; the lowest MSE
+    wins (the first on ties; with no candidate, the highest peak and
+    ``inf``). Ties between equal correlation values go to the first in
+    row-major order of the region.
+
+    Writes, per block: the integer shift ``out_sy``, ``out_sx``, the
+    unnormalised correlation value ``out_peak`` and ``out_mse``. The search
+    rows are scanned once; after each accepted peak only the rows its
+    suppressed square covers are scanned again.
+    """
+    n = corr.shape[0]
+    ry, rx, my, mx = search[0], search[1], search[2], search[3]
+    y0r, y1r = my - ry, my + ry
+    x0r, x1r = mx - rx, mx + rx
+    height = y1r - y0r + 1
+    row_best = np.empty(height, dtype=np.float32)
+    row_arg = np.empty(height, dtype=np.intp)
+    acc_y = np.empty(peaks, dtype=np.intp)
+    acc_x = np.empty(peaks, dtype=np.intp)
+    for i in range(n):
+        for h in range(height):
+            row_best[h], row_arg[h] = _row_max(corr[i, y0r + h], x0r, x1r)
+        first = -np.inf
+        best_mse = np.inf
+        best_y = 0
+        best_x = 0
+        best_v = -np.inf
+        for j in range(peaks):
+            v = -np.inf
+            hy = -1
+            for h in range(height):
+                if row_best[h] > v:
+                    v = row_best[h]
+                    hy = h
+            if hy < 0:
+                break
+            py = y0r + hy
+            px = row_arg[hy]
+            if j == 0:
+                first = v
+                best_y, best_x, best_v = py, px, v
+            if not (v > 0 and v >= ratio * first):
+                break  # later peaks are lower: no candidates either
+            mse = _block_mse(
+                grad,
+                ref_grad,
+                ref_top[i] + inner[0],
+                ref_left[i] + inner[1],
+                (top[i] - ref_top[i]) + (py - my),
+                (left[i] - ref_left[i]) + (px - mx),
+                mse_rows,
+                mse_cols,
+            )
+            if mse < best_mse:
+                best_mse = mse
+                best_y, best_x, best_v = py, px, v
+            acc_y[j] = py
+            acc_x[j] = px
+            if j + 1 < peaks:
+                for h in range(max(0, hy - nms), min(height, hy + nms + 1)):
+                    row_best[h], row_arg[h] = _row_max_masked(
+                        corr[i, y0r + h],
+                        y0r + h,
+                        x0r,
+                        x1r,
+                        acc_y,
+                        acc_x,
+                        j + 1,
+                        nms,
+                    )
+        out_sy[i] = best_y - my
+        out_sx[i] = best_x - mx
+        out_peak[i] = best_v
+        out_mse[i] = best_mse
+
+
+@_jit
+def _ascent_step(gx, gy, hxx, hyy, hxy):  # type: ignore[no-untyped-def]
+    """Newton step towards a maximum where the Hessian is negative definite,
+    else a unit gradient-ascent step; both bounded by ``MAX_STEP_PX``."""
+    det = hxx * hyy - hxy * hxy
+    if hxx < 0 and det > 0:
+        sx = -(hyy * gx - hxy * gy) / det
+        sy = -(hxx * gy - hxy * gx) / det
+    else:
+        sx = np.sign(gx)
+        sy = np.sign(gy)
+    return (
+        min(max(sx, -MAX_STEP_PX), MAX_STEP_PX),
+        min(max(sy, -MAX_STEP_PX), MAX_STEP_PX),
+    )
+
+
+@_jit
+def _phases(f, d, out):  # type: ignore[no-untyped-def]
+    """``out[j] = exp(2πi f[j] d)`` for evenly spaced frequencies ``f`` (a
+    geometric sequence: two complex exponentials, then products)."""
+    z = np.exp(2j * math.pi * f[0] * d)
+    step = np.exp(2j * math.pi * (f[1] - f[0]) * d)
+    for j in range(f.size):
+        out[j] = z
+        z *= step
+
+
+@_jit
+def dft_subpixel(  # type: ignore[no-untyped-def]
+    band, fy, fx, sy, sx, shift, envelope, out_fx, out_fy, out_ok
+):
+    """Continuous maximum of the band-limited correlation, per block.
+
+    ``c(p) = Re Σ_k w_k R_k exp(2πi k·p)`` over the band ``R`` (interleaved
+    complex; rows at the evenly spaced frequencies ``fy``, columns at
+    ``fx = 0, 1/E, ...`` with Hermitian weight 2 for ``fx > 0``), centred on
+    the integer peak ``(sy, sx)``. A quadratic through ``c`` at the best of
+    the 5×5 integer offsets around the peak starts :data:`NEWTON_STEPS`
+    Newton steps with the analytic gradient and Hessian of ``log c``, which
+    also divide out the window autocorrelation
+    ``A(p) ≈ exp(-κx px²/2 - κy py²/2)`` (``envelope = (κy, κx)``).
+
+    For a pure translation ``R_k = A_k exp(-2πi k·d)`` with ``A_k ≥ 0``
+    symmetric in ``k``, so the maximum lies exactly at ``d`` whatever the
+    texture's spectrum: no peak-shape model, no pixel-locking bias.
+
+    ``shift = (my, mx)`` is the shift the reference's phase ramp put into
+    the band (see :func:`normalise_reference`; zeros for none).
+
+    Writes the offsets from the integer peak and whether the iteration
+    converged within 3 px of it (offsets 0 where it did not).
+    """
+    n, ly = band.shape[0], band.shape[1]
+    lx = fx.size
+    two_pi = 2.0 * math.pi
+    k_y, k_x = envelope[0], envelope[1]
+    r0 = np.empty((ly, lx), dtype=np.complex128)
+    t5 = np.empty((ly, 5), dtype=np.complex128)
+    c5 = np.empty((5, 5))
+    px = np.empty(lx, dtype=np.complex128)
+    py = np.empty(ly, dtype=np.complex128)
+    # exp(2πi f·o) at the integer offsets o = -2..2 (the same for every block).
+    ex5 = np.empty((5, lx), dtype=np.complex128)
+    ey5 = np.empty((5, ly), dtype=np.complex128)
+    for o in range(5):
+        _phases(fx, o - 2.0, ex5[o])
+        _phases(fy, o - 2.0, ey5[o])
+    for i in range(n):
+        # r0 = w · R · exp(2πi k·s): the band centred on the integer peak.
+        _phases(fx, float(sx[i] + shift[1]), px)
+        _phases(fy, float(sy[i] + shift[0]), py)
+        px[1:] *= 2.0
+        for y in range(ly):
+            for x in range(lx):
+                z = complex(band[i, y, 2 * x], band[i, y, 2 * x + 1])
+                r0[y, x] = z * py[y] * px[x]
+        # c at the 5×5 integer offsets -2..2 (separable sums).
+        for y in range(ly):
+            for b in range(5):
+                acc = 0j
+                for x in range(lx):
+                    acc += r0[y, x] * ex5[b, x]
+                t5[y, b] = acc
+        for a in range(5):
+            for b in range(5):
+                acc = 0j
+                for y in range(ly):
+                    acc += t5[y, b] * ey5[a, y]
+                c5[a, b] = acc.real
+        ba = 0
+        bb = 0
+        for a in range(5):
+            for b in range(5):
+                if c5[a, b] > c5[ba, bb]:
+                    ba, bb = a, b
+        ba = min(max(ba, 1), 3)
+        bb = min(max(bb, 1), 3)
+        gx = 0.5 * (c5[ba, bb + 1] - c5[ba, bb - 1])
+        gy = 0.5 * (c5[ba + 1, bb] - c5[ba - 1, bb])
+        hxx = c5[ba, bb + 1] - 2.0 * c5[ba, bb] + c5[ba, bb - 1]
+        hyy = c5[ba + 1, bb] - 2.0 * c5[ba, bb] + c5[ba - 1, bb]
+        hxy = 0.25 * (
+            c5[ba + 1, bb + 1] - c5[ba + 1, bb - 1] - c5[ba - 1, bb + 1] + c5[ba - 1, bb - 1]
+        )
+        qx, qy = _ascent_step(gx, gy, hxx, hyy, hxy)
+        dx = qx + (bb - 2)
+        dy = qy + (ba - 2)
+        step = np.inf
+        for _ in range(NEWTON_STEPS):
+            _phases(fx, dx, px)
+            _phases(fy, dy, py)
+            m00 = 0j  # Σ z
+            m10 = 0j  # Σ z fx
+            m20 = 0j  # Σ z fx²
+            m01 = 0j  # Σ z fy
+            m11 = 0j  # Σ z fx fy
+            m02 = 0j  # Σ z fy²
+            for y in range(ly):
+                t0 = 0j
+                t1 = 0j
+                t2 = 0j
+                for x in range(lx):
+                    z = r0[y, x] * px[x]
+                    t0 += z
+                    t1 += z * fx[x]
+                    t2 += z * (fx[x] * fx[x])
+                e = py[y]
+                t0 *= e
+                t1 *= e
+                t2 *= e
+                m00 += t0
+                m10 += t1
+                m20 += t2
+                m01 += t0 * fy[y]
+                m11 += t1 * fy[y]
+                m02 += t0 * (fy[y] * fy[y])
+            c0 = m00.real
+            if c0 > 0:
+                inv = 1.0 / c0
+                gx = -two_pi * m10.imag * inv
+                gy = -two_pi * m01.imag * inv
+                hxx = -(two_pi**2) * m20.real * inv - gx * gx + k_x
+                hyy = -(two_pi**2) * m02.real * inv - gy * gy + k_y
+                hxy = -(two_pi**2) * m11.real * inv - gx * gy
+                st_x, st_y = _ascent_step(
+                    gx + k_x * (sx[i] + dx), gy + k_y * (sy[i] + dy), hxx, hyy, hxy
+                )
+                dx += st_x
+                dy += st_y
+                step = math.hypot(st_x, st_y)
+            else:
+                step = np.inf
+        ok = step < CONVERGED_PX and abs(dx) <= 3.0 and abs(dy) <= 3.0
+        out_ok[i] = ok
+        out_fx[i] = dx if ok else 0.0
+        out_fy[i] = dy if ok else 0.0

@@ -1,0 +1,186 @@
+"""The compiled per-block kernels against plain NumPy statements of the same
+arithmetic (afmdrift.registration._kernels)."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from afmdrift.registration import _kernels
+
+RNG = np.random.default_rng(11)
+
+
+def _interleaved(z: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(z, dtype=np.complex64).view(np.float32)
+
+
+def test_window_blocks_cuts_and_weights_each_window() -> None:
+    grad = RNG.standard_normal((90, 100)).astype(np.float32)
+    window = RNG.random((32, 40)).astype(np.float32)
+    top = np.array([0, 58, 17], dtype=np.intp)
+    left = np.array([60, 0, 33], dtype=np.intp)
+    out = np.empty((3, 32, 40), dtype=np.float32)
+    _kernels.window_blocks(grad, top, left, window, out)
+    for i in range(3):
+        want = grad[top[i] : top[i] + 32, left[i] : left[i] + 40] * window
+        np.testing.assert_array_equal(out[i], want)
+
+
+def _normalise_numpy(spec: np.ndarray, eps_rel: float) -> tuple[np.ndarray, np.ndarray]:
+    mag = np.abs(spec)
+    floor = np.maximum(eps_rel * mag.reshape(len(spec), -1).max(axis=1), 1e-30)
+    return spec / (mag + floor[:, None, None]), mag
+
+
+def _band_rows(rows: int, ky: int) -> np.ndarray:
+    return np.r_[rows - ky : rows, 0 : ky + 1]
+
+
+def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
+    n, rows, cols = 3, 16, 24
+    half = cols // 2 + 1
+    ky, kx = 3, 4
+    # No window terms: the mean removal is tested through the engine.
+    none = np.zeros(0, dtype=np.intp)
+    no_vals = np.zeros((0, 2), dtype=np.float32)
+    ref = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
+    cur = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
+    cur[1, 2, 3] = 0.0  # an exactly zero frequency stays finite
+
+    ramp = np.exp(-2j * np.pi * RNG.random((rows, half))).astype(np.complex64)
+    ref_out = np.empty((n, rows, half), dtype=np.complex64)
+    ref_band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.float32)
+    _kernels.normalise_reference(
+        _interleaved(ref), none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx,
+        _interleaved(ramp), ref_out.view(np.float32), ref_band,
+    )  # fmt: skip
+    want_ref, ref_mag = _normalise_numpy(ref, 1e-6)
+    np.testing.assert_allclose(ref_out, np.conj(want_ref) * ramp, rtol=2e-6, atol=2e-7)
+    np.testing.assert_allclose(ref_band, ref_mag[:, _band_rows(rows, ky), : kx + 1], rtol=1e-6)
+
+    want_norm, cur_mag = _normalise_numpy(cur, 1e-6)
+    want_cross = want_norm * ref_out
+    spec = _interleaved(cur.copy())
+    keep = np.empty((n, rows, half), dtype=np.complex64)
+    cur_band = np.empty_like(ref_band)
+    band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
+    _kernels.normalise_cross(
+        spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out.view(np.float32),
+        ref_band, _interleaved(ramp), keep.view(np.float32), cur_band, band.view(np.float32),
+    )  # fmt: skip
+    # The kept spectra are ready to serve as the next reference.
+    np.testing.assert_allclose(keep, np.conj(want_norm) * ramp, rtol=2e-6, atol=2e-7)
+    np.testing.assert_allclose(spec.view(np.complex64), want_cross, rtol=5e-6, atol=1e-6)
+    assert np.all(np.isfinite(spec))
+    sel = np.ix_(range(n), _band_rows(rows, ky), range(kx + 1))
+    np.testing.assert_allclose(cur_band, cur_mag[sel], rtol=1e-6)
+    np.testing.assert_allclose(
+        band, want_cross[sel] * cur_mag[sel] * ref_mag[sel], rtol=2e-5, atol=1e-3
+    )
+
+
+def _peaks_numpy(
+    corr: np.ndarray, ry: int, rx: int, my: int, mx: int, k: int, ratio: float, nms: int
+) -> list[tuple[int, int, float]]:
+    """Greedy top-k with non-maximum suppression over shifts within (ry, rx);
+    ``corr[iy, ix]`` is the correlation at shift ``(iy - my, ix - mx)``."""
+    region = np.full((2 * my + 1, 2 * mx + 1), -np.inf, dtype=np.float32)
+    for iy, ix in itertools.product(range(my - ry, my + ry + 1), range(mx - rx, mx + rx + 1)):
+        region[iy, ix] = corr[iy, ix]
+    found: list[tuple[int, int, float]] = []
+    for _ in range(k):
+        iy, ix = np.unravel_index(int(np.argmax(region)), region.shape)
+        v = float(region[iy, ix])
+        if found and not (v > 0 and v >= ratio * found[0][2]):
+            break
+        found.append((int(iy) - my, int(ix) - mx, v))
+        if not v > 0:
+            break
+        region[max(0, iy - nms) : iy + nms + 1, max(0, ix - nms) : ix + nms + 1] = -np.inf
+    return found
+
+
+@pytest.mark.parametrize("search", [(9, 9), (4, 7)])
+def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int]) -> None:
+    ry, rx = search
+    my = mx = 9
+    grad = RNG.standard_normal((120, 130)).astype(np.float32)
+    ref_grad = RNG.standard_normal((120, 130)).astype(np.float32)
+    n = 6
+    corr = RNG.standard_normal((n, 2 * my + 1, 40)).astype(np.float32)
+    # Several strong peaks per block, including ties and the search's edges.
+    for i in range(n):
+        for dy, dx in [(-3, 2), (5, -8), (0, 0), (-9, 9), (4, -7)]:
+            corr[i, dy + my, dx + mx] = 20.0 + RNG.integers(0, 3)
+    top = RNG.integers(20, 60, n).astype(np.intp)
+    left = RNG.integers(20, 60, n).astype(np.intp)
+    ref_top = top - RNG.integers(-3, 4, n)
+    ref_left = left - RNG.integers(-3, 4, n)
+    inner = np.array([8, 10], dtype=np.intp)
+    lat_y = np.arange(0, 16, 3, dtype=np.intp)
+    lat_x = np.arange(0, 20, 3, dtype=np.intp)
+    out = (np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, np.float32), np.empty(n))
+    _kernels.pick_peaks(
+        corr, np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
+        ref_top, ref_left, top, left, inner, lat_y, lat_x, *out,
+    )  # fmt: skip
+    for i in range(n):
+        cands = _peaks_numpy(corr[i], ry, rx, my, mx, 4, 0.7, 2)
+        scored = []
+        for sy, sx, v in cands:
+            if not v > 0:
+                continue
+            y0, x0 = ref_top[i] + inner[0], ref_left[i] + inner[1]
+            ty = y0 + (top[i] - ref_top[i]) + sy
+            tx = x0 + (left[i] - ref_left[i]) + sx
+            d = (
+                grad[np.ix_(ty + lat_y, tx + lat_x)] - ref_grad[np.ix_(y0 + lat_y, x0 + lat_x)]
+            ).astype(np.float64)
+            scored.append((float(np.mean(d**2) - np.mean(d) ** 2), sy, sx, v))
+        mse, sy, sx, v = min(scored, key=lambda t: t[0])  # first on ties, as the kernel
+        assert (out[0][i], out[1][i]) == (sy, sx)
+        assert out[2][i] == np.float32(v)
+        assert out[3][i] == pytest.approx(mse, rel=1e-9, abs=1e-12)
+
+
+def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
+    corr = -np.ones((1, 9, 16), dtype=np.float32)
+    corr[0, 5, 6] = -0.5  # shift (1, 2)
+    grad = np.zeros((40, 40), dtype=np.float32)
+    zero = np.zeros(1, dtype=np.intp)
+    out = (np.empty(1, np.intp), np.empty(1, np.intp), np.empty(1, np.float32), np.empty(1))
+    _kernels.pick_peaks(
+        corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
+        zero + 4, zero + 4, np.array([4, 4], dtype=np.intp), np.arange(0, 8, dtype=np.intp),
+        np.arange(0, 8, dtype=np.intp), *out,
+    )  # fmt: skip
+    assert (out[0][0], out[1][0], out[2][0]) == (1, 2, np.float32(-0.5))
+    assert out[3][0] == np.inf
+
+
+@pytest.mark.parametrize(("dx", "dy"), [(0.0, 0.0), (0.37, -0.21), (-1.4, 2.2), (12.6, -7.45)])
+@pytest.mark.parametrize("ramp", [(0, 0), (32, 20)])
+def test_dft_subpixel_finds_the_shift_of_a_pure_translation_band(
+    dx: float, dy: float, ramp: tuple[int, int]
+) -> None:
+    ey = ex = 64
+    ky = kx = 8
+    fy = np.arange(-ky, ky + 1) / ey
+    fx = np.arange(0, kx + 1) / ex
+    amp = np.exp(-((fy[:, None] * 9.0) ** 2) - (fx[None, :] * 9.0) ** 2)
+    # R_k = A_k exp(-2πi k·d): the correlation peaks at +d; the reference's
+    # phase ramp exp(-2πi k·m) moves it to d + m, which the kernel undoes.
+    my, mx = ramp
+    phase = fy[:, None] * (dy + my) + fx[None, :] * (dx + mx)
+    band = (amp * np.exp(-2j * np.pi * phase))[None]
+    sy = np.array([round(dy)], dtype=np.intp)
+    sx = np.array([round(dx)], dtype=np.intp)
+    off_x, off_y, ok = np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool)
+    shift = np.array(ramp, dtype=np.intp)
+    _kernels.dft_subpixel(_interleaved(band), fy, fx, sy, sx, shift, np.zeros(2), off_x, off_y, ok)
+    assert ok[0]
+    assert sx[0] + off_x[0] == pytest.approx(dx, abs=2e-4)
+    assert sy[0] + off_y[0] == pytest.approx(dy, abs=2e-4)
