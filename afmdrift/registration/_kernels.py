@@ -30,6 +30,7 @@ import numpy as np
 
 __all__ = [
     "dft_subpixel",
+    "image_stats",
     "normalise_cross",
     "normalise_reference",
     "pick_peaks",
@@ -45,6 +46,24 @@ NEWTON_STEPS = 2
 #: Largest Newton step (px) and the last step below which it has converged.
 MAX_STEP_PX = 1.0
 CONVERGED_PX = 0.02
+
+
+@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+def image_stats(image):  # type: ignore[no-untyped-def]
+    """``(min, max, count of non-zero pixels)`` of a finite 2-D image in one
+    pass (fastmath vectorises it; minimum, maximum and count are exact in
+    any order)."""
+    lo = image[0, 0]
+    hi = image[0, 0]
+    nonzero = 0
+    for r in range(image.shape[0]):
+        row = image[r]
+        for c in range(row.size):
+            v = row[c]
+            lo = min(lo, v)
+            hi = max(hi, v)
+            nonzero += np.int32(v != 0)
+    return lo, hi, nonzero
 
 
 @_jit
@@ -69,13 +88,20 @@ def window_blocks(grad, top, left, window, out):  # type: ignore[no-untyped-def]
 @_jit
 def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-untyped-def]
     """Subtract block ``i``'s window-weighted mean: the window's DFT (a few
-    non-zero terms ``w_vals`` at ``(w_rows, w_cols)``) times the mean."""
+    non-zero terms ``w_vals`` at ``(w_rows, w_cols)``) times the mean.
+
+    The zero frequency is then exactly zero by construction; it is set so,
+    because the rounding left by the subtraction (large on height images
+    with a big mean) would otherwise be normalised to unit magnitude and
+    enter the correlation as one term of pure noise."""
     mean = spec[i, 0, 0] / w_sum
     for j in range(w_rows.size):
         r = w_rows[j]
         c = 2 * w_cols[j]
         spec[i, r, c] -= mean * w_vals[j, 0]
         spec[i, r, c + 1] -= mean * w_vals[j, 1]
+    spec[i, 0, 0] = 0.0
+    spec[i, 0, 1] = 0.0
 
 
 @numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
