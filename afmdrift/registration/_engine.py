@@ -496,7 +496,7 @@ class BlockEngine:
             )
             fft.inverse()
             corr = fft.out  # (batch, 2my + 1, ex): shifts -m..m at 0..2m, scaled by ey·ex
-            _kernels.pick_peaks(
+            _kernels.peaks_and_subpixel(
                 corr,
                 search,
                 cfg.peaks,
@@ -511,25 +511,20 @@ class BlockEngine:
                 self._inner,
                 self._mse_rows,
                 self._mse_cols,
+                batch.band,  # no blocks unless subpixel == "dft"
+                self._fy,
+                self._fx,
+                self._ramp_shift,
+                self._envelope,
                 out.sy[sl],
                 out.sx[sl],
                 out.peak[sl],
                 out.mse[sl],
+                out.fx[sl],
+                out.fy[sl],
+                out.ok[sl],
             )
-            if cfg.subpixel == "dft":
-                _kernels.dft_subpixel(
-                    batch.band,
-                    self._fy,
-                    self._fx,
-                    out.sy[sl],
-                    out.sx[sl],
-                    self._ramp_shift,
-                    self._envelope,
-                    out.fx[sl],
-                    out.fy[sl],
-                    out.ok[sl],
-                )
-            else:
+            if cfg.subpixel != "dft":
                 self._subpixel_3pt(corr, sl, out)
 
     def _subpixel_3pt(self, corr: F32, sl: slice, out: _Peaks) -> None:

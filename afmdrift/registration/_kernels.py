@@ -33,6 +33,7 @@ __all__ = [
     "image_stats",
     "normalise_cross",
     "normalise_reference",
+    "peaks_and_subpixel",
     "pick_peaks",
     "window_blocks",
 ]
@@ -62,7 +63,7 @@ def image_stats(image):  # type: ignore[no-untyped-def]
             v = row[c]
             lo = min(lo, v)
             hi = max(hi, v)
-            nonzero += np.int32(v != 0)
+            nonzero += 1 if v != 0 else 0
     return lo, hi, nonzero
 
 
@@ -577,3 +578,58 @@ def dft_subpixel(  # type: ignore[no-untyped-def]
         out_ok[i] = ok
         out_fx[i] = dx if ok else 0.0
         out_fy[i] = dy if ok else 0.0
+
+
+@_jit
+def peaks_and_subpixel(  # type: ignore[no-untyped-def]
+    corr,
+    search,
+    peaks,
+    ratio,
+    nms,
+    grad,
+    ref_grad,
+    ref_top,
+    ref_left,
+    top,
+    left,
+    inner,
+    mse_rows,
+    mse_cols,
+    band,
+    fy,
+    fx,
+    shift,
+    envelope,
+    out_sy,
+    out_sx,
+    out_peak,
+    out_mse,
+    out_fx,
+    out_fy,
+    out_ok,
+):
+    """:func:`pick_peaks`, then :func:`dft_subpixel` if ``band`` has blocks
+    (one call, so the calling thread gives up the GIL once)."""
+    pick_peaks(
+        corr,
+        search,
+        peaks,
+        ratio,
+        nms,
+        grad,
+        ref_grad,
+        ref_top,
+        ref_left,
+        top,
+        left,
+        inner,
+        mse_rows,
+        mse_cols,
+        out_sy,
+        out_sx,
+        out_peak,
+        out_mse,
+    )
+    if band.shape[0] > 0:
+        dft_subpixel(band, fy, fx, out_sy, out_sx, shift, envelope, out_fx, out_fy, out_ok)
