@@ -60,12 +60,14 @@ NMS_RADIUS = 2
 CHUNK_BLOCKS = 32
 #: Blocks per FFT batch within a chunk: a batch goes through every pass
 #: (window, forward FFT, normalisation, inverse FFT, peaks, sub-pixel) before
-#: the next starts, so its work arrays (about 0.8 MB for 4 blocks of 128²)
-#: stay in the core's cache instead of streaming the whole stack through
-#: memory once per pass. Measured on the reference machine (2-core EPYC,
-#: 512² frames): FFTs alone take the same time for batches of 1 to 16, the
-#: passes around them a third less than with batches of 32.
-BATCH_BLOCKS = 8
+#: the next starts, so its work arrays (about 2 MB for 16 blocks of 128²)
+#: stay in the caches instead of streaming the whole stack through memory
+#: once per pass, while each chunk still hands the GIL over only a few times
+#: per frame. Measured on the reference machine (2-core EPYC, 512² frames,
+#: benchmarks/bench_registration.py, 400 frames each): update on two threads
+#: 6.90 / 6.19 / 6.49 ms and CPU time 10.8 / 9.3 / 9.7 ms with batches of 8 /
+#: 16 / 32 blocks.
+BATCH_BLOCKS = 16
 
 _pool_lock = threading.Lock()
 _pools: dict[int, ThreadPoolExecutor] = {}
