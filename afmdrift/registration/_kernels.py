@@ -38,8 +38,22 @@ __all__ = [
     "window_blocks",
 ]
 
-_CACHE = True
-_jit = numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False)
+_jit = numba.njit(nogil=True, cache=True, error_model="numpy", boundscheck=False)
+#: For loops over finite values only (maxima, minima, counts): all fastmath
+#: flags, which let the compiler vectorise reductions that are exact in any
+#: order.
+_jit_finite = numba.njit(
+    nogil=True, cache=True, error_model="numpy", boundscheck=False, fastmath=True
+)
+#: For the sums of the sub-pixel step: reassociation (vectorised sums, last
+#: bits depending on the compiled order) but no assumption of finite values.
+_jit_sums = numba.njit(
+    nogil=True,
+    cache=True,
+    error_model="numpy",
+    boundscheck=False,
+    fastmath={"reassoc", "contract", "nsz", "arcp"},
+)
 
 #: Newton iterations of the ``dft`` sub-pixel method after the quadratic start
 #: (quadratic convergence: the second step checks that the first converged).
@@ -49,7 +63,7 @@ MAX_STEP_PX = 1.0
 CONVERGED_PX = 0.02
 
 
-@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+@_jit_finite
 def image_stats(image):  # type: ignore[no-untyped-def]
     """``(min, max, count of non-zero pixels)`` of a finite 2-D image in one
     pass (fastmath vectorises it; minimum, maximum and count are exact in
@@ -105,7 +119,7 @@ def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-unt
     spec[i, 0, 1] = 0.0
 
 
-@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+@_jit_finite
 def _max_abs2(row):  # type: ignore[no-untyped-def]
     """Largest ``re² + im²`` of an interleaved complex row (finite input;
     fastmath lets the compiler vectorise the maximum, which is exact in any
@@ -248,37 +262,63 @@ def normalise_cross(  # type: ignore[no-untyped-def]
                     band[i, b, 2 * k + 1] = s[2 * k + 1] * w
 
 
-@numba.njit(nogil=True, cache=_CACHE, error_model="numpy", boundscheck=False, fastmath=True)
+@_jit_finite
 def _row_max(row, x0, x1):  # type: ignore[no-untyped-def]
-    """Highest value of ``row[x0..x1]`` and its first column.
-
-    The row holds finite values; fastmath lets the compiler vectorise the
-    maximum (exact in any order), and a second scan finds its first column.
-    """
+    """Highest value of ``row[x0..x1]`` (finite values: fastmath lets the
+    compiler vectorise the maximum, which is exact in any order)."""
     m = row[x0]
     for c in range(x0, x1 + 1):
         m = max(m, row[c])
-    for c in range(x0, x1 + 1):
-        if row[c] == m:
-            return m, c
-    return m, x0
+    return m
+
+
+@_jit
+def _suppressed(iy, ix, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-def]
+    """Whether ``(iy, ix)`` lies in the square of half-size ``nms`` around
+    one of the ``n_acc`` accepted peaks."""
+    for q in range(n_acc):  # noqa: SIM110 (a generator in any() does not compile)
+        if abs(iy - acc_y[q]) <= nms and abs(ix - acc_x[q]) <= nms:
+            return True
+    return False
 
 
 @_jit
 def _row_max_masked(row, iy, x0, x1, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-def]
-    """As :func:`_row_max`, skipping the squares of half-size ``nms`` around
-    the ``n_acc`` accepted peaks ``(acc_y, acc_x)`` that cover row ``iy``."""
+    """Highest value of ``row[x0..x1]`` outside the suppressed squares
+    (``-inf`` if none is left): the vectorised maximum over each gap between
+    the column intervals of the squares that cover row ``iy``."""
+    starts = np.empty(n_acc, dtype=np.intp)
+    m = 0
+    for q in range(n_acc):  # the covering squares' left columns, sorted
+        if abs(iy - acc_y[q]) <= nms:
+            a = acc_x[q] - nms
+            k = m
+            while k > 0 and starts[k - 1] > a:
+                starts[k] = starts[k - 1]
+                k -= 1
+            starts[k] = a
+            m += 1
     best = -np.inf
-    arg = -1
+    col = x0
+    for k in range(m):  # each interval is [start, start + 2·nms]
+        if starts[k] > col:
+            best = max(best, _row_max(row, col, min(starts[k], x1 + 1) - 1))
+        col = max(col, starts[k] + 2 * nms + 1)
+        if col > x1:
+            return best
+    if col <= x1:
+        best = max(best, _row_max(row, col, x1))
+    return best
+
+
+@_jit
+def _first_column(row, iy, x0, x1, value, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-def]
+    """First column of ``row[x0..x1]`` holding ``value`` outside the
+    suppressed squares."""
     for ix in range(x0, x1 + 1):
-        skip = False
-        for q in range(n_acc):
-            if abs(iy - acc_y[q]) <= nms and abs(ix - acc_x[q]) <= nms:
-                skip = True
-        if not skip and row[ix] > best:
-            best = row[ix]
-            arg = ix
-    return best, arg
+        if row[ix] == value and not _suppressed(iy, ix, acc_y, acc_x, n_acc, nms):
+            return ix
+    return x0
 
 
 @_jit
@@ -352,8 +392,9 @@ def pick_peaks(  # type: ignore[no-untyped-def]
 
     Writes, per block: the integer shift ``out_sy``, ``out_sx``, the
     unnormalised correlation value ``out_peak`` and ``out_mse``. The search
-    rows are scanned once; after each accepted peak only the rows its
-    suppressed square covers are scanned again.
+    rows' maxima are found once (vectorised); after each accepted peak only
+    the rows its suppressed square covers are scanned again, and the column
+    of a peak is looked up only in the row that wins.
     """
     n = corr.shape[0]
     ry, rx, my, mx = search[0], search[1], search[2], search[3]
@@ -361,12 +402,11 @@ def pick_peaks(  # type: ignore[no-untyped-def]
     x0r, x1r = mx - rx, mx + rx
     height = y1r - y0r + 1
     row_best = np.empty(height, dtype=np.float32)
-    row_arg = np.empty(height, dtype=np.intp)
     acc_y = np.empty(peaks, dtype=np.intp)
     acc_x = np.empty(peaks, dtype=np.intp)
     for i in range(n):
         for h in range(height):
-            row_best[h], row_arg[h] = _row_max(corr[i, y0r + h], x0r, x1r)
+            row_best[h] = _row_max(corr[i, y0r + h], x0r, x1r)
         first = -np.inf
         best_mse = np.inf
         best_y = 0
@@ -382,7 +422,7 @@ def pick_peaks(  # type: ignore[no-untyped-def]
             if hy < 0:
                 break
             py = y0r + hy
-            px = row_arg[hy]
+            px = _first_column(corr[i, py], py, x0r, x1r, v, acc_y, acc_x, j, nms)
             if j == 0:
                 first = v
                 best_y, best_x, best_v = py, px, v
@@ -405,7 +445,7 @@ def pick_peaks(  # type: ignore[no-untyped-def]
             acc_x[j] = px
             if j + 1 < peaks:
                 for h in range(max(0, hy - nms), min(height, hy + nms + 1)):
-                    row_best[h], row_arg[h] = _row_max_masked(
+                    row_best[h] = _row_max_masked(
                         corr[i, y0r + h],
                         y0r + h,
                         x0r,
@@ -438,7 +478,7 @@ def _ascent_step(gx, gy, hxx, hyy, hxy):  # type: ignore[no-untyped-def]
     )
 
 
-@_jit
+@_jit_sums
 def _phases(f, d, out):  # type: ignore[no-untyped-def]
     """``out[j] = exp(2πi f[j] d)`` for evenly spaced frequencies ``f`` (a
     geometric sequence: two complex exponentials, then products)."""
@@ -449,7 +489,7 @@ def _phases(f, d, out):  # type: ignore[no-untyped-def]
         z *= step
 
 
-@_jit
+@_jit_sums
 def dft_subpixel(  # type: ignore[no-untyped-def]
     band, fy, fx, sy, sx, shift, envelope, out_fx, out_fy, out_ok
 ):
