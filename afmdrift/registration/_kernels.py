@@ -35,6 +35,7 @@ __all__ = [
     "normalise_reference",
     "peaks_and_subpixel",
     "pick_peaks",
+    "reject_mad",
     "window_blocks",
 ]
 
@@ -673,3 +674,48 @@ def peaks_and_subpixel(  # type: ignore[no-untyped-def]
     )
     if band.shape[0] > 0:
         dft_subpixel(band, fy, fx, out_sy, out_sx, shift, envelope, out_fx, out_fy, out_ok)
+
+
+@_jit
+def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[no-untyped-def]
+    """Iterated per-axis median/MAD outlier rule (see
+    :mod:`afmdrift.registration._outliers`): ``out`` starts as ``keep``;
+    while at least 3 blocks remain, blocks of ``keep`` whose robust z-score
+    ``|v - median| / (1.4826 · max(MAD, floor))`` exceeds ``threshold`` on
+    either axis are dropped, until nothing changes (at most ``max_iter``
+    rounds).
+
+    vectors : (n, 2) float64; keep, out : (n,) bool.
+    """
+    n = vectors.shape[0]
+    out[:] = keep
+    sel = np.empty(n)
+    med = np.empty(2)
+    scale = np.empty(2)
+    for _ in range(max_iter):
+        m = 0
+        for i in range(n):
+            m += 1 if out[i] else 0
+        if m < 3:
+            return
+        for axis in range(2):
+            k = 0
+            for i in range(n):
+                if out[i]:
+                    sel[k] = vectors[i, axis]
+                    k += 1
+            med[axis] = np.median(sel[:m])
+            for i in range(m):
+                sel[i] = abs(sel[i] - med[axis])
+            scale[axis] = 1.4826 * max(np.median(sel[:m]), floor)
+        changed = False
+        for i in range(n):
+            new = keep[i]
+            for axis in range(2):
+                if not (abs(vectors[i, axis] - med[axis]) / scale[axis] <= threshold):
+                    new = False
+            if new != out[i]:
+                changed = True
+            out[i] = new
+        if not changed:
+            return

@@ -19,6 +19,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.registration import _kernels
+
 __all__ = ["MAD_FLOOR_PX", "reject_mad", "reject_paper"]
 
 #: Smallest robust scale (px): sub-pixel estimator noise well below this is
@@ -55,18 +57,11 @@ def reject_paper(
 def reject_mad(
     vectors_px: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], *, threshold: float
 ) -> npt.NDArray[np.bool_]:
-    """Iterated per-axis median/MAD rule; see the module docstring."""
-    out = keep.copy()
-    for _ in range(_MAX_ITER):
-        if out.sum() < 3:
-            return out
-        sel = vectors_px[out]
-        med = np.median(sel, axis=0)
-        mad = np.median(np.abs(sel - med), axis=0)
-        scale = 1.4826 * np.maximum(mad, MAD_FLOOR_PX)
-        z = np.abs(vectors_px - med) / scale
-        new = keep & (z <= threshold).all(axis=1)
-        if np.array_equal(new, out):
-            return out
-        out = new
+    """Iterated per-axis median/MAD rule; see the module docstring (compiled:
+    :func:`afmdrift.registration._kernels.reject_mad`)."""
+    out = np.empty_like(keep)
+    _kernels.reject_mad(
+        np.ascontiguousarray(vectors_px, dtype=np.float64), keep, threshold, MAD_FLOOR_PX,
+        _MAX_ITER, out,
+    )  # fmt: skip
     return out

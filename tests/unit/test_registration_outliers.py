@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from afmdrift.registration._outliers import MAD_FLOOR_PX, reject_mad, reject_paper
 
@@ -60,3 +61,32 @@ def test_too_few_blocks_are_left_alone() -> None:
     keep = np.array([True, True])
     assert reject_mad(v, keep, threshold=3.5).tolist() == [True, True]
     assert not reject_paper(v, np.zeros(2, dtype=bool), epsilon_px=1.0).any()
+
+
+def _reject_mad_numpy(vec: np.ndarray, keep: np.ndarray, threshold: float) -> np.ndarray:
+    """The rule of the module docstring, stated with NumPy."""
+    out = keep.copy()
+    for _ in range(20):
+        if out.sum() < 3:
+            return out
+        sel = vec[out]
+        med = np.median(sel, axis=0)
+        scale = 1.4826 * np.maximum(np.median(np.abs(sel - med), axis=0), MAD_FLOOR_PX)
+        new = keep & (np.abs(vec - med) / scale <= threshold).all(axis=1)
+        if np.array_equal(new, out):
+            return out
+        out = new
+    return out
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_compiled_mad_rule_matches_its_numpy_statement(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 80))
+    vec = rng.normal(0.0, 0.05, (n, 2)) + rng.normal(0.0, 3.0, 2)
+    bad = rng.random(n) < rng.uniform(0.0, 0.4)
+    vec[bad] += rng.normal(0.0, 5.0, (int(bad.sum()), 2))
+    keep = rng.random(n) < 0.9
+    np.testing.assert_array_equal(
+        reject_mad(vec, keep, threshold=3.5), _reject_mad_numpy(vec, keep, 3.5)
+    )
