@@ -102,13 +102,16 @@ def _worker_pool(workers: int) -> ThreadPoolExecutor:
 
 @dataclass(frozen=True)
 class ReferenceSpectra:
-    """Cached reference: its gradient image, window positions and the
-    conjugated, magnitude-normalised block spectra."""
+    """Cached reference: its gradient image, window positions, the
+    conjugated, magnitude-normalised block spectra times the phase ramp
+    (interleaved complex in int16 fixed point, see
+    :func:`afmdrift.registration._kernels.normalise_reference`) and their
+    magnitudes in the sub-pixel band."""
 
     grad: F32
     top: IArr
     left: IArr
-    conj_spectra: npt.NDArray[np.complex64]
+    conj_spectra: npt.NDArray[np.int16]
     band_mag: F32
 
 
@@ -265,10 +268,11 @@ class BlockEngine:
         # Normalised spectra of the last measured frame, kept only when every
         # accepted frame becomes the reference (consecutive mode); |S| in the
         # sub-pixel band is always kept (small).
-        self._current: npt.NDArray[np.complex64] | None = (
-            np.empty(self._spec_shape, np.complex64) if config.reference == "consecutive" else None
+        fixed_shape = (n, ey, 2 * (ex // 2 + 1))
+        self._current: npt.NDArray[np.int16] | None = (
+            np.empty(fixed_shape, np.int16) if config.reference == "consecutive" else None
         )
-        self._no_spectra: F32 = np.empty((0, 1, 2), np.float32)
+        self._no_spectra: npt.NDArray[np.int16] = np.empty((0, 1, 2), np.int16)
         # Phase ramp exp(-2πi k·m) folded into the reference spectra: every
         # correlation comes out shifted by the search radius m, so shifts
         # -m..m are rows and columns 0..2m of the (pruned) inverse FFT.
@@ -337,7 +341,7 @@ class BlockEngine:
         block's window-weighted mean removed, normalised to ``S / (|S| + a)``
         (``a = max(eps_rel · max|S|, 1e-30)``) and conjugated."""
         top, left = self.grid_positions()
-        spectra = np.empty(self._spec_shape, np.complex64)
+        spectra = np.empty((*self._spec_shape[:2], 2 * self._spec_shape[2]), np.int16)
         band_mag = np.empty_like(self._cur_band_mag)
 
         def work(chunk: _Chunk) -> None:
@@ -355,7 +359,7 @@ class BlockEngine:
                     self._band_ky,
                     self._band_kx,
                     self._ramp,
-                    spectra[sl].view(np.float32),
+                    spectra[sl],
                     band_mag[sl],
                 )
 
@@ -489,10 +493,10 @@ class BlockEngine:
                 _MAG_FLOOR,
                 self._band_ky,
                 self._band_kx,
-                ref.conj_spectra[sl].view(np.float32),
+                ref.conj_spectra[sl],
                 ref.band_mag[sl],
                 self._ramp,
-                self._no_spectra if self._current is None else self._current[sl].view(np.float32),
+                self._no_spectra if self._current is None else self._current[sl],
                 self._cur_band_mag[sl],
                 batch.band,
             )

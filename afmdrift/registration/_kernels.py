@@ -164,13 +164,25 @@ def _normalised(re, im, a):  # type: ignore[no-untyped-def]
     return re * inv, im * inv
 
 
+#: Fixed-point scale of the stored reference spectra: components of
+#: ``conj(Ŝ) · ramp`` (magnitude below 1) as int16 multiples of 1 / 32767.
+REF_SCALE = 32767.0
+
+
+@_jit
+def _to_fixed(x):  # type: ignore[no-untyped-def]
+    """``x`` (|x| ≤ 1) to int16 multiples of ``1 / REF_SCALE``, rounded."""
+    return np.int16(x * np.float32(REF_SCALE) + (np.float32(0.5) if x >= 0 else np.float32(-0.5)))
+
+
 @_jit
 def _reference_row(s, ramp, o, a):  # type: ignore[no-untyped-def]
-    """``o = conj(s / (|s| + a)) · ramp`` over an interleaved complex row."""
+    """``o = conj(s / (|s| + a)) · ramp`` over an interleaved complex row, in
+    fixed point (int16, see :data:`REF_SCALE`)."""
     for k in range(s.size // 2):
         re, im = _normalised(s[2 * k], s[2 * k + 1], a)
-        o[2 * k] = re * ramp[2 * k] + im * ramp[2 * k + 1]
-        o[2 * k + 1] = re * ramp[2 * k + 1] - im * ramp[2 * k]
+        o[2 * k] = _to_fixed(re * ramp[2 * k] + im * ramp[2 * k + 1])
+        o[2 * k + 1] = _to_fixed(re * ramp[2 * k + 1] - im * ramp[2 * k])
 
 
 @_jit
@@ -185,8 +197,9 @@ def normalise_reference(  # type: ignore[no-untyped-def]
     shifts every correlation by ``m``, the search radius, so that shifts
     ``-m..m`` come out of the inverse FFT as rows and columns ``0..2m``.
 
-    spec, ramp, out : (n, rows, 2·half) float32 (interleaved complex);
-    w_vals : (m, 2) float32; band_mag : (n, 2·ky + 1, kx + 1) float32.
+    spec, ramp : (n, rows, 2·half) float32 (interleaved complex); out :
+    (n, rows, 2·half) int16 (interleaved); w_vals : (m, 2) float32;
+    band_mag : (n, 2·ky + 1, kx + 1) float32.
     """
     n, rows = spec.shape[0], spec.shape[1]
     for i in range(n):
@@ -201,11 +214,15 @@ def normalise_reference(  # type: ignore[no-untyped-def]
 
 @_jit
 def _cross_row(s, q, a):  # type: ignore[no-untyped-def]
-    """``s = s / (|s| + a) · q`` in place over an interleaved complex row."""
+    """``s = s / (|s| + a) · q`` in place over an interleaved complex row
+    (``q`` in fixed point, see :data:`REF_SCALE`)."""
+    unit = np.float32(1.0 / REF_SCALE)
     for k in range(s.size // 2):
         re, im = _normalised(s[2 * k], s[2 * k + 1], a)
-        s[2 * k] = re * q[2 * k] - im * q[2 * k + 1]
-        s[2 * k + 1] = re * q[2 * k + 1] + im * q[2 * k]
+        qr = np.float32(q[2 * k]) * unit
+        qi = np.float32(q[2 * k + 1]) * unit
+        s[2 * k] = re * qr - im * qi
+        s[2 * k + 1] = re * qi + im * qr
 
 
 @_jit
@@ -231,12 +248,14 @@ def normalise_cross(  # type: ignore[no-untyped-def]
     Removes each block's window-weighted mean from ``spec`` and turns it in
     place into the normalised cross-power spectrum ``Ŝ · ref`` with
     ``Ŝ = S / (|S| + a)`` and ``ref`` the reference's ``conj(R̂) · ramp``
-    (see :func:`normalise_reference`): the input of the inverse FFT. Also
-    writes ``band_mag = |S|`` in the sub-pixel band; if ``keep`` has blocks,
-    ``keep = conj(Ŝ) · ramp`` (the frame is to become the next reference);
+    (see :func:`normalise_reference`; int16): the input of the inverse FFT.
+    Also writes ``band_mag = |S|`` in the sub-pixel band; if ``keep`` has
+    blocks, ``keep = conj(Ŝ) · ramp`` in the reference's int16 form (the
+    frame is to become the next reference);
     and, if ``band`` has blocks, the weighted band ``band = Ŝ · ref · |S| ·
     |R|`` of the ``dft`` sub-pixel method. ``spec``, ``ref``, ``ramp``,
-    ``keep`` and ``band`` are interleaved complex.
+    ``keep`` and ``band`` are interleaved complex (``ref`` and ``keep``
+    int16, the others float32).
     """
     n, rows = spec.shape[0], spec.shape[1]
     keeping = keep.shape[0] > 0

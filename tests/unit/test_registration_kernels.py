@@ -53,28 +53,33 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     cur[1, 2, 3] = 0.0  # an exactly zero frequency stays finite
 
     ramp = np.exp(-2j * np.pi * RNG.random((rows, half))).astype(np.complex64)
-    ref_out = np.empty((n, rows, half), dtype=np.complex64)
+    ref_out = np.empty((n, rows, 2 * half), dtype=np.int16)
     ref_band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.float32)
     _kernels.normalise_reference(
         _interleaved(ref), none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx,
-        _interleaved(ramp), ref_out.view(np.float32), ref_band,
+        _interleaved(ramp), ref_out, ref_band,
     )  # fmt: skip
     want_ref, ref_mag = _normalise_numpy(ref, 1e-6)
-    np.testing.assert_allclose(ref_out, np.conj(want_ref) * ramp, rtol=2e-6, atol=2e-7)
+    # Stored in fixed point: int16 multiples of 1 / 32767, rounded.
+    fixed = ref_out.astype(np.float64) / _kernels.REF_SCALE
+    ref_value = fixed[..., 0::2] + 1j * fixed[..., 1::2]
+    np.testing.assert_allclose(ref_value, np.conj(want_ref) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(ref_band, ref_mag[:, _band_rows(rows, ky), : kx + 1], rtol=1e-6)
 
     want_norm, cur_mag = _normalise_numpy(cur, 1e-6)
-    want_cross = want_norm * ref_out
+    want_cross = want_norm * ref_value
     spec = _interleaved(cur.copy())
-    keep = np.empty((n, rows, half), dtype=np.complex64)
+    keep = np.empty((n, rows, 2 * half), dtype=np.int16)
     cur_band = np.empty_like(ref_band)
     band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
     _kernels.normalise_cross(
-        spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out.view(np.float32),
-        ref_band, _interleaved(ramp), keep.view(np.float32), cur_band, band.view(np.float32),
+        spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
+        ref_band, _interleaved(ramp), keep, cur_band, band.view(np.float32),
     )  # fmt: skip
     # The kept spectra are ready to serve as the next reference.
-    np.testing.assert_allclose(keep, np.conj(want_norm) * ramp, rtol=2e-6, atol=2e-7)
+    kept = keep.astype(np.float64) / _kernels.REF_SCALE
+    kept_value = kept[..., 0::2] + 1j * kept[..., 1::2]
+    np.testing.assert_allclose(kept_value, np.conj(want_norm) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(spec.view(np.complex64), want_cross, rtol=5e-6, atol=1e-6)
     assert np.all(np.isfinite(spec))
     sel = np.ix_(range(n), _band_rows(rows, ky), range(kx + 1))
@@ -204,14 +209,15 @@ def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
     w_vals = np.column_stack([wspec[nz].real, wspec[nz].imag]).astype(np.float32)
     heights = 37.3 + RNG.standard_normal((2, rows, cols))  # a large mean, as heights have
     spec = np.fft.rfft2((heights * window).astype(np.float32)).astype(np.complex64)
-    out = np.empty((2, rows, half), dtype=np.complex64)
+    out = np.empty((2, rows, 2 * half), dtype=np.int16)
     band_mag = np.empty((2, 5, 3), dtype=np.float32)
     ramp = np.ones((rows, half), dtype=np.complex64)
     _kernels.normalise_reference(
         _interleaved(spec), w_rows, w_cols, w_vals, float(wspec[0, 0].real), 1e-6, 1e-30,
-        2, 2, _interleaved(ramp), out.view(np.float32), band_mag,
+        2, 2, _interleaved(ramp), out, band_mag,
     )  # fmt: skip
-    assert np.all(out[:, 0, 0] == 0)
+    assert np.all(out[:, 0, 0:2] == 0)
     assert np.all(band_mag[:, 2, 0] == 0)  # band row ky = 0
     # The other frequencies keep unit magnitude (the texture is still there).
-    assert np.abs(out[:, 1:, :]).min() > 0.99
+    value = out.astype(np.float64) / _kernels.REF_SCALE
+    assert np.abs(value[:, 1:, 0::2] + 1j * value[:, 1:, 1::2]).min() > 0.99
