@@ -31,6 +31,7 @@ import numpy as np
 __all__ = [
     "count_nonzero",
     "dft_subpixel",
+    "gradient_x",
     "normalise_cross",
     "normalise_reference",
     "peaks_and_subpixel",
@@ -76,6 +77,17 @@ def count_nonzero(bits):  # type: ignore[no-untyped-def]
         for c in range(row.size):
             count += np.int32(1) if (row[c] & np.int32(0x7FFFFFFF)) != 0 else np.int32(0)
     return count
+
+
+@_jit
+def gradient_x(heights, out):  # type: ignore[no-untyped-def]
+    """``out[r, c] = heights[r, c + 1] - heights[r, c]``, the difference taken
+    in the heights' precision and then rounded to ``out``'s float32."""
+    for r in range(out.shape[0]):
+        h = heights[r]
+        o = out[r]
+        for c in range(o.size):
+            o[c] = h[c + 1] - h[c]
 
 
 @_jit
