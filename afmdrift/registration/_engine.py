@@ -404,15 +404,15 @@ class BlockEngine:
         lay = self.layout
         ey, ex = lay.ext
         rows, cols = lay.grad_shape
-        py, px = round(prior_px[1]), round(prior_px[0])
-        want_top = ref.top + py
-        want_left = ref.left + px
-        top = np.clip(want_top, 0, rows - ey)
-        left = np.clip(want_left, 0, cols - ex)
-        placed = (top == want_top) & (left == want_left)
-        near = (np.abs(top - want_top) <= lay.max_shift[0] // 2) & (
-            np.abs(left - want_left) <= lay.max_shift[1] // 2
-        )
+        n = lay.n_blocks
+        top = np.empty(n, dtype=np.intp)
+        left = np.empty(n, dtype=np.intp)
+        placed = np.empty(n, dtype=bool)
+        near = np.empty(n, dtype=bool)
+        _kernels.place_windows(
+            ref.top, ref.left, round(prior_px[1]), round(prior_px[0]), rows - ey, cols - ex,
+            lay.max_shift[0] // 2, lay.max_shift[1] // 2, top, left, placed, near,
+        )  # fmt: skip
         return top, left, placed, near
 
     def measure(
@@ -443,20 +443,22 @@ class BlockEngine:
             self._measure_chunk(chunk, ref, grad, top, left, search, peaks)
 
         self._each_chunk(work)
-        sy, sx = peaks.sy, peaks.sx
-        vec = np.empty((sx.size, 2), dtype=np.float64)
-        vec[:, 0] = (left - ref.left) + sx + peaks.fx
-        vec[:, 1] = (top - ref.top) + sy + peaks.fy
-        finite = np.isfinite(peaks.mse)
-        measured = near & finite & peaks.ok & (np.abs(sy) < my) & (np.abs(sx) < mx)
+        n = self.layout.n_blocks
+        vec = np.empty((n, 2), dtype=np.float64)
+        measured = np.empty(n, dtype=bool)
+        _kernels.assemble(
+            top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
+            peaks.mse, near, my, mx, vec, measured,
+        )  # fmt: skip
         cx, cy = self._centre_offset
         centres = np.column_stack([ref.left + cx, ref.top + cy]).astype(np.float64)
         ey, ex = self.layout.ext
+        peaks.mse[~np.isfinite(peaks.mse)] = np.nan
         result = BlockMeasurement(
             centres_px=centres,
             vectors_px=vec,
             confidence=peaks.peak.astype(np.float64) / (ey * ex),
-            mse=np.where(finite, peaks.mse, np.nan),
+            mse=peaks.mse,
             measured=measured,
             placed=placed,
             in_overlap=near,

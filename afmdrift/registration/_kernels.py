@@ -29,13 +29,16 @@ import numba
 import numpy as np
 
 __all__ = [
+    "assemble",
     "count_nonzero",
     "dft_subpixel",
     "gradient_x",
+    "masked_medians",
     "normalise_cross",
     "normalise_reference",
     "peaks_and_subpixel",
     "pick_peaks",
+    "place_windows",
     "reject_mad",
     "window_blocks",
 ]
@@ -746,3 +749,57 @@ def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[
             out[i] = new
         if not changed:
             return
+
+
+@_jit
+def place_windows(  # type: ignore[no-untyped-def]
+    ref_top, ref_left, dy, dx, max_top, max_left, near_y, near_x, top, left, placed, near
+):
+    """Window corners moved by the integer shift ``(dy, dx)`` and clamped
+    into ``[0, max_top] × [0, max_left]``; ``placed`` where no clamping was
+    needed, ``near`` where it was at most ``(near_y, near_x)``. Returns the
+    number of placed windows."""
+    count = 0
+    for i in range(ref_top.size):
+        want_t = ref_top[i] + dy
+        want_l = ref_left[i] + dx
+        t = min(max(want_t, 0), max_top)
+        le = min(max(want_l, 0), max_left)
+        top[i] = t
+        left[i] = le
+        placed[i] = t == want_t and le == want_l
+        near[i] = abs(t - want_t) <= near_y and abs(le - want_l) <= near_x
+        count += 1 if placed[i] else 0
+    return count
+
+
+@_jit
+def assemble(  # type: ignore[no-untyped-def]
+    top, left, ref_top, ref_left, sy, sx, fy, fx, ok, mse, near, my, mx, vectors, measured
+):
+    """Block vectors ``(x, y)`` = window move + integer peak + sub-pixel
+    offset, and whether each block was measured: window near its place, a
+    verified (finite-MSE) peak inside the search (not on its edge), and a
+    converged sub-pixel step."""
+    for i in range(top.size):
+        vectors[i, 0] = (left[i] - ref_left[i]) + sx[i] + fx[i]
+        vectors[i, 1] = (top[i] - ref_top[i]) + sy[i] + fy[i]
+        measured[i] = (
+            near[i] and np.isfinite(mse[i]) and ok[i] and abs(sy[i]) < my and abs(sx[i]) < mx
+        )
+
+
+@_jit
+def masked_medians(vectors, mask, out):  # type: ignore[no-untyped-def]
+    """Per-column medians of the rows of ``vectors`` (n, 2) where ``mask``
+    (NumPy's median: the mean of the two middle values for an even count);
+    NaN when no row is selected."""
+    n = vectors.shape[0]
+    sel = np.empty(n)
+    for axis in range(2):
+        m = 0
+        for i in range(n):
+            if mask[i]:
+                sel[m] = vectors[i, axis]
+                m += 1
+        out[axis] = np.median(sel[:m]) if m > 0 else np.nan

@@ -306,7 +306,8 @@ def measure_blocks(
     ok = meas.measured
     if int(ok.sum()) < engine.config.min_valid_blocks:
         return meas, top, left
-    est = np.median(meas.vectors_px[ok], axis=0)
+    est = np.empty(2)
+    _kernels.masked_medians(meas.vectors_px, ok, est)
     if float(np.max(np.abs(est - np.asarray(prior_px)))) > REFINE_PX:
         again = (float(est[0]), float(est[1]))
         meas, top, left = engine.measure(ref, grad, prior_px=again, search_px=search_px)
