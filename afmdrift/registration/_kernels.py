@@ -707,6 +707,18 @@ def peaks_and_subpixel(  # type: ignore[no-untyped-def]
 
 
 @_jit
+def _gather(vectors, mask, axis, out):  # type: ignore[no-untyped-def]
+    """Copy column ``axis`` of the rows of ``vectors`` where ``mask`` to the
+    start of ``out``; returns their number."""
+    m = 0
+    for i in range(vectors.shape[0]):
+        if mask[i]:
+            out[m] = vectors[i, axis]
+            m += 1
+    return m
+
+
+@_jit
 def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[no-untyped-def]
     """Iterated per-axis median/MAD outlier rule (see
     :mod:`afmdrift.registration._outliers`): ``out`` starts as ``keep``;
@@ -729,11 +741,7 @@ def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[
         if m < 3:
             return
         for axis in range(2):
-            k = 0
-            for i in range(n):
-                if out[i]:
-                    sel[k] = vectors[i, axis]
-                    k += 1
+            _gather(vectors, out, axis, sel)
             med[axis] = np.median(sel[:m])
             for i in range(m):
                 sel[i] = abs(sel[i] - med[axis])
@@ -794,12 +802,7 @@ def masked_medians(vectors, mask, out):  # type: ignore[no-untyped-def]
     """Per-column medians of the rows of ``vectors`` (n, 2) where ``mask``
     (NumPy's median: the mean of the two middle values for an even count);
     NaN when no row is selected."""
-    n = vectors.shape[0]
-    sel = np.empty(n)
+    sel = np.empty(vectors.shape[0])
     for axis in range(2):
-        m = 0
-        for i in range(n):
-            if mask[i]:
-                sel[m] = vectors[i, axis]
-                m += 1
+        m = _gather(vectors, mask, axis, sel)
         out[axis] = np.median(sel[:m]) if m > 0 else np.nan
