@@ -6,16 +6,22 @@ them by MSE, refine to sub-pixel) as a separate pass over the whole block
 stack, each holding the GIL for its many small operations. These kernels do
 the same arithmetic block by block in one or two passes, release the GIL,
 and so run concurrently on the engine's chunk threads beside the FFTW
-transforms. Each kernel works on one chunk's blocks and writes into arrays
-the caller owns; none allocates per frame.
+transforms. The per-block kernels work on one batch of a chunk's blocks;
+the small ones around them (gradient image, texture count, window
+placement, block assembly, medians, the MAD rule) on the whole frame. All
+write into arrays the caller owns; they allocate only small scratch arrays (per-block rows,
+candidates, sub-pixel sums).
 
 Complex spectra are passed as float32 views with interleaved real and
 imaginary parts (``spectrum.view(np.float32)``: shape ``(n, rows,
 2 * (cols // 2 + 1))``), so that the loops are plain float32 arithmetic the
-compiler vectorises.
+compiler vectorises (the normalisation and cross-power loop compiles to
+packed square roots, divisions and products); the reference spectra are
+interleaved int16 fixed point (see :func:`normalise_reference`).
 
-Results do not depend on how the blocks are split or on the thread count:
-every block is computed on its own, in a fixed order.
+Results do not depend on the thread count: every block is computed on its
+own, in a fixed order, and the split into chunks and batches is fixed by
+the frame layout.
 
 The kernels are compiled on first use and cached on disk by Numba
 (``__pycache__`` beside this file, or ``$NUMBA_CACHE_DIR``).
@@ -44,9 +50,10 @@ __all__ = [
 ]
 
 _jit = numba.njit(nogil=True, cache=True, error_model="numpy", boundscheck=False)
-#: For loops over finite values only (maxima, minima, counts): all fastmath
-#: flags, which let the compiler vectorise reductions that are exact in any
-#: order.
+#: For loops over finite values only (maxima, counts): all fastmath flags,
+#: which drop the NaN handling of the comparisons and let the compiler
+#: vectorise the integer counts (the float maxima stay scalar loops, about
+#: one element per cycle, measured).
 _jit_finite = numba.njit(
     nogil=True, cache=True, error_model="numpy", boundscheck=False, fastmath=True
 )
@@ -133,9 +140,7 @@ def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-unt
 
 @_jit_finite
 def _max_abs2(row):  # type: ignore[no-untyped-def]
-    """Largest ``re² + im²`` of an interleaved complex row (finite input;
-    fastmath lets the compiler vectorise the maximum, which is exact in any
-    order)."""
+    """Largest ``re² + im²`` of an interleaved complex row (finite input)."""
     peak2 = np.float32(0.0)
     for k in range(row.size // 2):
         m2 = row[2 * k] * row[2 * k] + row[2 * k + 1] * row[2 * k + 1]
@@ -295,8 +300,7 @@ def normalise_cross(  # type: ignore[no-untyped-def]
 
 @_jit_finite
 def _row_max(row, x0, x1):  # type: ignore[no-untyped-def]
-    """Highest value of ``row[x0..x1]`` (finite values: fastmath lets the
-    compiler vectorise the maximum, which is exact in any order)."""
+    """Highest value of ``row[x0..x1]`` (finite values)."""
     m = row[x0]
     for c in range(x0, x1 + 1):
         m = max(m, row[c])
@@ -316,8 +320,8 @@ def _suppressed(iy, ix, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-de
 @_jit
 def _row_max_masked(row, iy, x0, x1, acc_y, acc_x, n_acc, nms):  # type: ignore[no-untyped-def]
     """Highest value of ``row[x0..x1]`` outside the suppressed squares
-    (``-inf`` if none is left): the vectorised maximum over each gap between
-    the column intervals of the squares that cover row ``iy``."""
+    (``-inf`` if none is left): the plain maximum over each gap between the
+    column intervals of the squares that cover row ``iy``."""
     starts = np.empty(n_acc, dtype=np.intp)
     m = 0
     for q in range(n_acc):  # the covering squares' left columns, sorted
@@ -423,7 +427,7 @@ def pick_peaks(  # type: ignore[no-untyped-def]
 
     Writes, per block: the integer shift ``out_sy``, ``out_sx``, the
     unnormalised correlation value ``out_peak`` and ``out_mse``. The search
-    rows' maxima are found once (vectorised); after each accepted peak only
+    rows' maxima are found once; after each accepted peak only
     the rows its suppressed square covers are scanned again, and the column
     of a peak is looked up only in the row that wins.
     """
