@@ -13,6 +13,8 @@ Public API
     keyframe references).
 :class:`DriftResult`, :class:`BlockField`, :class:`TrackStep`
     Result records.
+:func:`warm_up`
+    Compile (or load) the engine's kernels ahead of the first frame.
 :func:`coarse_shift`, :class:`CoarseShift`
     The whole-image integer pre-alignment ``measure_drift`` uses when no
     prior is given (line-levelled heights, checked by the x-gradient).
@@ -34,7 +36,7 @@ from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 
 if TYPE_CHECKING:
     from afmdrift.registration._coarse import CoarseShift, coarse_shift
-    from afmdrift.registration._measure import measure_drift
+    from afmdrift.registration._measure import measure_drift, warm_up
     from afmdrift.registration._result import BlockField, DriftResult
     from afmdrift.registration._tracker import DriftTracker, TrackStep
 
@@ -49,12 +51,14 @@ __all__ = [
     "TrackStep",
     "coarse_shift",
     "measure_drift",
+    "warm_up",
 ]
 
 # The engine (pyFFTW, work arrays) loads on first use, so that importing the
 # configuration (afmdrift.config) or the CLI stays light.
 _LAZY = {
     "measure_drift": "afmdrift.registration._measure",
+    "warm_up": "afmdrift.registration._measure",
     "BlockField": "afmdrift.registration._result",
     "CoarseShift": "afmdrift.registration._coarse",
     "coarse_shift": "afmdrift.registration._coarse",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from collections import OrderedDict
 
 import numpy as np
@@ -28,6 +29,7 @@ __all__ = [
     "combine",
     "measure_blocks",
     "measure_drift",
+    "warm_up",
 ]
 
 #: Smallest accepted image edge (px).
@@ -341,3 +343,25 @@ def check_texture(grad: npt.NDArray[np.float32], name: str, *, gradient: str) ->
                 f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "
                 f"is non-zero (need {100 * MIN_TEXTURE_FRACTION:g} %): nothing to register"
             )
+
+
+def warm_up(config: RegistrationConfig | None = None) -> float:
+    """Make the engine's compiled kernels ready in this process; returns the
+    seconds it took.
+
+    Numba compiles the kernels on their first call (about 10 s after an
+    install, while its on-disk cache is empty; about 0.5 s to load them
+    from the cache later), holding the GIL meanwhile. This measures a small
+    synthetic pair, in float32 and float64 (the dtypes frames come in), so
+    that the first real frame does not pay it: call it where a pause is
+    harmless, as the drift service does before it starts publishing.
+    """
+    cfg = config if config is not None else RegistrationConfig()
+    start = time.perf_counter()
+    rng = np.random.default_rng(0)
+    base = rng.standard_normal((264, 264))
+    for dtype in (np.float32, np.float64):
+        ref = base[4:260, 4:260].astype(dtype)
+        cur = base[2:258, 5:261].astype(dtype)  # a shift of (1, 2) px
+        measure_drift(ref, cur, pixel_size_nm=1.0, config=cfg, prior_px=(0.0, 0.0))
+    return time.perf_counter() - start

@@ -45,6 +45,7 @@ from afmdrift.drivers._base import ChannelSample, Event, Frame, Instrument
 from afmdrift.errors import AfmdriftError
 from afmdrift.model import OffsetCurve
 from afmdrift.model._positions import commanded_offset_nm
+from afmdrift.registration import warm_up
 from afmdrift.service._pipeline import FrameOutcome, FramePipeline, process_and_record
 from afmdrift.service._safety import InstrumentClock, OffsetLimiter, is_stale
 from afmdrift.service._store import RunStore
@@ -185,6 +186,13 @@ class DriftService:
             self._executor = concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="afmdrift-worker"
             )
+            # Compile (or load from Numba's cache) the registration kernels
+            # now: on the first frame it would hold the GIL for 0.5 s (10 s
+            # after an install) and stall the offset stream mid-run.
+            warm_s = await asyncio.get_running_loop().run_in_executor(
+                self._executor, functools.partial(warm_up, self.config.registration)
+            )
+            log.info("registration kernels ready in %.2f s", warm_s)
             await self._resume_from_store()
             self._publisher = Publisher(
                 self.svc.pub_endpoint, ctx=ctx, sndhwm=self.svc.sndhwm, curve=self._curve_keys

@@ -221,3 +221,16 @@ def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
     # The other frequencies keep unit magnitude (the texture is still there).
     value = out.astype(np.float64) / _kernels.REF_SCALE
     assert np.abs(value[:, 1:, 0::2] + 1j * value[:, 1:, 1::2]).min() > 0.99
+
+
+@pytest.mark.parametrize(
+    "config",
+    [{}, {"subpixel": "sinc", "gradient": "none"}, {"reference": "consecutive", "threads": 1}],
+)
+def test_warm_up_runs_the_kernels_for_any_configuration(config: dict[str, object]) -> None:
+    """The drift service calls warm_up before it publishes, so that the
+    first frame does not compile (or load) the kernels with the GIL held."""
+    from afmdrift.registration import RegistrationConfig, warm_up
+
+    seconds = warm_up(RegistrationConfig.model_validate(config))
+    assert 0.0 <= seconds < 300.0
