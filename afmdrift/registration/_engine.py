@@ -14,7 +14,9 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 
 from __future__ import annotations
 
+import functools
 import itertools
+import math
 import os
 import threading
 from collections.abc import Callable
@@ -304,19 +306,62 @@ class BlockEngine:
     def _each_chunk(self, work: Callable[[_Chunk], _T]) -> list[_T]:
         """``work(chunk)`` for every chunk, in chunk order; concurrently on
         ``threads`` threads (the caller's among them) when that is above 1."""
-        chunks = self._chunks
-        if self._threads <= 1:
-            return [work(c) for c in chunks]
+        return self._run_all([functools.partial(work, c) for c in self._chunks])
+
+    def _run_all(self, tasks: list[Callable[[], _T]]) -> list[_T]:
+        """Run ``tasks``, returning their results in order: the caller runs the
+        first, the process-wide pool the others, when ``threads`` is above 1."""
+        if self._threads <= 1 or len(tasks) <= 1:
+            return [t() for t in tasks]
         pool = _worker_pool(self._threads - 1)
-        futures: list[Future[_T]] = [pool.submit(work, c) for c in chunks[1:]]
+        futures: list[Future[_T]] = [pool.submit(t) for t in tasks[1:]]
         try:
-            first = work(chunks[0])
+            first = tasks[0]()
         finally:
-            # The chunks write into shared arrays: never return (or raise)
+            # The tasks write into shared arrays: never return (or raise)
             # while one is still running.
             for f in futures:
                 f.exception()
         return [first, *(f.result() for f in futures)]
+
+    def prepare(
+        self, heights: npt.NDArray[np.floating], *, out: F32 | None = None
+    ) -> tuple[F32, tuple[float, float, float, float, int]]:
+        """Gradient image of ``heights`` (written into ``out`` if given) and
+        what the frame checks need: ``(min, max)`` of the heights (NaN if any
+        pixel is NaN, ±inf if infinite), ``(min, max)`` of the gradient and
+        its count of non-zero pixels.
+
+        With the x gradient of a float image and ``threads`` above 1, the two
+        halves of the rows are done concurrently (the gradient of a row
+        needs only that row), which halves this step on the calling thread.
+        """
+        grad = out if out is not None else np.empty(self.layout.grad_shape, np.float32)
+        rows = int(heights.shape[0])
+        parallel = (
+            self._threads > 1
+            and self.config.gradient == "x"
+            and heights.dtype in (np.float32, np.float64)
+            and rows >= 2
+        )
+        if not parallel:
+            self.gradient(heights, out=grad)
+            return grad, _frame_stats(heights, grad)
+        half = rows // 2
+        parts = self._run_all(
+            [
+                functools.partial(_gradient_rows, heights, grad, 0, half),
+                functools.partial(_gradient_rows, heights, grad, half, rows),
+            ]
+        )
+        (a_lo, a_hi, b_lo, b_hi, n_a), (c_lo, c_hi, d_lo, d_hi, n_b) = parts
+        return grad, (
+            _nan_min(a_lo, c_lo),
+            _nan_max(a_hi, c_hi),
+            min(b_lo, d_lo),
+            max(b_hi, d_hi),
+            n_a + n_b,
+        )
 
     # -- spectra ---------------------------------------------------------------
 
@@ -552,6 +597,41 @@ class BlockEngine:
         out.fy[sl] = fy
         out.fx[sl] = fx
         out.ok[sl] = ok_x & ok_y
+
+
+def _frame_stats(
+    heights: npt.NDArray[np.floating], grad: F32
+) -> tuple[float, float, float, float, int]:
+    """``(min, max)`` of ``heights`` and of ``grad`` and its non-zero count."""
+    bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
+    return (
+        float(heights.min()),
+        float(heights.max()),
+        float(grad.min()),
+        float(grad.max()),
+        int(_kernels.count_nonzero(bits)),
+    )
+
+
+def _gradient_rows(
+    heights: npt.NDArray[np.floating], grad: F32, r0: int, r1: int
+) -> tuple[float, float, float, float, int]:
+    """x-gradient of rows ``r0 .. r1 - 1`` into ``grad`` and their
+    :func:`_frame_stats` (the compiled gradient and count and NumPy's
+    reductions release the GIL)."""
+    part = grad[r0:r1]
+    _kernels.gradient_x(heights[r0:r1], part)
+    return _frame_stats(heights[r0:r1], part)
+
+
+def _nan_min(a: float, b: float) -> float:
+    """Smaller of two minima, NaN if either is (a NaN pixel anywhere)."""
+    return a if math.isnan(a) or a < b else b
+
+
+def _nan_max(a: float, b: float) -> float:
+    """Larger of two maxima, NaN if either is."""
+    return a if math.isnan(a) or a > b else b
 
 
 def _subpixel(c: F64, method: str) -> tuple[F64, BArr]:

@@ -26,6 +26,7 @@ __all__ = [
     "check_pixel_size",
     "check_prior",
     "check_texture",
+    "check_values",
     "combine",
     "measure_blocks",
     "measure_drift",
@@ -62,8 +63,15 @@ def check_pixel_size(pixel_size_nm: float | tuple[float, float]) -> tuple[float,
     return pair
 
 
-def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
+def check_image(
+    image: npt.ArrayLike, name: str, *, values: bool = True
+) -> npt.NDArray[np.floating]:
     """Validate a height image; return it as a floating array (no copy if possible).
+
+    With ``values=False`` only the array itself is checked (dtype, shape,
+    size); the caller then passes the image's minimum and maximum to
+    :func:`check_values` (the tracker takes them from the pass that computes
+    the gradient image).
 
     Raises
     ------
@@ -83,7 +91,14 @@ def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
         )
     if arr.dtype.kind != "f":
         arr = arr.astype(np.float64)
-    lo, hi = float(arr.min()), float(arr.max())  # NaN or Inf anywhere shows up here
+    if values:
+        check_values(arr, name, float(arr.min()), float(arr.max()))
+    return arr
+
+
+def check_values(arr: npt.NDArray[np.floating], name: str, lo: float, hi: float) -> None:
+    """Refuse NaN/Inf pixels or a constant image, given the image's minimum
+    ``lo`` and maximum ``hi`` (NaN or ±inf there when such pixels exist)."""
     if not (math.isfinite(lo) and math.isfinite(hi)):
         finite = np.isfinite(arr)
         bad = int(arr.size - np.count_nonzero(finite))
@@ -93,7 +108,6 @@ def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
         )
     if lo == hi:
         raise InvalidFrameError(f"{name} is constant (all pixels = {lo}): nothing to register")
-    return arr
 
 
 def combine(
@@ -316,8 +330,17 @@ def measure_blocks(
     return meas, top, left
 
 
-def check_texture(grad: npt.NDArray[np.float32], name: str, *, gradient: str) -> None:
+def check_texture(
+    grad: npt.NDArray[np.float32],
+    name: str,
+    *,
+    gradient: str,
+    stats: tuple[float, float, int] | None = None,
+) -> None:
     """Refuse a gradient image with nothing to register.
+
+    ``stats``: the gradient image's ``(min, max, non-zero count)`` when the
+    caller has them already (:meth:`BlockEngine.prepare`).
 
     Raises
     ------
@@ -330,14 +353,17 @@ def check_texture(grad: npt.NDArray[np.float32], name: str, *, gradient: str) ->
         movie 70–75 %), on which a few blocks once agreed on a confident
         wrong drift of (−19.5, 11.2) px.
     """
-    if float(grad.max()) == float(grad.min()):
+    if stats is None:
+        bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
+        stats = (float(grad.min()), float(grad.max()), int(_kernels.count_nonzero(bits)))
+    lo, hi, nonzero = stats
+    if hi == lo:
         raise InvalidFrameError(
             f"{name} has no texture in its gradient image (a plane or constant): "
             "nothing to register"
         )
     if gradient != "none":
-        bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
-        fraction = int(_kernels.count_nonzero(bits)) / grad.size
+        fraction = nonzero / grad.size
         if fraction < MIN_TEXTURE_FRACTION:
             raise InvalidFrameError(
                 f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "
