@@ -38,7 +38,7 @@ from afmdrift.registration._blocks import (
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 
-__all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
+__all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra", "gradient_stats"]
 
 _T = TypeVar("_T")
 F32 = npt.NDArray[np.float32]
@@ -217,8 +217,6 @@ class BlockEngine:
         # sub-pixel method (rfft layout: all ky in the band, kx >= 0).
         ky_max = max(1, int(config.subpixel_band * ey / 2))
         kx_max = max(1, int(config.subpixel_band * ex / 2))
-        self._band_ky = ky_max
-        self._band_kx = kx_max
         band_shape = (2 * ky_max + 1, kx_max + 1)
         self._fy = np.arange(-ky_max, ky_max + 1) / ey
         self._fx = np.arange(0, kx_max + 1) / ex
@@ -256,9 +254,20 @@ class BlockEngine:
         # removing the window-weighted block mean is a subtraction on them.
         wspec = np.fft.rfft2(self.window.astype(np.float64))
         nz = np.abs(wspec) > 1e-9 * abs(wspec[0, 0])
-        self._w_rows, self._w_cols = (a.astype(np.intp) for a in np.nonzero(nz))
-        self._w_vals = np.column_stack([wspec[nz].real, wspec[nz].imag]).astype(np.float32)
-        self._w_sum = float(wspec[0, 0].real)
+        w_rows, w_cols = (a.astype(np.intp) for a in np.nonzero(nz))
+        # The arguments both normalisation kernels start with: the window's
+        # non-zero DFT terms (rows, columns, values as (re, im)) and their sum
+        # for the mean removal, the magnitude floor, the sub-pixel band.
+        self._spectrum_args: tuple[IArr, IArr, F32, float, float, float, int, int] = (
+            w_rows,
+            w_cols,
+            np.column_stack([wspec[nz].real, wspec[nz].imag]).astype(np.float32),
+            float(wspec[0, 0].real),
+            config.eps_rel,
+            _MAG_FLOOR,
+            ky_max,
+            kx_max,
+        )
         stride = config.mse_stride_px
         by, bx = lay.block
         self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
@@ -266,13 +275,13 @@ class BlockEngine:
         self._inner = np.array([(ey - by) // 2, (ex - bx) // 2], dtype=np.intp)
         off_x, off_y = gradient_offset_px(config.gradient)
         self._centre_offset = (off_x + (ex - 1) / 2.0, off_y + (ey - 1) / 2.0)
-        self._spec_shape = (n, ey, ex // 2 + 1)
+        # Reference spectra: interleaved complex in int16 fixed point.
+        self._fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         # Normalised spectra of the last measured frame, kept only when every
         # accepted frame becomes the reference (consecutive mode); |S| in the
         # sub-pixel band is always kept (small).
-        fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         self._current: npt.NDArray[np.int16] | None = (
-            np.empty(fixed_shape, np.int16) if config.reference == "consecutive" else None
+            np.empty(self._fixed_shape, np.int16) if config.reference == "consecutive" else None
         )
         self._no_spectra: npt.NDArray[np.int16] = np.empty((0, 1, 2), np.int16)
         # Phase ramp exp(-2πi k·m) folded into the reference spectra: every
@@ -384,9 +393,10 @@ class BlockEngine:
     def reference(self, grad: F32) -> ReferenceSpectra:
         """Spectra of a new reference at the layout's grid positions: each
         block's window-weighted mean removed, normalised to ``S / (|S| + a)``
-        (``a = max(eps_rel · max|S|, 1e-30)``) and conjugated."""
+        (``a = max(eps_rel · max|S|, 1e-30)``), conjugated, times the phase
+        ramp, in int16 fixed point."""
         top, left = self.grid_positions()
-        spectra = np.empty((*self._spec_shape[:2], 2 * self._spec_shape[2]), np.int16)
+        spectra = np.empty(self._fixed_shape, np.int16)
         band_mag = np.empty_like(self._cur_band_mag)
 
         def work(chunk: _Chunk) -> None:
@@ -395,14 +405,7 @@ class BlockEngine:
                 sl = batch.sl
                 _kernels.normalise_reference(
                     batch.fft.spectrum.view(np.float32),
-                    self._w_rows,
-                    self._w_cols,
-                    self._w_vals,
-                    self._w_sum,
-                    self.config.eps_rel,
-                    _MAG_FLOOR,
-                    self._band_ky,
-                    self._band_kx,
+                    *self._spectrum_args,
                     self._ramp,
                     spectra[sl],
                     band_mag[sl],
@@ -417,9 +420,9 @@ class BlockEngine:
         """The frame of the last :meth:`measure` call (gradient ``grad``,
         windows at the grid positions ``top``, ``left``) as a reference.
 
-        With ``keep_spectra`` its normalised spectra were kept and are reused
-        (no FFT); otherwise they are computed again, identically, by
-        :meth:`reference`.
+        In consecutive mode its normalised spectra were kept by :meth:`measure`
+        and are reused (no FFT); otherwise they are computed again,
+        identically, by :meth:`reference`.
         """
         if self._current is None:
             return self.reference(grad)
@@ -532,14 +535,7 @@ class BlockEngine:
             self._forward(batch, grad, top, left)
             _kernels.normalise_cross(
                 fft.spectrum.view(np.float32),
-                self._w_rows,
-                self._w_cols,
-                self._w_vals,
-                self._w_sum,
-                cfg.eps_rel,
-                _MAG_FLOOR,
-                self._band_ky,
-                self._band_kx,
+                *self._spectrum_args,
                 ref.conj_spectra[sl],
                 ref.band_mag[sl],
                 self._ramp,
@@ -599,18 +595,17 @@ class BlockEngine:
         out.ok[sl] = ok_x & ok_y
 
 
+def gradient_stats(grad: F32) -> tuple[float, float, int]:
+    """``(min, max, count of non-zero pixels)`` of a gradient image."""
+    bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
+    return float(grad.min()), float(grad.max()), int(_kernels.count_nonzero(bits))
+
+
 def _frame_stats(
     heights: npt.NDArray[np.floating], grad: F32
 ) -> tuple[float, float, float, float, int]:
-    """``(min, max)`` of ``heights`` and of ``grad`` and its non-zero count."""
-    bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
-    return (
-        float(heights.min()),
-        float(heights.max()),
-        float(grad.min()),
-        float(grad.max()),
-        int(_kernels.count_nonzero(bits)),
-    )
+    """``(min, max)`` of ``heights`` followed by :func:`gradient_stats`."""
+    return (float(heights.min()), float(heights.max()), *gradient_stats(grad))
 
 
 def _gradient_rows(
@@ -619,8 +614,7 @@ def _gradient_rows(
     """x-gradient of rows ``r0 .. r1 - 1`` into ``grad`` and their
     :func:`_frame_stats` (the compiled gradient and count and NumPy's
     reductions release the GIL)."""
-    part = grad[r0:r1]
-    _kernels.gradient_x(heights[r0:r1], part)
+    part = gradient_image(heights[r0:r1], "x", out=grad[r0:r1])
     return _frame_stats(heights[r0:r1], part)
 
 

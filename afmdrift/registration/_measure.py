@@ -13,7 +13,12 @@ import numpy.typing as npt
 from afmdrift.registration import _kernels
 from afmdrift.registration._coarse import coarse_shift
 from afmdrift.registration._config import RegistrationConfig
-from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
+from afmdrift.registration._engine import (
+    BlockEngine,
+    BlockMeasurement,
+    ReferenceSpectra,
+    gradient_stats,
+)
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 from afmdrift.registration._outliers import reject_mad, reject_paper
 from afmdrift.registration._result import BlockField, DriftResult
@@ -353,10 +358,7 @@ def check_texture(
         movie 70–75 %), on which a few blocks once agreed on a confident
         wrong drift of (−19.5, 11.2) px.
     """
-    if stats is None:
-        bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
-        stats = (float(grad.min()), float(grad.max()), int(_kernels.count_nonzero(bits)))
-    lo, hi, nonzero = stats
+    lo, hi, nonzero = stats if stats is not None else gradient_stats(grad)
     if hi == lo:
         raise InvalidFrameError(
             f"{name} has no texture in its gradient image (a plane or constant): "
