@@ -20,14 +20,21 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
 from afmdrift.registration import _kernels
 
-__all__ = ["BlockLayout", "gradient_image", "gradient_shape", "raised_cosine"]
+__all__ = [
+    "BlockLayout",
+    "FrameStats",
+    "gradient_and_stats",
+    "gradient_image",
+    "gradient_shape",
+    "raised_cosine",
+]
 
 Gradient = Literal["x", "y", "both", "none"]
 
@@ -75,7 +82,7 @@ def gradient_image(
     # Differences are taken in the input precision and only then rounded to
     # float32, so a large z offset does not eat the texture's digits.
     if gradient == "x" and h.dtype in (np.float32, np.float64):
-        _kernels.gradient_x(h, out)  # one compiled pass (3x NumPy's on 512²)
+        _kernels.gradient_x(h, out)  # one compiled pass (its figures unused here)
     elif gradient == "x":
         np.subtract(h[:, 1:], h[:, :-1], out=out, casting="same_kind")
     elif gradient == "y":
@@ -87,6 +94,46 @@ def gradient_image(
     else:
         out[...] = h
     return out
+
+
+class FrameStats(NamedTuple):
+    """What the frame checks need of a gradient image (see
+    :func:`afmdrift.registration._measure.check_frame`).
+
+    Attributes
+    ----------
+    finite : bool
+        No NaN or infinite pixel in the heights nor in the gradient image.
+    nonzero : int
+        Non-zero pixels of the gradient image.
+    uniform : bool
+        All pixels of the gradient image are equal (a constant frame, a plane
+        in the x gradient, ...).
+    """
+
+    finite: bool
+    nonzero: int
+    uniform: bool
+
+
+def gradient_and_stats(
+    heights: npt.NDArray[np.floating],
+    gradient: Gradient,
+    *,
+    out: npt.NDArray[np.float32] | None = None,
+) -> tuple[npt.NDArray[np.float32], FrameStats]:
+    """:func:`gradient_image` and its :class:`FrameStats`; in one compiled pass
+    for the x gradient of a float32 or float64 image (where every pixel
+    enters a difference, so a NaN pixel always shows in the gradient)."""
+    if gradient == "x" and heights.dtype in (np.float32, np.float64):
+        rows, cols = gradient_shape((int(heights.shape[0]), int(heights.shape[1])), gradient)
+        grad = out if out is not None else np.empty((rows, cols), dtype=np.float32)
+        finite, nonzero, uniform = _kernels.gradient_x(heights, grad)
+        return grad, FrameStats(bool(finite), int(nonzero), bool(uniform))
+    grad = gradient_image(heights, gradient, out=out)
+    finite = bool(np.isfinite(heights).all() and np.isfinite(grad).all())
+    uniform = bool((grad == grad.flat[0]).all())
+    return grad, FrameStats(finite, int(np.count_nonzero(grad)), uniform)
 
 
 def raised_cosine(rows: int, cols: int) -> npt.NDArray[np.float32]:

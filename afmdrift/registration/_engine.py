@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import math
 import os
 import threading
 from collections.abc import Callable
@@ -30,6 +29,8 @@ import numpy.typing as npt
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import (
     BlockLayout,
+    FrameStats,
+    gradient_and_stats,
     gradient_image,
     gradient_offset_px,
     gradient_shape,
@@ -38,7 +39,7 @@ from afmdrift.registration._blocks import (
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 
-__all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra", "gradient_stats"]
+__all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
 _T = TypeVar("_T")
 F32 = npt.NDArray[np.float32]
@@ -273,8 +274,15 @@ class BlockEngine:
         self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
         self._mse_cols = np.arange(0, bx, stride, dtype=np.intp)
         self._inner = np.array([(ey - by) // 2, (ex - bx) // 2], dtype=np.intp)
+        # Block centres (x, y) in image pixels: references always have their
+        # windows at the grid positions (see reference, current_as_reference).
         off_x, off_y = gradient_offset_px(config.gradient)
-        self._centre_offset = (off_x + (ex - 1) / 2.0, off_y + (ey - 1) / 2.0)
+        self._centres: F64 = np.column_stack(
+            [lay.left + off_x + (ex - 1) / 2.0, lay.top + off_y + (ey - 1) / 2.0]
+        ).astype(np.float64)
+        self._centres.flags.writeable = False
+        # The inverse FFT's scale: correlation peak of identical blocks.
+        self._area = float(ey * ex)
         # Reference spectra: interleaved complex in int16 fixed point.
         self._fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         # Normalised spectra of the last measured frame, kept only when every
@@ -335,42 +343,12 @@ class BlockEngine:
 
     def prepare(
         self, heights: npt.NDArray[np.floating], *, out: F32 | None = None
-    ) -> tuple[F32, tuple[float, float, float, float, int]]:
-        """Gradient image of ``heights`` (written into ``out`` if given) and
-        what the frame checks need: ``(min, max)`` of the heights (NaN if any
-        pixel is NaN, ±inf if infinite), ``(min, max)`` of the gradient and
-        its count of non-zero pixels.
-
-        With the x gradient of a float image and ``threads`` above 1, the two
-        halves of the rows are done concurrently (the gradient of a row
-        needs only that row), which halves this step on the calling thread.
-        """
-        grad = out if out is not None else np.empty(self.layout.grad_shape, np.float32)
-        rows = int(heights.shape[0])
-        parallel = (
-            self._threads > 1
-            and self.config.gradient == "x"
-            and heights.dtype in (np.float32, np.float64)
-            and rows >= 2
-        )
-        if not parallel:
-            self.gradient(heights, out=grad)
-            return grad, _frame_stats(heights, grad)
-        half = rows // 2
-        parts = self._run_all(
-            [
-                functools.partial(_gradient_rows, heights, grad, 0, half),
-                functools.partial(_gradient_rows, heights, grad, half, rows),
-            ]
-        )
-        (a_lo, a_hi, b_lo, b_hi, n_a), (c_lo, c_hi, d_lo, d_hi, n_b) = parts
-        return grad, (
-            _nan_min(a_lo, c_lo),
-            _nan_max(a_hi, c_hi),
-            min(b_lo, d_lo),
-            max(b_hi, d_hi),
-            n_a + n_b,
-        )
+    ) -> tuple[F32, FrameStats]:
+        """Gradient image of ``heights`` (written into ``out`` if given) and the
+        :class:`~afmdrift.registration._blocks.FrameStats` the frame checks
+        need, in one pass where compiled (see
+        :func:`~afmdrift.registration._blocks.gradient_and_stats`)."""
+        return gradient_and_stats(heights, self.config.gradient, out=out)
 
     # -- spectra ---------------------------------------------------------------
 
@@ -494,18 +472,15 @@ class BlockEngine:
         n = self.layout.n_blocks
         vec = np.empty((n, 2), dtype=np.float64)
         measured = np.empty(n, dtype=bool)
+        confidence = np.empty(n, dtype=np.float64)
         _kernels.assemble(
             top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
-            peaks.mse, near, my, mx, vec, measured,
+            peaks.mse, peaks.peak, self._area, near, my, mx, vec, measured, confidence,
         )  # fmt: skip
-        cx, cy = self._centre_offset
-        centres = np.column_stack([ref.left + cx, ref.top + cy]).astype(np.float64)
-        ey, ex = self.layout.ext
-        peaks.mse[~np.isfinite(peaks.mse)] = np.nan
         result = BlockMeasurement(
-            centres_px=centres,
+            centres_px=self._centres,
             vectors_px=vec,
-            confidence=peaks.peak.astype(np.float64) / (ey * ex),
+            confidence=confidence,
             mse=peaks.mse,
             measured=measured,
             placed=placed,
@@ -593,39 +568,6 @@ class BlockEngine:
         out.fy[sl] = fy
         out.fx[sl] = fx
         out.ok[sl] = ok_x & ok_y
-
-
-def gradient_stats(grad: F32) -> tuple[float, float, int]:
-    """``(min, max, count of non-zero pixels)`` of a gradient image."""
-    bits = np.ascontiguousarray(grad, dtype=np.float32).view(np.int32)
-    return float(grad.min()), float(grad.max()), int(_kernels.count_nonzero(bits))
-
-
-def _frame_stats(
-    heights: npt.NDArray[np.floating], grad: F32
-) -> tuple[float, float, float, float, int]:
-    """``(min, max)`` of ``heights`` followed by :func:`gradient_stats`."""
-    return (float(heights.min()), float(heights.max()), *gradient_stats(grad))
-
-
-def _gradient_rows(
-    heights: npt.NDArray[np.floating], grad: F32, r0: int, r1: int
-) -> tuple[float, float, float, float, int]:
-    """x-gradient of rows ``r0 .. r1 - 1`` into ``grad`` and their
-    :func:`_frame_stats` (the compiled gradient and count and NumPy's
-    reductions release the GIL)."""
-    part = gradient_image(heights[r0:r1], "x", out=grad[r0:r1])
-    return _frame_stats(heights[r0:r1], part)
-
-
-def _nan_min(a: float, b: float) -> float:
-    """Smaller of two minima, NaN if either is (a NaN pixel anywhere)."""
-    return a if math.isnan(a) or a < b else b
-
-
-def _nan_max(a: float, b: float) -> float:
-    """Larger of two maxima, NaN if either is."""
-    return a if math.isnan(a) or a > b else b
 
 
 def _subpixel(c: F64, method: str) -> tuple[F64, BArr]:

@@ -11,14 +11,10 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.registration import _kernels
+from afmdrift.registration._blocks import FrameStats
 from afmdrift.registration._coarse import coarse_shift
 from afmdrift.registration._config import RegistrationConfig
-from afmdrift.registration._engine import (
-    BlockEngine,
-    BlockMeasurement,
-    ReferenceSpectra,
-    gradient_stats,
-)
+from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 from afmdrift.registration._outliers import reject_mad, reject_paper
 from afmdrift.registration._result import BlockField, DriftResult
@@ -27,11 +23,10 @@ __all__ = [
     "MIN_IMAGE_PX",
     "MIN_TEXTURE_FRACTION",
     "REFINE_PX",
+    "check_frame",
     "check_image",
     "check_pixel_size",
     "check_prior",
-    "check_texture",
-    "check_values",
     "combine",
     "measure_blocks",
     "measure_drift",
@@ -68,21 +63,15 @@ def check_pixel_size(pixel_size_nm: float | tuple[float, float]) -> tuple[float,
     return pair
 
 
-def check_image(
-    image: npt.ArrayLike, name: str, *, values: bool = True
-) -> npt.NDArray[np.floating]:
-    """Validate a height image; return it as a floating array (no copy if possible).
-
-    With ``values=False`` only the array itself is checked (dtype, shape,
-    size); the caller then passes the image's minimum and maximum to
-    :func:`check_values` (the tracker takes them from the pass that computes
-    the gradient image).
+def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
+    """Validate a height image as an array; return it as a floating array (no
+    copy if possible). Its pixel values are checked with its gradient image,
+    by :func:`check_frame`.
 
     Raises
     ------
     InvalidFrameError
-        Not 2-D, not real numeric, smaller than 64 px, NaN/Inf pixels, or
-        constant (no texture to register).
+        Not 2-D, not real numeric, or smaller than 64 px.
     """
     arr = np.asarray(image)
     if arr.dtype.kind not in "fiu":
@@ -96,12 +85,56 @@ def check_image(
         )
     if arr.dtype.kind != "f":
         arr = arr.astype(np.float64)
-    if values:
-        check_values(arr, name, float(arr.min()), float(arr.max()))
     return arr
 
 
-def check_values(arr: npt.NDArray[np.floating], name: str, lo: float, hi: float) -> None:
+def check_frame(
+    heights: npt.NDArray[np.floating],
+    grad: npt.NDArray[np.float32],
+    stats: FrameStats,
+    name: str,
+    *,
+    gradient: str,
+) -> None:
+    """Refuse a frame with nothing to register, given its gradient image
+    ``grad`` and the :class:`FrameStats` found with it
+    (:meth:`BlockEngine.prepare`). The heights themselves are only looked at
+    again to name what is wrong.
+
+    Raises
+    ------
+    InvalidFrameError
+        NaN/Inf pixels (or height differences beyond float32); a constant
+        frame, or a gradient image without texture (a plane); or, for the
+        gradient modes (``gradient`` not ``"none"``), fewer than
+        :data:`MIN_TEXTURE_FRACTION` of the gradient's pixels non-zero: a
+        near-blank frame, e.g. HS-AFM frame 27 of ``hsafm_sample_0.asd``
+        (9 height levels, 0.18 % non-zero x-gradient; good frames of that
+        movie 70–75 %), on which a few blocks once agreed on a confident
+        wrong drift of (−19.5, 11.2) px.
+    """
+    if not stats.finite or stats.uniform:
+        lo, hi = float(heights.min()), float(heights.max())
+        _check_values(heights, name, lo, hi)
+        if not stats.finite:
+            raise InvalidFrameError(
+                f"{name} has height differences beyond the float32 range (heights "
+                f"{lo:g} .. {hi:g} nm): not a height image in nm?"
+            )
+        raise InvalidFrameError(
+            f"{name} has no texture in its gradient image (a plane or constant): "
+            "nothing to register"
+        )
+    if gradient != "none":
+        fraction = stats.nonzero / grad.size
+        if fraction < MIN_TEXTURE_FRACTION:
+            raise InvalidFrameError(
+                f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "
+                f"is non-zero (need {100 * MIN_TEXTURE_FRACTION:g} %): nothing to register"
+            )
+
+
+def _check_values(arr: npt.NDArray[np.floating], name: str, lo: float, hi: float) -> None:
     """Refuse NaN/Inf pixels or a constant image, given the image's minimum
     ``lo`` and maximum ``hi`` (NaN or ±inf there when such pixels exist)."""
     if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -150,18 +183,20 @@ def combine(
     px, py = pixel_size_nm
     reason = None
     need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
+    # Mean (x, y) and sample standard deviation (x, y) of the valid blocks.
+    stats = np.empty(4)
+    _kernels.masked_mean_std(vec, valid, stats)
+    mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
     if n_valid < need:
         reason = (
             f"only {n_valid} of {total} blocks valid (need {need}: {available} in the "
             f"overlap, {int(measured.sum())} with a usable peak)"
         )
-    else:
-        spread = vec[valid].std(axis=0, ddof=1)
-        if float(spread.max()) > cfg.max_block_spread_px:
-            reason = (
-                f"the {n_valid} valid blocks disagree: spread ({spread[0]:.2f}, "
-                f"{spread[1]:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
-            )
+    elif max(spread_x, spread_y) > cfg.max_block_spread_px:
+        reason = (
+            f"the {n_valid} valid blocks disagree: spread ({spread_x:.2f}, "
+            f"{spread_y:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
+        )
     if reason is not None:
         nan = math.nan
         return DriftResult(
@@ -178,18 +213,15 @@ def combine(
             reason=reason,
             field=field,
         )
-    sel = vec[valid]
-    mean = sel.mean(axis=0)
     # Blocks whose inner areas overlap are not independent: count each only
     # by its unshared fraction (never fewer than two blocks).
-    n_eff = max(2.0, n_valid * engine.layout.overlap_factor())
-    sem = sel.std(axis=0, ddof=1) / math.sqrt(n_eff)
-    sx_nm, sy_nm = float(sem[0]) * px, float(sem[1]) * py
+    root_n = math.sqrt(max(2.0, n_valid * engine.layout.overlap_factor()))
+    sx_nm, sy_nm = spread_x / root_n * px, spread_y / root_n * py
     return DriftResult(
-        dx_px=float(mean[0]),
-        dy_px=float(mean[1]),
-        dx_nm=float(mean[0]) * px,
-        dy_nm=float(mean[1]) * py,
+        dx_px=mean_x,
+        dy_px=mean_y,
+        dx_nm=mean_x * px,
+        dy_nm=mean_y * py,
         sigma_x_nm=sx_nm,
         sigma_y_nm=sy_nm,
         sigma_nm=math.sqrt(0.5 * (sx_nm**2 + sy_nm**2)),
@@ -276,10 +308,10 @@ def measure_drift(
     shape = (int(ref.shape[0]), int(ref.shape[1]))
     engine = _take_engine(shape, cfg)
     try:
-        g_ref = engine.gradient(ref)
-        g_cur = engine.gradient(cur)
-        check_texture(g_ref, "reference", gradient=cfg.gradient)
-        check_texture(g_cur, "current", gradient=cfg.gradient)
+        g_ref, ref_stats = engine.prepare(ref)
+        check_frame(ref, g_ref, ref_stats, "reference", gradient=cfg.gradient)
+        g_cur, cur_stats = engine.prepare(cur)
+        check_frame(cur, g_cur, cur_stats, "current", gradient=cfg.gradient)
         search = None
         if prior is None:
             prior = (0.0, 0.0)
@@ -333,44 +365,6 @@ def measure_blocks(
         again = (float(est[0]), float(est[1]))
         meas, top, left = engine.measure(ref, grad, prior_px=again, search_px=search_px)
     return meas, top, left
-
-
-def check_texture(
-    grad: npt.NDArray[np.float32],
-    name: str,
-    *,
-    gradient: str,
-    stats: tuple[float, float, int] | None = None,
-) -> None:
-    """Refuse a gradient image with nothing to register.
-
-    ``stats``: the gradient image's ``(min, max, non-zero count)`` when the
-    caller has them already (:meth:`BlockEngine.prepare`).
-
-    Raises
-    ------
-    InvalidFrameError
-        The image is constant (a plane or a constant frame), or, for the
-        gradient modes (``gradient`` not ``"none"``), fewer than
-        :data:`MIN_TEXTURE_FRACTION` of its pixels are non-zero: a
-        near-blank frame, e.g. HS-AFM frame 27 of ``hsafm_sample_0.asd``
-        (9 height levels, 0.18 % non-zero x-gradient; good frames of that
-        movie 70–75 %), on which a few blocks once agreed on a confident
-        wrong drift of (−19.5, 11.2) px.
-    """
-    lo, hi, nonzero = stats if stats is not None else gradient_stats(grad)
-    if hi == lo:
-        raise InvalidFrameError(
-            f"{name} has no texture in its gradient image (a plane or constant): "
-            "nothing to register"
-        )
-    if gradient != "none":
-        fraction = nonzero / grad.size
-        if fraction < MIN_TEXTURE_FRACTION:
-            raise InvalidFrameError(
-                f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "
-                f"is non-zero (need {100 * MIN_TEXTURE_FRACTION:g} %): nothing to register"
-            )
 
 
 def warm_up(config: RegistrationConfig | None = None) -> float:

@@ -49,10 +49,9 @@ from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import RegistrationError
 from afmdrift.registration._measure import (
     REFINE_PX,
+    check_frame,
     check_image,
     check_pixel_size,
-    check_texture,
-    check_values,
     combine,
     measure_blocks,
     result_dtype,
@@ -200,10 +199,9 @@ class DriftTracker:
             or (self._ref is not None and spare is self._ref.grad)
         ):
             spare = None
-        grad, (h_lo, h_hi, g_lo, g_hi, nonzero) = engine.prepare(heights, out=spare)
+        grad, stats = engine.prepare(heights, out=spare)
         self._spare = grad
-        check_values(heights, "frame", h_lo, h_hi)
-        check_texture(grad, "frame", gradient=self.config.gradient, stats=(g_lo, g_hi, nonzero))
+        check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
         if self._ref is None:
             self._ref = engine.reference(grad)
             self._ref_heights = heights.astype(np.float32)
@@ -224,7 +222,7 @@ class DriftTracker:
                     f"{self.pixel_size_nm} nm"
                 )
             image = image.heights_nm
-        return check_image(image, "frame", values=False)  # values: see update
+        return check_image(image, "frame")  # its values: see update
 
     def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
         if self._engine is None or self._engine.image_shape != shape:

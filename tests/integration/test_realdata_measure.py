@@ -237,8 +237,11 @@ def test_hsafm_x_gradient_closures_stay_within_their_uncertainty(movie: list[Afm
 def test_hsafm_blank_frame_is_an_error_not_a_number(
     movie: list[AfmImage], real_file: RealFile, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Frame 28 is blank: measuring against it must refuse, never return a drift."""
+    """Frame 28 is blank: measuring against it must refuse, never return a drift.
+    (Frame 27, nearly blank, is refused first when it is the reference.)"""
     with pytest.raises(InvalidFrameError, match="constant"):
+        measure_pair(movie[0], movie[28], SMALL)
+    with pytest.raises(InvalidFrameError, match="reference is nearly blank"):
         measure_pair(movie[27], movie[28], SMALL)
     path = real_file("hsafm_sample_0.asd")
     assert main(["measure", f"{path}:0", f"{path}:28"]) == 2

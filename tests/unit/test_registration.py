@@ -384,6 +384,28 @@ def test_constant_and_textureless_images_are_rejected(good: np.ndarray) -> None:
         measure_drift(good, plane, pixel_size_nm=PIXEL_NM)
 
 
+@pytest.mark.parametrize("gradient", ["x", "y", "both", "none"])
+@pytest.mark.parametrize("where", [(0, 0), (95, 95), (0, 95), (95, 0), (40, 50)])
+def test_a_nan_pixel_anywhere_is_rejected_in_every_gradient_mode(
+    good: np.ndarray, gradient: str, where: tuple[int, int]
+) -> None:
+    """Corners included: the "both" gradient never reads the last row and
+    column together, yet a NaN there must still be refused."""
+    bad = good.copy()
+    bad[where] = np.nan
+    cfg = RegistrationConfig(gradient=gradient)  # type: ignore[arg-type]
+    with pytest.raises(InvalidFrameError, match=rf"current has 1 NaN/Inf.*row {where[0]}"):
+        measure_drift(good, bad, pixel_size_nm=PIXEL_NM, config=cfg)
+
+
+def test_heights_whose_differences_overflow_float32_are_rejected(good: np.ndarray) -> None:
+    """Finite float64 heights far outside any nm range give infinite float32
+    differences: refused with the height range named, not measured."""
+    huge = good * 1e40
+    with pytest.raises(InvalidFrameError, match="beyond the float32 range"):
+        measure_drift(good, huge, pixel_size_nm=PIXEL_NM)
+
+
 def test_nearly_blank_frame_is_rejected(good: np.ndarray) -> None:
     """A flat frame with a few isolated pixel steps (1 % of its x-gradient
     non-zero) is refused: a handful of deltas once gave agreeing blocks."""

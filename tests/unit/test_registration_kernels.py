@@ -17,6 +17,29 @@ def _interleaved(z: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(z, dtype=np.complex64).view(np.float32)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_gradient_x_and_its_figures_match_numpy(dtype: type) -> None:
+    """The gradient pass's image, non-zero count, finiteness and uniformity
+    against NumPy, on heights with repeated values (zero differences)."""
+    h = (np.round(RNG.standard_normal((70, 90)) * 2.0) / 2.0 + 1e3).astype(dtype)
+    out = np.empty((70, 89), np.float32)
+    finite, nonzero, uniform = _kernels.gradient_x(h, out)
+    expect = (h[:, 1:] - h[:, :-1]).astype(np.float32)
+    np.testing.assert_array_equal(out, expect)
+    assert (finite, nonzero, uniform) == (True, np.count_nonzero(expect), False)
+    assert 0 < nonzero < expect.size
+    for r, c, bad in [(0, 0, np.nan), (69, 89, np.inf), (33, 44, -np.inf), (5, 89, np.nan)]:
+        g = h.copy()
+        g[r, c] = bad
+        assert not _kernels.gradient_x(g, out)[0], (r, c, bad)
+    plane = (np.arange(90)[None, :] * 3.0 + np.arange(70)[:, None] * 2.0).astype(dtype)
+    assert _kernels.gradient_x(plane, out) == (True, out.size, True)
+    assert _kernels.gradient_x(np.full((70, 90), 7.0, dtype), out) == (True, 0, True)
+    if dtype is np.float64:  # finite heights whose differences overflow float32
+        huge = np.where(np.arange(90) % 2 == 0, 3e38, -3e38)[None, :].repeat(70, axis=0)
+        assert not _kernels.gradient_x(huge, out)[0]
+
+
 def test_window_blocks_cuts_and_weights_each_window() -> None:
     grad = RNG.standard_normal((90, 100)).astype(np.float32)
     window = RNG.random((32, 40)).astype(np.float32)
@@ -234,3 +257,21 @@ def test_warm_up_runs_the_kernels_for_any_configuration(config: dict[str, object
 
     seconds = warm_up(RegistrationConfig.model_validate(config))
     assert 0.0 <= seconds < 300.0
+
+
+@pytest.mark.parametrize("count", [0, 1, 2, 5, 64])
+def test_masked_mean_std_matches_numpy(count: int) -> None:
+    vectors = RNG.normal([3.0, -2.0], [0.4, 0.1], size=(64, 2))
+    mask = np.zeros(64, dtype=bool)
+    mask[RNG.choice(64, count, replace=False)] = True
+    out = np.empty(4)
+    _kernels.masked_mean_std(vectors, mask, out)
+    sel = vectors[mask]
+    if count > 0:
+        np.testing.assert_allclose(out[:2], sel.mean(axis=0), rtol=1e-13)
+    else:
+        assert np.isnan(out[:2]).all()
+    if count > 1:
+        np.testing.assert_allclose(out[2:], sel.std(axis=0, ddof=1), rtol=1e-12)
+    else:
+        assert np.isnan(out[2:]).all()
