@@ -283,6 +283,12 @@ class BlockEngine:
         self._centres.flags.writeable = False
         # The inverse FFT's scale: correlation peak of identical blocks.
         self._area = float(ey * ex)
+        self._place_scratch = (
+            np.empty(n, dtype=np.intp),
+            np.empty(n, dtype=np.intp),
+            np.empty(n, dtype=bool),
+            np.empty(n, dtype=bool),
+        )
         # Reference spectra: interleaved complex in int16 fixed point.
         self._fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         # Normalised spectra of the last measured frame, kept only when every
@@ -427,19 +433,37 @@ class BlockEngine:
 
         Returns ``(top, left, placed, near)``.
         """
-        lay = self.layout
-        ey, ex = lay.ext
-        rows, cols = lay.grad_shape
-        n = lay.n_blocks
+        n = self.layout.n_blocks
         top = np.empty(n, dtype=np.intp)
         left = np.empty(n, dtype=np.intp)
         placed = np.empty(n, dtype=bool)
         near = np.empty(n, dtype=bool)
-        _kernels.place_windows(
+        self._place(ref, prior_px, top, left, placed, near)
+        return top, left, placed, near
+
+    def placed_fraction(self, ref: ReferenceSpectra, prior_px: tuple[float, float]) -> float:
+        """Share of the blocks whose windows :meth:`positions_for` would place
+        without clamping (in the engine's scratch arrays)."""
+        return self._place(ref, prior_px, *self._place_scratch) / self.layout.n_blocks
+
+    def _place(
+        self,
+        ref: ReferenceSpectra,
+        prior_px: tuple[float, float],
+        top: IArr,
+        left: IArr,
+        placed: BArr,
+        near: BArr,
+    ) -> int:
+        """:meth:`positions_for` into the given arrays; returns the placed count."""
+        lay = self.layout
+        ey, ex = lay.ext
+        rows, cols = lay.grad_shape
+        count: int = _kernels.place_windows(
             ref.top, ref.left, round(prior_px[1]), round(prior_px[0]), rows - ey, cols - ex,
             lay.max_shift[0] // 2, lay.max_shift[1] // 2, top, left, placed, near,
         )  # fmt: skip
-        return top, left, placed, near
+        return count
 
     def measure(
         self,

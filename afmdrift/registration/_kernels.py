@@ -46,6 +46,7 @@ __all__ = [
     "pick_peaks",
     "place_windows",
     "reject_mad",
+    "usable_blocks",
     "window_blocks",
 ]
 
@@ -146,22 +147,27 @@ def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-unt
     spec[i, 0, 1] = 0.0
 
 
-@_jit_finite
-def _max_abs2(row):  # type: ignore[no-untyped-def]
-    """Largest ``re² + im²`` of an interleaved complex row (finite input)."""
-    peak2 = np.float32(0.0)
-    for k in range(row.size // 2):
-        m2 = row[2 * k] * row[2 * k] + row[2 * k + 1] * row[2 * k + 1]
-        peak2 = max(peak2, m2)
-    return peak2
-
-
 @_jit
-def _floor(spec, i, eps_rel, floor):  # type: ignore[no-untyped-def]
-    """Magnitude floor of block ``i``: ``max(eps_rel · max|S|, floor)``."""
-    peak2 = np.float32(0.0)
-    for r in range(spec.shape[1]):
-        peak2 = max(peak2, _max_abs2(spec[i, r]))
+def _floor(spec, i, eps_rel, floor, abs2):  # type: ignore[no-untyped-def]
+    """Magnitude floor of block ``i``: ``max(eps_rel · max|S|, floor)``;
+    fills ``abs2`` (rows, half) with ``|S|² = re² + im²`` on the way.
+
+    The largest ``|S|²`` is taken as the largest int32 bit pattern of the
+    stored squares (the same order for non-negative floats): an integer
+    maximum, which the compiler vectorises, unlike a float one."""
+    for r in range(abs2.shape[0]):
+        row = spec[i, r]
+        out = abs2[r]
+        for k in range(out.size):
+            out[k] = row[2 * k] * row[2 * k] + row[2 * k + 1] * row[2 * k + 1]
+    bits = abs2.view(np.int32)
+    peak = np.zeros(1, dtype=np.int32)
+    for r in range(bits.shape[0]):
+        row_bits = bits[r]
+        for k in range(row_bits.size):
+            v = row_bits[k]
+            peak[0] = v if v > peak[0] else peak[0]
+    peak2 = peak.view(np.float32)[0]
     return np.float32(max(eps_rel * math.sqrt(peak2), floor))
 
 
@@ -176,19 +182,17 @@ def _band_row(r, rows, ky):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _magnitudes(row, out):  # type: ignore[no-untyped-def]
-    """``out[k] = |row[k]|`` for the first ``out.size`` elements of an
-    interleaved complex row."""
+def _magnitudes(abs2, out):  # type: ignore[no-untyped-def]
+    """``out[k] = sqrt(abs2[k])`` for the first ``out.size`` elements (the
+    magnitudes of a spectrum row from its ``|S|²``)."""
     for k in range(out.size):
-        re = row[2 * k]
-        im = row[2 * k + 1]
-        out[k] = math.sqrt(re * re + im * im)
+        out[k] = math.sqrt(abs2[k])
 
 
 @_jit
-def _normalised(re, im, a):  # type: ignore[no-untyped-def]
-    """``(re, im) / (|re + i im| + a)``."""
-    inv = np.float32(1.0) / (np.float32(math.sqrt(re * re + im * im)) + a)
+def _normalised(re, im, abs2, a):  # type: ignore[no-untyped-def]
+    """``(re, im) / (|re + i im| + a)``, given ``abs2 = re² + im²``."""
+    inv = np.float32(1.0) / (np.float32(math.sqrt(abs2)) + a)
     return re * inv, im * inv
 
 
@@ -204,11 +208,11 @@ def _to_fixed(x):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def _reference_row(s, ramp, o, a):  # type: ignore[no-untyped-def]
-    """``o = conj(s / (|s| + a)) · ramp`` over an interleaved complex row, in
-    fixed point (int16, see :data:`REF_SCALE`)."""
+def _reference_row(s, abs2, ramp, o, a):  # type: ignore[no-untyped-def]
+    """``o = conj(s / (|s| + a)) · ramp`` over an interleaved complex row
+    (``abs2``: its ``|s|²``), in fixed point (int16, see :data:`REF_SCALE`)."""
     for k in range(s.size // 2):
-        re, im = _normalised(s[2 * k], s[2 * k + 1], a)
+        re, im = _normalised(s[2 * k], s[2 * k + 1], abs2[k], a)
         o[2 * k] = _to_fixed(re * ramp[2 * k] + im * ramp[2 * k + 1])
         o[2 * k + 1] = _to_fixed(re * ramp[2 * k + 1] - im * ramp[2 * k])
 
@@ -230,23 +234,24 @@ def normalise_reference(  # type: ignore[no-untyped-def]
     band_mag : (n, 2·ky + 1, kx + 1) float32.
     """
     n, rows = spec.shape[0], spec.shape[1]
+    abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
     for i in range(n):
         _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, i, eps_rel, floor)
+        a = _floor(spec, i, eps_rel, floor, abs2)
         for r in range(rows):
             b = _band_row(r, rows, ky)
             if b >= 0:
-                _magnitudes(spec[i, r], band_mag[i, b])
-            _reference_row(spec[i, r], ramp[r], out[i, r], a)
+                _magnitudes(abs2[r], band_mag[i, b])
+            _reference_row(spec[i, r], abs2[r], ramp[r], out[i, r], a)
 
 
 @_jit
-def _cross_row(s, q, a):  # type: ignore[no-untyped-def]
+def _cross_row(s, abs2, q, a):  # type: ignore[no-untyped-def]
     """``s = s / (|s| + a) · q`` in place over an interleaved complex row
-    (``q`` in fixed point, see :data:`REF_SCALE`)."""
+    (``abs2``: its ``|s|²``; ``q`` in fixed point, see :data:`REF_SCALE`)."""
     unit = np.float32(1.0 / REF_SCALE)
     for k in range(s.size // 2):
-        re, im = _normalised(s[2 * k], s[2 * k + 1], a)
+        re, im = _normalised(s[2 * k], s[2 * k + 1], abs2[k], a)
         qr = np.float32(q[2 * k]) * unit
         qi = np.float32(q[2 * k + 1]) * unit
         s[2 * k] = re * qr - im * qi
@@ -288,17 +293,18 @@ def normalise_cross(  # type: ignore[no-untyped-def]
     n, rows = spec.shape[0], spec.shape[1]
     keeping = keep.shape[0] > 0
     with_band = band.shape[0] > 0
+    abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
     for i in range(n):
         _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, i, eps_rel, floor)
+        a = _floor(spec, i, eps_rel, floor, abs2)
         for r in range(rows):
             s = spec[i, r]
             b = _band_row(r, rows, ky)
             if b >= 0:
-                _magnitudes(s, band_mag[i, b])
+                _magnitudes(abs2[r], band_mag[i, b])
             if keeping:
-                _reference_row(s, ramp[r], keep[i, r], a)
-            _cross_row(s, ref[i, r], a)
+                _reference_row(s, abs2[r], ramp[r], keep[i, r], a)
+            _cross_row(s, abs2[r], ref[i, r], a)
             if b >= 0 and with_band:
                 for k in range(kx + 1):
                     w = band_mag[i, b, k] * ref_band_mag[i, b, k]
@@ -845,8 +851,32 @@ def masked_mean_std(vectors, mask, out):  # type: ignore[no-untyped-def]
 def masked_medians(vectors, mask, out):  # type: ignore[no-untyped-def]
     """Per-column medians of the rows of ``vectors`` (n, 2) where ``mask``
     (NumPy's median: the mean of the two middle values for an even count);
-    NaN when no row is selected."""
+    NaN when no row is selected. Returns the number of selected rows."""
     sel = np.empty(vectors.shape[0])
+    m = 0
     for axis in range(2):
         m = _gather(vectors, mask, axis, sel)
         out[axis] = np.median(sel[:m]) if m > 0 else np.nan
+    return m
+
+
+@_jit
+def usable_blocks(measured, placed, in_overlap, min_blocks, out):  # type: ignore[no-untyped-def]
+    """``out = measured & placed``, or ``measured`` alone where that leaves
+    fewer than ``min_blocks`` (frames so small that most windows had to be
+    clamped). Returns the number of blocks available to be valid: those
+    placed, or in the fallback those in the overlap."""
+    n = measured.size
+    count = 0
+    available = 0
+    for i in range(n):
+        out[i] = measured[i] and placed[i]
+        count += 1 if out[i] else 0
+        available += 1 if placed[i] else 0
+    if count >= min_blocks:
+        return available
+    available = 0
+    for i in range(n):
+        out[i] = measured[i]
+        available += 1 if in_overlap[i] else 0
+    return available

@@ -161,11 +161,10 @@ def combine(
     measured = meas.measured
     # Prefer blocks whose windows sit where their content is expected; fall
     # back to clamped windows only when too few are left (tiny frames).
-    usable = measured & meas.placed
-    available = int(meas.placed.sum())
-    if int(usable.sum()) < cfg.min_valid_blocks:
-        usable = measured
-        available = int(meas.in_overlap.sum())
+    usable = np.empty_like(measured)
+    available = int(
+        _kernels.usable_blocks(measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks, usable)
+    )
     if cfg.outlier_rule == "paper":
         valid = reject_paper(vec, usable, epsilon_px=cfg.epsilon_px)
     else:
@@ -356,13 +355,14 @@ def measure_blocks(
     meas, top, left = engine.measure(ref, grad, prior_px=prior_px, search_px=search_px)
     if not engine.config.refine:
         return meas, top, left
-    ok = meas.measured
-    if int(ok.sum()) < engine.config.min_valid_blocks:
-        return meas, top, left
     est = np.empty(2)
-    _kernels.masked_medians(meas.vectors_px, ok, est)
-    if float(np.max(np.abs(est - np.asarray(prior_px)))) > REFINE_PX:
-        again = (float(est[0]), float(est[1]))
+    if (
+        _kernels.masked_medians(meas.vectors_px, meas.measured, est)
+        < engine.config.min_valid_blocks
+    ):
+        return meas, top, left
+    again = (float(est[0]), float(est[1]))
+    if max(abs(again[0] - prior_px[0]), abs(again[1] - prior_px[1])) > REFINE_PX:
         meas, top, left = engine.measure(ref, grad, prior_px=again, search_px=search_px)
     return meas, top, left
 

@@ -37,7 +37,7 @@ is not known yet, starts from it, as :func:`measure_drift` does.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -141,10 +141,12 @@ class DriftTracker:
         self._spare: npt.NDArray[np.float32] | None = None
         self._count = 0
         self._ref_index = 0
-        self._ref_pos = np.zeros(2)  # cumulative position of the reference, px
-        self._rel = np.zeros(2)  # last accepted frame relative to the reference, px
+        # (x, y) pairs as Python floats (a few scalar operations per frame,
+        # cheaper than NumPy's on two-element arrays):
+        self._ref_pos = (0.0, 0.0)  # cumulative position of the reference, px
+        self._rel = (0.0, 0.0)  # last accepted frame relative to the reference, px
         self._rel_sigma_nm = (0.0, 0.0)
-        self._velocity = np.zeros(2)  # last increment per frame, px
+        self._velocity = (0.0, 0.0)  # last increment per frame, px
         self._last_index = 0
 
     @property
@@ -155,8 +157,7 @@ class DriftTracker:
     @property
     def position_px(self) -> tuple[float, float]:
         """Cumulative drift ``(x, y)`` of the last accepted frame, px."""
-        p = self._ref_pos + self._rel
-        return float(p[0]), float(p[1])
+        return self._ref_pos[0] + self._rel[0], self._ref_pos[1] + self._rel[1]
 
     def update(self, image: npt.ArrayLike | Frame) -> TrackStep | None:
         """Register a new frame.
@@ -240,7 +241,7 @@ class DriftTracker:
         dtype = result_dtype(heights)
         index = self._count
         gap = index - self._last_index
-        prior = self._rel + self._velocity * gap
+        prior = (self._rel[0] + self._velocity[0] * gap, self._rel[1] + self._velocity[1] * gap)
         search: float | None = None
         coarse: CoarseShift | None = None
         if cfg.coarse and not self._motion_known and self._ref_heights is not None:
@@ -248,14 +249,12 @@ class DriftTracker:
             # coarse alignment, as measure_drift does.
             coarse = coarse_shift(self._ref_heights, heights)
             if coarse.trusted:
-                prior, search = np.asarray(coarse.prior_px), cfg.coarse_search_px
-        elif cfg.reference == "consecutive" and float(np.max(np.abs(prior))) <= REFINE_PX:
+                prior, search = coarse.prior_px, cfg.coarse_search_px
+        elif cfg.reference == "consecutive" and max(abs(prior[0]), abs(prior[1])) <= REFINE_PX:
             # Small expected motion: leave the windows on the grid, so that
             # this frame's spectra can serve as the next reference unchanged.
-            prior = np.zeros(2)
-        meas_blocks, top, left = measure_blocks(
-            engine, ref, grad, prior_px=(float(prior[0]), float(prior[1])), search_px=search
-        )
+            prior = (0.0, 0.0)
+        meas_blocks, top, left = measure_blocks(engine, ref, grad, prior_px=prior, search_px=search)
         meas = combine(meas_blocks, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
         if not meas.valid and cfg.coarse and self._ref_heights is not None:
             if coarse is None:
@@ -305,8 +304,8 @@ class DriftTracker:
         """Move the tracker on to a validly measured frame; True if it became
         the new reference."""
         cfg = self.config
-        rel = np.array([meas.dx_px, meas.dy_px])
-        self._velocity = (rel - self._rel) / gap
+        rel = (meas.dx_px, meas.dy_px)
+        self._velocity = ((rel[0] - self._rel[0]) / gap, (rel[1] - self._rel[1]) / gap)
         self._rel = rel
         self._rel_sigma_nm = (meas.sigma_x_nm, meas.sigma_y_nm)
         self._last_index = index
@@ -320,8 +319,8 @@ class DriftTracker:
             else:
                 self._ref = engine.reference(grad)
             self._ref_index = index
-            self._ref_pos = self._ref_pos + rel
-            self._rel = np.zeros(2)
+            self._ref_pos = (self._ref_pos[0] + rel[0], self._ref_pos[1] + rel[1])
+            self._rel = (0.0, 0.0)
             self._rel_sigma_nm = (0.0, 0.0)
         return reanchor
 
@@ -332,7 +331,7 @@ class DriftTracker:
         f = meas.field
         field = BlockField(
             centres_px=f.centres_px,
-            vectors_px=(f.vectors_px - prev.astype(f.vectors_px.dtype)),
+            vectors_px=f.vectors_px - np.array(prev, dtype=f.vectors_px.dtype),
             confidence=f.confidence,
             mse=f.mse,
             measured=f.measured,
@@ -340,10 +339,9 @@ class DriftTracker:
         )
         sx = math.hypot(meas.sigma_x_nm, self._rel_sigma_nm[0])
         sy = math.hypot(meas.sigma_y_nm, self._rel_sigma_nm[1])
-        dx = meas.dx_px - float(prev[0])
-        dy = meas.dy_px - float(prev[1])
-        return replace(
-            meas,
+        dx = meas.dx_px - prev[0]
+        dy = meas.dy_px - prev[1]
+        return DriftResult(
             dx_px=dx,
             dy_px=dy,
             dx_nm=dx * px,
@@ -351,18 +349,21 @@ class DriftTracker:
             sigma_x_nm=sx,
             sigma_y_nm=sy,
             sigma_nm=math.sqrt(0.5 * (sx * sx + sy * sy)),
+            valid=meas.valid,
+            valid_blocks=meas.valid_blocks,
+            total_blocks=meas.total_blocks,
+            reason=meas.reason,
             field=field,
         )
 
     def _overlap(
-        self, engine: BlockEngine, ref: ReferenceSpectra, rel: npt.NDArray[np.float64]
+        self, engine: BlockEngine, ref: ReferenceSpectra, rel: tuple[float, float]
     ) -> float:
         """Smaller of the shared area fraction and the fraction of blocks whose
         windows still fit the frame at drift ``rel`` from the keyframe."""
         rows, cols = engine.image_shape
-        area = max(0.0, 1.0 - abs(float(rel[0])) / cols) * max(0.0, 1.0 - abs(float(rel[1])) / rows)
-        _, _, placed, _ = engine.positions_for(ref, (float(rel[0]), float(rel[1])))
-        return min(area, float(placed.mean()))
+        area = max(0.0, 1.0 - abs(rel[0]) / cols) * max(0.0, 1.0 - abs(rel[1]) / rows)
+        return min(area, engine.placed_fraction(ref, rel))
 
     def _to_nm(self, pos: tuple[float, float]) -> tuple[float, float]:
         return pos[0] * self.pixel_size_nm[0], pos[1] * self.pixel_size_nm[1]

@@ -275,3 +275,25 @@ def test_masked_mean_std_matches_numpy(count: int) -> None:
         np.testing.assert_allclose(out[2:], sel.std(axis=0, ddof=1), rtol=1e-12)
     else:
         assert np.isnan(out[2:]).all()
+
+
+def test_usable_blocks_prefers_placed_windows_and_falls_back() -> None:
+    measured = np.array([1, 1, 1, 0, 1, 1], dtype=bool)
+    placed = np.array([1, 1, 0, 1, 0, 1], dtype=bool)
+    in_overlap = np.array([1, 1, 1, 1, 1, 0], dtype=bool)
+    out = np.empty(6, dtype=bool)
+    assert _kernels.usable_blocks(measured, placed, in_overlap, 3, out) == placed.sum()
+    np.testing.assert_array_equal(out, measured & placed)
+    # Only 3 measured and placed: with 4 required, every measured block is
+    # usable, and the blocks in the overlap are the ones available.
+    assert _kernels.usable_blocks(measured, placed, in_overlap, 4, out) == in_overlap.sum()
+    np.testing.assert_array_equal(out, measured)
+
+
+def test_masked_medians_returns_the_selected_count() -> None:
+    vectors = np.array([[1.0, 5.0], [2.0, 6.0], [9.0, -1.0], [4.0, 0.0]])
+    out = np.empty(2)
+    assert _kernels.masked_medians(vectors, np.array([1, 1, 0, 1], dtype=bool), out) == 3
+    np.testing.assert_array_equal(out, [2.0, 5.0])
+    assert _kernels.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
+    assert np.isnan(out).all()
