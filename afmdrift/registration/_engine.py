@@ -136,6 +136,10 @@ class BlockMeasurement:
     measured: BArr
     placed: BArr
     in_overlap: BArr
+    #: Number of measured blocks and the per-axis median ``(x, y)`` of their
+    #: vectors (NaN if none).
+    n_measured: int
+    median_px: tuple[float, float]
 
 
 @dataclass(frozen=True)
@@ -173,14 +177,18 @@ class _Peaks:
 
     @classmethod
     def empty(cls, n: int) -> _Peaks:
+        """Uninitialised arrays (every block's entries are written by the
+        peak search and the sub-pixel step), in four allocations."""
+        sy, sx = np.empty((2, n), dtype=np.intp)
+        fy, fx, mse = np.empty((3, n))
         return cls(
-            sy=np.empty(n, dtype=np.intp),
-            sx=np.empty(n, dtype=np.intp),
-            fy=np.zeros(n),
-            fx=np.zeros(n),
-            ok=np.ones(n, dtype=bool),
+            sy=sy,
+            sx=sx,
+            fy=fy,
+            fx=fx,
+            ok=np.empty(n, dtype=bool),
             peak=np.empty(n, dtype=np.float32),
-            mse=np.empty(n),
+            mse=mse,
         )
 
 
@@ -283,12 +291,9 @@ class BlockEngine:
         self._centres.flags.writeable = False
         # The inverse FFT's scale: correlation peak of identical blocks.
         self._area = float(ey * ex)
-        self._place_scratch = (
-            np.empty(n, dtype=np.intp),
-            np.empty(n, dtype=np.intp),
-            np.empty(n, dtype=bool),
-            np.empty(n, dtype=bool),
-        )
+        scratch_top, scratch_left = np.empty((2, n), dtype=np.intp)
+        scratch_placed, scratch_near = np.empty((2, n), dtype=bool)
+        self._place_scratch = (scratch_top, scratch_left, scratch_placed, scratch_near)
         # Reference spectra: interleaved complex in int16 fixed point.
         self._fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         # Normalised spectra of the last measured frame, kept only when every
@@ -434,10 +439,8 @@ class BlockEngine:
         Returns ``(top, left, placed, near)``.
         """
         n = self.layout.n_blocks
-        top = np.empty(n, dtype=np.intp)
-        left = np.empty(n, dtype=np.intp)
-        placed = np.empty(n, dtype=bool)
-        near = np.empty(n, dtype=bool)
+        top, left = np.empty((2, n), dtype=np.intp)
+        placed, near = np.empty((2, n), dtype=bool)
         self._place(ref, prior_px, top, left, placed, near)
         return top, left, placed, near
 
@@ -497,9 +500,10 @@ class BlockEngine:
         vec = np.empty((n, 2), dtype=np.float64)
         measured = np.empty(n, dtype=bool)
         confidence = np.empty(n, dtype=np.float64)
-        _kernels.assemble(
+        median = np.empty(2)
+        n_measured = _kernels.assemble(
             top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
-            peaks.mse, peaks.peak, self._area, near, my, mx, vec, measured, confidence,
+            peaks.mse, peaks.peak, self._area, near, my, mx, vec, measured, confidence, median,
         )  # fmt: skip
         result = BlockMeasurement(
             centres_px=self._centres,
@@ -509,6 +513,8 @@ class BlockEngine:
             measured=measured,
             placed=placed,
             in_overlap=near,
+            n_measured=int(n_measured),
+            median_px=(float(median[0]), float(median[1])),
         )
         return result, top, left
 

@@ -46,6 +46,8 @@ __all__ = [
     "pick_peaks",
     "place_windows",
     "reject_mad",
+    "reject_paper",
+    "select_blocks",
     "usable_blocks",
     "window_blocks",
 ]
@@ -757,7 +759,7 @@ def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[
         for i in range(n):
             m += 1 if out[i] else 0
         if m < 3:
-            return
+            return m
         for axis in range(2):
             _gather(vectors, out, axis, sel)
             med[axis] = np.median(sel[:m])
@@ -774,7 +776,54 @@ def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[
                 changed = True
             out[i] = new
         if not changed:
-            return
+            break
+    m = 0
+    for i in range(n):
+        m += 1 if out[i] else 0
+    return m
+
+
+@_jit
+def reject_paper(vectors, keep, epsilon, out):  # type: ignore[no-untyped-def]
+    """Yang et al.'s rule (see :mod:`afmdrift.registration._outliers`): ``out``
+    = blocks of ``keep`` within ``epsilon`` (Euclidean) of the mean vector of
+    ``keep``. Returns their number.
+
+    vectors : (n, 2) float64; keep, out : (n,) bool.
+    """
+    n = vectors.shape[0]
+    m = 0
+    sx = 0.0
+    sy = 0.0
+    for i in range(n):
+        if keep[i]:
+            m += 1
+            sx += vectors[i, 0]
+            sy += vectors[i, 1]
+    count = 0
+    for i in range(n):
+        out[i] = keep[i] and (math.hypot(vectors[i, 0] - sx / m, vectors[i, 1] - sy / m) <= epsilon)
+        count += 1 if out[i] else 0
+    return count
+
+
+@_jit
+def select_blocks(  # type: ignore[no-untyped-def]
+    vectors, measured, placed, in_overlap, min_blocks, mad, threshold, floor, max_iter,
+    epsilon, valid, stats,
+):  # fmt: skip
+    """The frame's valid blocks in one call: :func:`usable_blocks`, then the
+    outlier rule (:func:`reject_mad` if ``mad``, else :func:`reject_paper`)
+    into ``valid``, then :func:`masked_mean_std` of the valid blocks into
+    ``stats``. Returns ``(available, valid count)``."""
+    usable = np.empty_like(measured)
+    available = usable_blocks(measured, placed, in_overlap, min_blocks, usable)
+    if mad:
+        n_valid = reject_mad(vectors, usable, threshold, floor, max_iter, valid)
+    else:
+        n_valid = reject_paper(vectors, usable, epsilon, valid)
+    masked_mean_std(vectors, valid, stats)
+    return available, n_valid
 
 
 @_jit
@@ -802,14 +851,15 @@ def place_windows(  # type: ignore[no-untyped-def]
 @_jit
 def assemble(  # type: ignore[no-untyped-def]
     top, left, ref_top, ref_left, sy, sx, fy, fx, ok, mse, peak, area, near, my, mx,
-    vectors, measured, confidence,
+    vectors, measured, confidence, median,
 ):  # fmt: skip
     """Block vectors ``(x, y)`` = window move + integer peak + sub-pixel
     offset, and whether each block was measured: window near its place, a
     verified (finite-MSE) peak inside the search (not on its edge), and a
     converged sub-pixel step. Also the peak ``confidence = peak / area``
-    (the inverse FFT's scale) and, in place, NaN for an infinite ``mse``
-    (no candidate verified)."""
+    (the inverse FFT's scale), in place NaN for an infinite ``mse`` (no
+    candidate verified), and the :func:`masked_medians` of the measured
+    vectors. Returns the number of measured blocks."""
     for i in range(top.size):
         vectors[i, 0] = (left[i] - ref_left[i]) + sx[i] + fx[i]
         vectors[i, 1] = (top[i] - ref_top[i]) + sy[i] + fy[i]
@@ -818,6 +868,7 @@ def assemble(  # type: ignore[no-untyped-def]
         if not finite:
             mse[i] = np.nan
         confidence[i] = np.float64(peak[i]) / area
+    return masked_medians(vectors, measured, median)
 
 
 @_jit

@@ -16,7 +16,7 @@ from afmdrift.registration._coarse import coarse_shift
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
-from afmdrift.registration._outliers import reject_mad, reject_paper
+from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
 from afmdrift.registration._result import BlockField, DriftResult
 
 __all__ = [
@@ -159,17 +159,18 @@ def combine(
     cfg = engine.config
     vec = meas.vectors_px
     measured = meas.measured
-    # Prefer blocks whose windows sit where their content is expected; fall
-    # back to clamped windows only when too few are left (tiny frames).
-    usable = np.empty_like(measured)
-    available = int(
-        _kernels.usable_blocks(measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks, usable)
-    )
-    if cfg.outlier_rule == "paper":
-        valid = reject_paper(vec, usable, epsilon_px=cfg.epsilon_px)
-    else:
-        valid = reject_mad(vec, usable, threshold=cfg.mad_threshold)
-    n_valid = int(valid.sum())
+    # Prefer blocks whose windows sit where their content is expected (fall
+    # back to clamped windows only when too few are left: tiny frames), drop
+    # the outliers, and take the mean (x, y) and sample standard deviation
+    # (x, y) of the valid blocks: one compiled call.
+    valid = np.empty_like(measured)
+    stats = np.empty(4)
+    available, n_valid = _kernels.select_blocks(
+        vec, measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks,
+        cfg.outlier_rule == "mad", cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, cfg.epsilon_px,
+        valid, stats,
+    )  # fmt: skip
+    mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
     total = int(vec.shape[0])
     field = BlockField(
         centres_px=meas.centres_px.astype(dtype),
@@ -182,10 +183,6 @@ def combine(
     px, py = pixel_size_nm
     reason = None
     need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
-    # Mean (x, y) and sample standard deviation (x, y) of the valid blocks.
-    stats = np.empty(4)
-    _kernels.masked_mean_std(vec, valid, stats)
-    mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
     if n_valid < need:
         reason = (
             f"only {n_valid} of {total} blocks valid (need {need}: {available} in the "
@@ -355,13 +352,9 @@ def measure_blocks(
     meas, top, left = engine.measure(ref, grad, prior_px=prior_px, search_px=search_px)
     if not engine.config.refine:
         return meas, top, left
-    est = np.empty(2)
-    if (
-        _kernels.masked_medians(meas.vectors_px, meas.measured, est)
-        < engine.config.min_valid_blocks
-    ):
+    if meas.n_measured < engine.config.min_valid_blocks:
         return meas, top, left
-    again = (float(est[0]), float(est[1]))
+    again = meas.median_px
     if max(abs(again[0] - prior_px[0]), abs(again[1] - prior_px[1])) > REFINE_PX:
         meas, top, left = engine.measure(ref, grad, prior_px=again, search_px=search_px)
     return meas, top, left

@@ -21,18 +21,20 @@ import numpy.typing as npt
 
 from afmdrift.registration import _kernels
 
-__all__ = ["MAD_FLOOR_PX", "reject_mad", "reject_paper"]
+__all__ = ["MAD_FLOOR_PX", "MAX_ITER", "reject_mad", "reject_paper"]
 
 #: Smallest robust scale (px): sub-pixel estimator noise well below this is
 #: not evidence of a different motion.
 MAD_FLOOR_PX = 0.05
-_MAX_ITER = 20
+#: Most rounds of the MAD rule.
+MAX_ITER = 20
 
 
 def reject_paper(
     vectors_px: npt.NDArray[np.float64], keep: npt.NDArray[np.bool_], *, epsilon_px: float
 ) -> npt.NDArray[np.bool_]:
-    """Paper's rule: keep blocks within ``epsilon_px`` of the mean vector.
+    """Paper's rule: keep blocks within ``epsilon_px`` of the mean vector
+    (compiled: :func:`afmdrift.registration._kernels.reject_paper`).
 
     Parameters
     ----------
@@ -45,12 +47,8 @@ def reject_paper(
     -------
     ndarray of bool, shape (n,)
     """
-    out = keep.copy()
-    if not out.any():
-        return out
-    mean = vectors_px[out].mean(axis=0)
-    dist = np.hypot(*(vectors_px - mean).T)
-    out &= dist <= epsilon_px
+    out = np.empty_like(keep)
+    _kernels.reject_paper(np.ascontiguousarray(vectors_px, dtype=np.float64), keep, epsilon_px, out)
     return out
 
 
@@ -62,6 +60,6 @@ def reject_mad(
     out = np.empty_like(keep)
     _kernels.reject_mad(
         np.ascontiguousarray(vectors_px, dtype=np.float64), keep, threshold, MAD_FLOOR_PX,
-        _MAX_ITER, out,
+        MAX_ITER, out,
     )  # fmt: skip
     return out

@@ -297,3 +297,32 @@ def test_masked_medians_returns_the_selected_count() -> None:
     np.testing.assert_array_equal(out, [2.0, 5.0])
     assert _kernels.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
     assert np.isnan(out).all()
+
+
+@pytest.mark.parametrize("mad", [True, False])
+def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> None:
+    """The one-call selection of combine against its three steps."""
+    from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER, reject_mad, reject_paper
+
+    vectors = np.vstack([RNG.normal([3.0, -2.0], 0.05, size=(40, 2)), [[9.0, 4.0], [3.4, -2.0]]])
+    measured = RNG.random(42) < 0.9
+    placed = RNG.random(42) < 0.8
+    in_overlap = np.ones(42, dtype=bool)
+    valid = np.empty(42, dtype=bool)
+    stats = np.empty(4)
+    available, n_valid = _kernels.select_blocks(
+        vectors, measured, placed, in_overlap, 8, mad, 3.5, MAD_FLOOR_PX, MAX_ITER, 0.5,
+        valid, stats,
+    )  # fmt: skip
+    usable = measured & placed
+    assert available == placed.sum()
+    expect = (
+        reject_mad(vectors, usable, threshold=3.5)
+        if mad
+        else reject_paper(vectors, usable, epsilon_px=0.5)
+    )
+    np.testing.assert_array_equal(valid, expect)
+    assert n_valid == expect.sum() > 20
+    assert not valid[40]
+    np.testing.assert_allclose(stats[:2], vectors[expect].mean(axis=0), rtol=1e-12)
+    np.testing.assert_allclose(stats[2:], vectors[expect].std(axis=0, ddof=1), rtol=1e-12)
