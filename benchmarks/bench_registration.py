@@ -8,8 +8,8 @@ Prints, all measured in this one run, for each thread count (default 1 and
 * median time of :meth:`DriftTracker.update` per new frame (target ≤ 5 ms);
 * median time of the bare FFTW work one frame needs (one forward and one
   inverse real FFT of every block, on separately planned arrays, split into
-  the engine's chunks and run on the same number of threads, timed right
-  after each frame) and the ratio of the two (target ≤ 2×); also the bare
+  the engine's batches and taken in turn by the same number of threads,
+  timed right after each frame) and the ratio of the two (target ≤ 2×); also the bare
   transforms as one plan with FFTW's own threads (the alternative way to use
   two cores; timed in a pass after the stream, because FFTW's threads spin
   for a while after each transform and slow what runs next), and the CPU
@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import gc
+import itertools
 import statistics
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -69,15 +70,13 @@ class BareFFT:
     one forward and one inverse batched real FFT over every block (the
     inverse pruned to the rows of the search region, as the engine's).
 
-    ``chunked``: the engine's split (chunks of up to ``CHUNK_BLOCKS`` blocks,
-    each a run of batches of ``BATCH_BLOCKS`` on single-threaded plans whose
-    arrays the chunk's batches of one size share) run on ``threads`` threads
-    the way the engine runs them; otherwise one plan over all blocks with
-    FFTW's own ``threads``.
+    ``batched``: the engine's split into batches of ``BATCH_BLOCKS`` on
+    single-threaded plans, each of ``threads`` threads with its own plans
+    and arrays per batch size, taking the batches in turn the way the engine
+    does; otherwise one plan over all blocks with FFTW's own ``threads``.
     """
 
-    def __init__(self, engine: BlockEngine, cfg: RegistrationConfig, *, chunked: bool) -> None:
-        n = engine.layout.n_blocks
+    def __init__(self, engine: BlockEngine, cfg: RegistrationConfig, *, batched: bool) -> None:
         wisdom = resolve_wisdom_path(cfg.fftw_wisdom)
 
         def plan(size: int, threads: int) -> BatchedRealFFT:
@@ -90,33 +89,24 @@ class BareFFT:
                 out_rows=2 * engine.layout.max_shift[0] + 1,
             )
 
-        self.chunks: list[list[BatchedRealFFT]] = []
-        if chunked:
-            for chunk in engine._chunks:
-                shared: dict[int, BatchedRealFFT] = {}
-                runs = []
-                for batch in chunk.batches:
-                    size = batch.sl.stop - batch.sl.start
-                    if size not in shared:
-                        shared[size] = plan(size, 1)
-                    runs.append(shared[size])
-                self.chunks.append(runs)
-        else:
-            self.chunks.append([plan(n, cfg.threads)])
+        n = engine.layout.n_blocks
+        self.sizes = [b.stop - b.start for b in engine._batches] if batched else [n]
+        threads = min(cfg.threads, len(self.sizes)) if batched else 1
+        self.plans: list[dict[int, BatchedRealFFT]] = [
+            {size: plan(size, 1 if batched else cfg.threads) for size in set(self.sizes)}
+            for _ in range(threads)
+        ]
         self.inputs = {
             id(fft): np.random.default_rng(0).standard_normal(fft.real.shape).astype(np.float32)
-            for runs in self.chunks
-            for fft in runs
+            for plans in self.plans
+            for fft in plans.values()
         }
-        self.pool = (
-            ThreadPoolExecutor(max_workers=cfg.threads - 1)
-            if chunked and cfg.threads > 1 and len(self.chunks) > 1
-            else None
-        )
+        self.pool = ThreadPoolExecutor(max_workers=threads - 1) if threads > 1 else None
 
-    @staticmethod
-    def _run(runs: list[BatchedRealFFT]) -> None:
-        for fft in runs:
+    def _run(self, t: int, order: itertools.count[int]) -> None:
+        plans = self.plans[t]
+        while (i := next(order)) < len(self.sizes):
+            fft = plans[self.sizes[i]]
             fft.forward()
             fft.inverse()
 
@@ -124,19 +114,20 @@ class BareFFT:
         """Wall and CPU seconds for one frame's forward plus inverse transforms.
 
         The inputs are refilled before timing (not counted): each round trip
-        scales the data by the block size, and a chunk runs at most 8 batches
-        through the same arrays, so the values stay finite (×2^112 at most).
+        scales the data by the block size, and one thread runs at most 8
+        batches through the same arrays, so the values stay finite (×2^112 at
+        most).
         """
-        for runs in self.chunks:
-            for fft in runs:
+        for plans in self.plans:
+            for fft in plans.values():
                 fft.real[:] = self.inputs[id(fft)]
+        order = itertools.count()
         t0, c0 = time.perf_counter(), time.process_time()
         if self.pool is None:
-            for runs in self.chunks:
-                self._run(runs)
+            self._run(0, order)
         else:
-            futures = [self.pool.submit(self._run, runs) for runs in self.chunks[1:]]
-            self._run(self.chunks[0])
+            futures = [self.pool.submit(self._run, t, order) for t in range(1, len(self.plans))]
+            self._run(0, order)
             for f in futures:
                 f.result()
         return time.perf_counter() - t0, time.process_time() - c0
@@ -209,7 +200,7 @@ class StreamTimes:
 
     threads: int
     tracker: DriftTracker
-    bare_chunked: BareFFT
+    bare_batched: BareFFT
     bare_fftw: BareFFT
     wall: list[float] = field(default_factory=list)
     cpu: list[float] = field(default_factory=list)
@@ -254,15 +245,15 @@ def main() -> None:
             StreamTimes(
                 threads=threads,
                 tracker=DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg),
-                bare_chunked=BareFFT(engine, cfg, chunked=True),
-                bare_fftw=BareFFT(engine, cfg, chunked=False),
+                bare_batched=BareFFT(engine, cfg, batched=True),
+                bare_fftw=BareFFT(engine, cfg, batched=False),
             )
         )
     for run in runs:
         run.tracker.update(frames[0])
         for i in range(1, 2 * POOL + 1):  # warm-up: plans, allocator pools, caches
             run.tracker.update(frames[i % POOL])
-            run.bare_chunked.time()
+            run.bare_batched.time()
             run.bare_fftw.time()
         run.tracker.reset()
         run.tracker.update(frames[0])
@@ -278,7 +269,7 @@ def main() -> None:
             step = run.tracker.update(frame)
             run.wall.append(time.perf_counter() - t0)
             run.cpu.append(time.process_time() - c0)
-            wall, cpu = run.bare_chunked.time()
+            wall, cpu = run.bare_batched.time()
             run.bare_wall.append(wall)
             run.bare_cpu.append(cpu)
             if step is not None and step.accepted:
@@ -297,7 +288,7 @@ def main() -> None:
     lay = engine.layout
     print(
         f"frames: {args.frames} of {SHAPE[1]}x{SHAPE[0]} px, {lay.n_blocks} blocks of "
-        f"{lay.ext[1]}x{lay.ext[0]} in {engine.n_chunks} chunks, CPUs {psutil.cpu_count()}, "
+        f"{lay.ext[1]}x{lay.ext[0]} in {engine.n_batches} batches, CPUs {psutil.cpu_count()}, "
         f"load average {load_start:.2f} at start, {load_end:.2f} at end"
     )
     print(

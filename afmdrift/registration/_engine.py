@@ -56,21 +56,16 @@ CANDIDATE_RATIO = 0.7
 _MAG_FLOOR = 1e-30
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
-#: Blocks per chunk: the block batch is split into chunks of at most this many
-#: blocks (64 blocks of a 512² frame: two chunks of 32), each with its own
-#: FFTW plans and work arrays. The split depends only on the layout, never on
-#: the thread count, so results are bit-for-bit the same for any ``threads``.
-CHUNK_BLOCKS = 32
-#: Blocks per FFT batch within a chunk: a batch goes through every pass
-#: (window, forward FFT, normalisation, inverse FFT, peaks, sub-pixel) before
-#: the next starts, so its work arrays (about 2 MB for 16 blocks of 128²)
-#: stay in the caches instead of streaming the whole stack through memory
-#: once per pass, while each chunk still hands the GIL over only a few times
-#: per frame. Measured on the reference machine (2-core EPYC, 512² frames,
-#: benchmarks/bench_registration.py, 400 frames each): update on two threads
-#: 6.90 / 6.19 / 6.49 ms and CPU time 10.8 / 9.3 / 9.7 ms with batches of 8 /
-#: 16 / 32 blocks.
-BATCH_BLOCKS = 16
+#: Blocks per batch, the engine's unit of work: a batch goes through every
+#: pass (window, forward FFT, normalisation, inverse FFT, peaks, sub-pixel)
+#: before the next starts, so its work arrays (about 1 MB for 8 blocks of
+#: 128²) stay near the core instead of streaming the whole block stack
+#: through memory once per pass. The engine's threads take the batches in
+#: turn (see BlockEngine), so a thread on a slower core simply does fewer:
+#: on the reference machine (KVM, 2 vCPUs) the second vCPU was at times
+#: 1.6 times slower than the first, and a fixed half of the blocks on it
+#: set the frame's time. The split into batches depends only on the layout.
+BATCH_BLOCKS = 8
 
 _pool_lock = threading.Lock()
 _pools: dict[int, ThreadPoolExecutor] = {}
@@ -90,10 +85,9 @@ os.register_at_fork(after_in_child=_forget_pools_after_fork)
 def _worker_pool(workers: int) -> ThreadPoolExecutor:
     """Process-wide persistent pool of ``workers`` threads (made on first use).
 
-    The calling thread always runs one chunk itself, so a frame split into
-    ``k`` chunks on ``threads`` threads uses ``threads - 1`` pool workers.
-    Chunks never submit work themselves, so sharing the pool between engines
-    and calling threads cannot deadlock.
+    The calling thread always takes batches itself, so ``threads`` threads
+    use ``threads - 1`` pool workers. Workers never submit work themselves,
+    so sharing the pool between engines and calling threads cannot deadlock.
     """
     with _pool_lock:
         pool = _pools.get(workers)
@@ -143,29 +137,20 @@ class BlockMeasurement:
 
 
 @dataclass(frozen=True)
-class _Batch:
-    """Blocks ``sl`` of the layout, transformed together by ``fft``.
+class _Work:
+    """One thread's FFT plans and work arrays for batches of one size.
 
     ``band`` receives the weighted cross-power band of the ``dft`` sub-pixel
-    step (interleaved complex; no blocks for the other methods). Batches of
-    the same size in a chunk share these work arrays."""
+    step (interleaved complex; no blocks for the other methods)."""
 
-    sl: slice
     fft: BatchedRealFFT
     band: F32
-
-
-@dataclass(frozen=True)
-class _Chunk:
-    """Consecutive batches run one after another on one thread."""
-
-    batches: tuple[_Batch, ...]
 
 
 @dataclass
 class _Peaks:
     """Per-block integer peak, sub-pixel offset and checks (all blocks; each
-    chunk writes its slice)."""
+    batch writes its slice)."""
 
     sy: IArr
     sx: IArr
@@ -195,10 +180,13 @@ class _Peaks:
 class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
-    The blocks are processed in chunks of at most :data:`CHUNK_BLOCKS`, each
-    with its own single-threaded FFTW plans and work arrays; with
-    ``config.threads > 1`` the chunks run concurrently (pyFFTW and NumPy
-    release the GIL), the calling thread taking one of them.
+    The blocks are processed in batches of :data:`BATCH_BLOCKS`. With
+    ``config.threads > 1`` the calling thread and pool workers take the
+    batches in turn, each with its own single-threaded FFTW plans and work
+    arrays (pyFFTW and the compiled kernels release the GIL). Every block is
+    computed on its own, with plans of the same size (which FFTW's wisdom
+    makes the same algorithm), so which thread does which batch never
+    changes the results.
 
     Not thread-safe: use one engine per calling thread.
 
@@ -230,35 +218,29 @@ class BlockEngine:
         self._fy = np.arange(-ky_max, ky_max + 1) / ey
         self._fx = np.arange(0, kx_max + 1) / ex
         wisdom = resolve_wisdom_path(config.fftw_wisdom)
-        n_chunks = -(-n // CHUNK_BLOCKS)
-        bounds = [round(i * n / n_chunks) for i in range(n_chunks + 1)]
+        self._batches: tuple[slice, ...] = tuple(
+            slice(a, min(n, a + BATCH_BLOCKS)) for a in range(0, n, BATCH_BLOCKS)
+        )
+        self._threads = min(config.threads, len(self._batches))
         dft = config.subpixel == "dft"
-        work: dict[int, tuple[BatchedRealFFT, F32]] = {}
-        chunks = []
-        for a, b in itertools.pairwise(bounds):
-            batches = []
-            for start in range(a, b, BATCH_BLOCKS):
-                stop = min(b, start + BATCH_BLOCKS)
-                size = stop - start
-                if size not in work:
-                    # Own arrays per chunk (chunks run concurrently), shared
-                    # by the chunk's batches of one size.
-                    fft = BatchedRealFFT(
+        sizes = sorted({b.stop - b.start for b in self._batches})
+        self._work: tuple[dict[int, _Work], ...] = tuple(
+            {
+                size: _Work(
+                    fft=BatchedRealFFT(
                         size,
                         (ey, ex),
                         threads=1,
                         planner=config.fftw_planner,
                         wisdom_path=wisdom,
                         out_rows=2 * lay.max_shift[0] + 1,
-                    )
-                    band = np.zeros((size if dft else 0, *band_shape), np.complex64)
-                    work[size] = (fft, band.view(np.float32))
-                fft, band_f = work[size]
-                batches.append(_Batch(sl=slice(start, stop), fft=fft, band=band_f))
-            work.clear()
-            chunks.append(_Chunk(batches=tuple(batches)))
-        self._chunks: tuple[_Chunk, ...] = tuple(chunks)
-        self._threads = min(config.threads, len(chunks))
+                    ),
+                    band=np.zeros((size if dft else 0, *band_shape), np.complex64).view(np.float32),
+                )
+                for size in sizes
+            }
+            for _ in range(self._threads)
+        )
         # The periodic raised cosine has a DFT with only a few non-zero terms;
         # removing the window-weighted block mean is a subtraction on them.
         wspec = np.fft.rfft2(self.window.astype(np.float64))
@@ -327,14 +309,24 @@ class BlockEngine:
         )
 
     @property
-    def n_chunks(self) -> int:
-        """Number of block chunks (each with its own FFT plans)."""
-        return len(self._chunks)
+    def n_batches(self) -> int:
+        """Number of block batches (the unit of work of the engine's threads)."""
+        return len(self._batches)
 
-    def _each_chunk(self, work: Callable[[_Chunk], _T]) -> list[_T]:
-        """``work(chunk)`` for every chunk, in chunk order; concurrently on
-        ``threads`` threads (the caller's among them) when that is above 1."""
-        return self._run_all([functools.partial(work, c) for c in self._chunks])
+    def _each_batch(self, work: Callable[[slice, _Work], None]) -> None:
+        """``work(blocks, arrays)`` for every batch of blocks; on ``threads``
+        threads (the caller's among them) that take the batches in turn, each
+        with its own work arrays."""
+        batches = self._batches
+        order = itertools.count()  # next() is atomic: it holds the GIL
+
+        def run(t: int) -> None:
+            arrays = self._work[t]
+            while (i := next(order)) < len(batches):
+                sl = batches[i]
+                work(sl, arrays[sl.stop - sl.start])
+
+        self._run_all([functools.partial(run, t) for t in range(self._threads)])
 
     def _run_all(self, tasks: list[Callable[[], _T]]) -> list[_T]:
         """Run ``tasks``, returning their results in order: the caller runs the
@@ -368,12 +360,11 @@ class BlockEngine:
         written into ``out`` if given."""
         return gradient_image(heights, self.config.gradient, out=out)
 
-    def _forward(self, batch: _Batch, grad: F32, top: IArr, left: IArr) -> None:
-        """Window the batch's blocks at ``(top, left)`` (full-layout arrays)
-        and FFT them into ``batch.fft.spectrum``."""
-        sl = batch.sl
-        _kernels.window_blocks(grad, top[sl], left[sl], self.window, batch.fft.real)
-        batch.fft.forward()
+    def _forward(self, sl: slice, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
+        """Window blocks ``sl`` at ``(top, left)`` (full-layout arrays) and FFT
+        them into ``fft.spectrum``."""
+        _kernels.window_blocks(grad, top[sl], left[sl], self.window, fft.real)
+        fft.forward()
 
     def grid_positions(self) -> tuple[IArr, IArr]:
         """Window corners ``(top, left)`` of the layout (reference positions)."""
@@ -388,19 +379,17 @@ class BlockEngine:
         spectra = np.empty(self._fixed_shape, np.int16)
         band_mag = np.empty_like(self._cur_band_mag)
 
-        def work(chunk: _Chunk) -> None:
-            for batch in chunk.batches:
-                self._forward(batch, grad, top, left)
-                sl = batch.sl
-                _kernels.normalise_reference(
-                    batch.fft.spectrum.view(np.float32),
-                    *self._spectrum_args,
-                    self._ramp,
-                    spectra[sl],
-                    band_mag[sl],
-                )
+        def work(sl: slice, arrays: _Work) -> None:
+            self._forward(sl, arrays.fft, grad, top, left)
+            _kernels.normalise_reference(
+                arrays.fft.spectrum.view(np.float32),
+                *self._spectrum_args,
+                self._ramp,
+                spectra[sl],
+                band_mag[sl],
+            )
 
-        self._each_chunk(work)
+        self._each_batch(work)
         return ReferenceSpectra(
             grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=band_mag
         )
@@ -492,10 +481,10 @@ class BlockEngine:
         peaks = _Peaks.empty(self.layout.n_blocks)
         search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
 
-        def work(chunk: _Chunk) -> None:
-            self._measure_chunk(chunk, ref, grad, top, left, search, peaks)
+        def work(sl: slice, arrays: _Work) -> None:
+            self._measure_batch(sl, arrays, ref, grad, top, left, search, peaks)
 
-        self._each_chunk(work)
+        self._each_batch(work)
         n = self.layout.n_blocks
         vec = np.empty((n, 2), dtype=np.float64)
         measured = np.empty(n, dtype=bool)
@@ -518,9 +507,10 @@ class BlockEngine:
         )
         return result, top, left
 
-    def _measure_chunk(
+    def _measure_batch(
         self,
-        chunk: _Chunk,
+        sl: slice,
+        arrays: _Work,
         ref: ReferenceSpectra,
         grad: F32,
         top: IArr,
@@ -529,57 +519,55 @@ class BlockEngine:
         out: _Peaks,
     ) -> None:
         """Spectra, correlation, candidate peaks, MSE verification and
-        sub-pixel offsets of one chunk's blocks, batch by batch, written to
-        their slices of ``out`` (``top``, ``left``: window corners of every
-        block in the current frame; ``search``: half-widths ``(ry, rx)`` of
-        the peak search followed by the layout's ``(my, mx)``)."""
+        sub-pixel offsets of blocks ``sl``, written to their slices of
+        ``out`` (``top``, ``left``: window corners of every block in the
+        current frame; ``search``: half-widths ``(ry, rx)`` of the peak search
+        followed by the layout's ``(my, mx)``)."""
         cfg = self.config
-        for batch in chunk.batches:
-            sl = batch.sl
-            fft = batch.fft
-            self._forward(batch, grad, top, left)
-            _kernels.normalise_cross(
-                fft.spectrum.view(np.float32),
-                *self._spectrum_args,
-                ref.conj_spectra[sl],
-                ref.band_mag[sl],
-                self._ramp,
-                self._no_spectra if self._current is None else self._current[sl],
-                self._cur_band_mag[sl],
-                batch.band,
-            )
-            fft.inverse()
-            corr = fft.out  # (batch, 2my + 1, ex): shifts -m..m at 0..2m, scaled by ey·ex
-            _kernels.peaks_and_subpixel(
-                corr,
-                search,
-                cfg.peaks,
-                CANDIDATE_RATIO,
-                NMS_RADIUS,
-                grad,
-                ref.grad,
-                ref.top[sl],
-                ref.left[sl],
-                top[sl],
-                left[sl],
-                self._inner,
-                self._mse_rows,
-                self._mse_cols,
-                batch.band,  # no blocks unless subpixel == "dft"
-                self._fy,
-                self._fx,
-                self._ramp_shift,
-                self._envelope,
-                out.sy[sl],
-                out.sx[sl],
-                out.peak[sl],
-                out.mse[sl],
-                out.fx[sl],
-                out.fy[sl],
-                out.ok[sl],
-            )
-            if cfg.subpixel != "dft":
-                self._subpixel_3pt(corr, sl, out)
+        fft = arrays.fft
+        self._forward(sl, fft, grad, top, left)
+        _kernels.normalise_cross(
+            fft.spectrum.view(np.float32),
+            *self._spectrum_args,
+            ref.conj_spectra[sl],
+            ref.band_mag[sl],
+            self._ramp,
+            self._no_spectra if self._current is None else self._current[sl],
+            self._cur_band_mag[sl],
+            arrays.band,
+        )
+        fft.inverse()
+        corr = fft.out  # (batch, 2my + 1, ex): shifts -m..m at 0..2m, scaled by ey·ex
+        _kernels.peaks_and_subpixel(
+            corr,
+            search,
+            cfg.peaks,
+            CANDIDATE_RATIO,
+            NMS_RADIUS,
+            grad,
+            ref.grad,
+            ref.top[sl],
+            ref.left[sl],
+            top[sl],
+            left[sl],
+            self._inner,
+            self._mse_rows,
+            self._mse_cols,
+            arrays.band,  # no blocks unless subpixel == "dft"
+            self._fy,
+            self._fx,
+            self._ramp_shift,
+            self._envelope,
+            out.sy[sl],
+            out.sx[sl],
+            out.peak[sl],
+            out.mse[sl],
+            out.fx[sl],
+            out.fy[sl],
+            out.ok[sl],
+        )
+        if cfg.subpixel != "dft":
+            self._subpixel_3pt(corr, sl, out)
 
     def _subpixel_3pt(self, corr: F32, sl: slice, out: _Peaks) -> None:
         """Sub-pixel offsets of blocks ``sl`` from the three samples around
