@@ -313,29 +313,57 @@ class BlockEngine:
         """Number of block batches (the unit of work of the engine's threads)."""
         return len(self._batches)
 
-    def _each_batch(self, work: Callable[[slice, _Work], None]) -> None:
+    def _each_batch(
+        self, work: Callable[[slice, _Work], None], *, before: Callable[[], None] | None = None
+    ) -> None:
         """``work(blocks, arrays)`` for every batch of blocks; on ``threads``
         threads (the caller's among them) that take the batches in turn, each
-        with its own work arrays."""
+        with its own work arrays.
+
+        ``before`` runs on the calling thread once the pool workers have
+        started and before the caller takes a batch; meanwhile the workers
+        may take only the first batch. If it raises, no further batch is
+        started and the exception propagates once the workers have stopped.
+        """
         batches = self._batches
         order = itertools.count()  # next() is atomic: it holds the GIL
+        opened = threading.Event()
+        failed = False
 
         def run(t: int) -> None:
             arrays = self._work[t]
             while (i := next(order)) < len(batches):
+                if i > 0 and not opened.is_set():
+                    opened.wait()
+                if failed:
+                    return
                 sl = batches[i]
                 work(sl, arrays[sl.stop - sl.start])
 
-        self._run_all([functools.partial(run, t) for t in range(self._threads)])
+        def open_batches() -> None:
+            nonlocal failed
+            try:
+                if before is not None:
+                    before()
+            except BaseException:
+                failed = True
+                raise
+            finally:
+                opened.set()
 
-    def _run_all(self, tasks: list[Callable[[], _T]]) -> list[_T]:
-        """Run ``tasks``, returning their results in order: the caller runs the
-        first, the process-wide pool the others, when ``threads`` is above 1."""
+        self._run_all([functools.partial(run, t) for t in range(self._threads)], open_batches)
+
+    def _run_all(self, tasks: list[Callable[[], _T]], before: Callable[[], None]) -> list[_T]:
+        """Run ``tasks``, returning their results in order: the caller runs
+        ``before`` and then the first, the process-wide pool the others (from
+        before ``before``), when ``threads`` is above 1."""
         if self._threads <= 1 or len(tasks) <= 1:
+            before()
             return [t() for t in tasks]
         pool = _worker_pool(self._threads - 1)
         futures: list[Future[_T]] = [pool.submit(t) for t in tasks[1:]]
         try:
+            before()
             first = tasks[0]()
         finally:
             # The tasks write into shared arrays: never return (or raise)
@@ -352,6 +380,49 @@ class BlockEngine:
         need, in one pass where compiled (see
         :func:`~afmdrift.registration._blocks.gradient_and_stats`)."""
         return gradient_and_stats(heights, self.config.gradient, out=out)
+
+    def _gradient_first(
+        self,
+        heights: npt.NDArray[np.floating],
+        grad: F32,
+        top: IArr,
+        check: Callable[[FrameStats], None],
+    ) -> Callable[[], None]:
+        """The gradient image of a new frame and its check, for
+        :meth:`_each_batch`: with the compiled x gradient on several threads,
+        its rows down to the bottom of the first batch's windows (``top``:
+        the current frame's window corners) are done here, the rest and the
+        check in the returned function; otherwise all of it there."""
+        rows = int(heights.shape[0])
+        compiled = self.config.gradient == "x" and heights.dtype in (np.float32, np.float64)
+        if self._threads <= 1 or not compiled:
+
+            def whole() -> None:
+                check(self.prepare(heights, out=grad)[1])
+
+            return whole
+        # Every read of the current gradient by a batch (windowing, MSE
+        # verification) lies within its windows' rows.
+        split = min(rows, int(top[self._batches[0]].max()) + self.layout.ext[0])
+        head = _kernels.gradient_x(heights[:split], grad[:split])
+
+        def rest() -> None:
+            tail = (
+                _kernels.gradient_x(heights[split:], grad[split:])
+                if split < rows
+                else (True, 0, True)
+            )
+            check(
+                FrameStats(
+                    finite=bool(head[0] and tail[0]),
+                    nonzero=int(head[1] + tail[1]),
+                    uniform=bool(
+                        head[2] and tail[2] and (split == rows or grad[0, 0] == grad[split, 0])
+                    ),
+                )
+            )
+
+        return rest
 
     # -- spectra ---------------------------------------------------------------
 
@@ -464,11 +535,22 @@ class BlockEngine:
         *,
         prior_px: tuple[float, float] = (0.0, 0.0),
         search_px: float | None = None,
+        heights: npt.NDArray[np.floating] | None = None,
+        check: Callable[[FrameStats], None] | None = None,
     ) -> tuple[BlockMeasurement, IArr, IArr]:
         """Measure every block's motion vector from ``ref`` to ``grad``.
 
         ``search_px`` narrows the peak search to ±``search_px`` around the
         prior (never wider than the layout's ``max_shift``).
+
+        With ``heights``, ``grad`` is first filled with their gradient image
+        (as by :meth:`prepare`) and ``check`` is called with its
+        :class:`~afmdrift.registration._blocks.FrameStats`; if it raises,
+        nothing is measured and the exception propagates. On several threads
+        with the x gradient, the rows the first batch's windows cover are
+        done first; a worker starts on that batch while the calling thread
+        does the other rows and the check, so the worker's start and part of
+        the gradient pass overlap.
 
         Returns the measurement and the window corners ``(top, left)`` used in
         the current frame (so its spectra can become the next reference).
@@ -484,7 +566,12 @@ class BlockEngine:
         def work(sl: slice, arrays: _Work) -> None:
             self._measure_batch(sl, arrays, ref, grad, top, left, search, peaks)
 
-        self._each_batch(work)
+        if heights is None:
+            self._each_batch(work)
+        else:
+            if check is None:
+                raise ValueError("a new frame's heights come with their check")
+            self._each_batch(work, before=self._gradient_first(heights, grad, top, check))
         n = self.layout.n_blocks
         vec = np.empty((n, 2), dtype=np.float64)
         measured = np.empty(n, dtype=bool)

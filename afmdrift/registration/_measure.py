@@ -6,6 +6,7 @@ import math
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 
 import numpy as np
 import numpy.typing as npt
@@ -342,14 +343,19 @@ def measure_blocks(
     *,
     prior_px: tuple[float, float],
     search_px: float | None = None,
+    heights: npt.NDArray[np.floating] | None = None,
+    check: Callable[[FrameStats], None] | None = None,
 ) -> tuple[BlockMeasurement, npt.NDArray[np.intp], npt.NDArray[np.intp]]:
     """Block pass around ``prior_px``, repeated once around the measured
     drift when that is more than ``REFINE_PX`` away (``config.refine``):
     windows then sit within half a pixel of their content, where the
     window-envelope correction of the sub-pixel estimate is most exact and
     no content is lost at the window edges. ``search_px`` narrows the peak
-    search (see :meth:`BlockEngine.measure`)."""
-    meas, top, left = engine.measure(ref, grad, prior_px=prior_px, search_px=search_px)
+    search; ``heights`` and ``check``: a new frame whose gradient image the
+    first pass computes into ``grad`` (see :meth:`BlockEngine.measure`)."""
+    meas, top, left = engine.measure(
+        ref, grad, prior_px=prior_px, search_px=search_px, heights=heights, check=check
+    )
     if not engine.config.refine:
         return meas, top, left
     if meas.n_measured < engine.config.min_valid_blocks:

@@ -36,6 +36,7 @@ is not known yet, starts from it, as :func:`measure_drift` does.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -43,6 +44,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.registration._blocks import FrameStats
 from afmdrift.registration._coarse import CoarseShift, coarse_shift
 from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
@@ -200,10 +202,10 @@ class DriftTracker:
             or (self._ref is not None and spare is self._ref.grad)
         ):
             spare = None
-        grad, stats = engine.prepare(heights, out=spare)
+        grad = spare if spare is not None else np.empty(engine.layout.grad_shape, np.float32)
         self._spare = grad
-        check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
         if self._ref is None:
+            self._check(heights, grad, engine.prepare(heights, out=grad)[1])
             self._ref = engine.reference(grad)
             self._ref_heights = heights.astype(np.float32)
             self._ref_index = self._count
@@ -225,6 +227,13 @@ class DriftTracker:
             image = image.heights_nm
         return check_image(image, "frame")  # its values: see update
 
+    def _check(
+        self, heights: npt.NDArray[np.floating], grad: npt.NDArray[np.float32], stats: FrameStats
+    ) -> None:
+        """Refuse an unusable frame (:func:`check_frame`); the tracker is
+        unchanged then."""
+        check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
+
     def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
         if self._engine is None or self._engine.image_shape != shape:
             self._engine = BlockEngine(shape, self.config)
@@ -244,9 +253,15 @@ class DriftTracker:
         prior = (self._rel[0] + self._velocity[0] * gap, self._rel[1] + self._velocity[1] * gap)
         search: float | None = None
         coarse: CoarseShift | None = None
+        # The frame's gradient image and checks come with the first block
+        # pass (see BlockEngine.measure), except where the coarse alignment
+        # needs the frame checked first.
+        new: npt.NDArray[np.floating] | None = heights
         if cfg.coarse and not self._motion_known and self._ref_heights is not None:
             # No accepted frame yet, so no expected motion: start from the
             # coarse alignment, as measure_drift does.
+            self._check(heights, grad, engine.prepare(heights, out=grad)[1])
+            new = None
             coarse = coarse_shift(self._ref_heights, heights)
             if coarse.trusted:
                 prior, search = coarse.prior_px, cfg.coarse_search_px
@@ -254,7 +269,15 @@ class DriftTracker:
             # Small expected motion: leave the windows on the grid, so that
             # this frame's spectra can serve as the next reference unchanged.
             prior = (0.0, 0.0)
-        meas_blocks, top, left = measure_blocks(engine, ref, grad, prior_px=prior, search_px=search)
+        meas_blocks, top, left = measure_blocks(
+            engine,
+            ref,
+            grad,
+            prior_px=prior,
+            search_px=search,
+            heights=new,
+            check=functools.partial(self._check, heights, grad),
+        )
         meas = combine(meas_blocks, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
         if not meas.valid and cfg.coarse and self._ref_heights is not None:
             if coarse is None:

@@ -136,6 +136,42 @@ def test_invalid_input_leaves_the_tracker_unchanged() -> None:
     assert step.position_px[0] == pytest.approx(4.0, abs=0.05)
 
 
+@pytest.mark.parametrize("threads", [1, 2])
+def test_bad_pixels_anywhere_in_a_512_frame_are_refused_while_the_worker_measures(
+    threads: int,
+) -> None:
+    """On two threads a worker starts on the first batch while the gradient's
+    lower rows and the checks are still being done (BlockEngine.measure): a
+    bad pixel above or below that split, or a blank frame, must still be
+    refused with the tracker unchanged and the next frame measured right."""
+    path = np.array([[0.0, 0.0], [1.5, 0.5], [3.0, 1.0], [4.5, 1.5]])
+    frames = _sequence(path, shape=(512, 512), seed=8)
+    tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=RegistrationConfig(threads=threads))
+    tracker.update(frames[0])
+    first = tracker.update(frames[1])
+    assert first is not None
+    assert first.accepted
+    before = (tracker.frames_seen, tracker.position_px)
+    for row, col, value in [(3, 7, np.nan), (500, 300, np.inf), (255, 0, -np.inf)]:
+        bad = frames[2].copy()
+        bad[row, col] = value
+        with pytest.raises(InvalidFrameError, match=rf"1 NaN/Inf pixel.*row {row}, col {col}"):
+            tracker.update(bad)
+    with pytest.raises(InvalidFrameError, match="constant"):
+        tracker.update(np.full((512, 512), 4.0))
+    blank = np.zeros((512, 512))
+    blank[400:410, 100] = 1.0
+    with pytest.raises(InvalidFrameError, match="nearly blank"):
+        tracker.update(blank)
+    assert (tracker.frames_seen, tracker.position_px) == before
+    for i in (2, 3):
+        step = tracker.update(frames[i])
+        assert step is not None
+        assert step.accepted
+        assert step.position_px[0] == pytest.approx(path[i, 0], abs=0.05)
+        assert step.position_px[1] == pytest.approx(path[i, 1], abs=0.05)
+
+
 def test_an_invalid_measurement_does_not_break_the_reference_chain() -> None:
     """A frame of unrelated content is reported invalid; the tracker keeps its
     reference and prediction, and the next good frame is measured correctly."""
