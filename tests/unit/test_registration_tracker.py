@@ -239,13 +239,13 @@ def test_tracker_rejects_bad_pixel_size() -> None:
 @pytest.mark.parametrize("reference", ["keyframe", "consecutive"])
 def test_results_are_bit_for_bit_independent_of_the_thread_count(reference: str) -> None:
     """Guards against the thread count (or which thread takes which batch of
-    blocks) leaking into the numbers: 512×640 frames hold 80 blocks in ten
-    batches, and 1, 2 and 3 threads must give identical block fields and
+    blocks) leaking into the numbers: 512×640 frames hold 80 blocks in twelve
+    batches of two sizes, and 1, 2 and 3 threads must give identical block fields and
     positions, for the tracker and for measure_drift."""
     t = np.arange(10)
     path = np.column_stack([2.5 * t, 1.0 * np.sin(t)])
     frames = _sequence(path, shape=(512, 640), seed=3)
-    assert BlockEngine((512, 640), RegistrationConfig()).n_batches == 10
+    assert BlockEngine((512, 640), RegistrationConfig()).n_batches == 12
     runs = []
     for threads in (1, 2, 3):
         cfg = RegistrationConfig(threads=threads, reference=reference)
