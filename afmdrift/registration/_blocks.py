@@ -30,6 +30,7 @@ from afmdrift.registration import _kernels
 __all__ = [
     "BlockLayout",
     "FrameStats",
+    "compiled_gradient",
     "gradient_and_stats",
     "gradient_image",
     "gradient_shape",
@@ -81,7 +82,7 @@ def gradient_image(
         out = np.empty((rows, cols), dtype=np.float32)
     # Differences are taken in the input precision and only then rounded to
     # float32, so a large z offset does not eat the texture's digits.
-    if gradient == "x" and h.dtype in (np.float32, np.float64):
+    if compiled_gradient(h, gradient):
         _kernels.gradient_x(h, out)  # one compiled pass (its figures unused here)
     elif gradient == "x":
         np.subtract(h[:, 1:], h[:, :-1], out=out, casting="same_kind")
@@ -116,6 +117,13 @@ class FrameStats(NamedTuple):
     uniform: bool
 
 
+def compiled_gradient(heights: npt.NDArray[np.floating], gradient: Gradient) -> bool:
+    """Whether the gradient image of ``heights`` is the compiled x-gradient
+    pass (:func:`afmdrift.registration._kernels.gradient_x`): the x gradient
+    of a float32 or float64 image."""
+    return gradient == "x" and heights.dtype in (np.float32, np.float64)
+
+
 def gradient_and_stats(
     heights: npt.NDArray[np.floating],
     gradient: Gradient,
@@ -125,7 +133,7 @@ def gradient_and_stats(
     """:func:`gradient_image` and its :class:`FrameStats`; in one compiled pass
     for the x gradient of a float32 or float64 image (where every pixel
     enters a difference, so a NaN pixel always shows in the gradient)."""
-    if gradient == "x" and heights.dtype in (np.float32, np.float64):
+    if compiled_gradient(heights, gradient):
         rows, cols = gradient_shape((int(heights.shape[0]), int(heights.shape[1])), gradient)
         grad = out if out is not None else np.empty((rows, cols), dtype=np.float32)
         finite, nonzero, uniform = _kernels.gradient_x(heights, grad)

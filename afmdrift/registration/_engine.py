@@ -14,14 +14,12 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 
 from __future__ import annotations
 
-import functools
 import itertools
 import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -30,6 +28,7 @@ from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import (
     BlockLayout,
     FrameStats,
+    compiled_gradient,
     gradient_and_stats,
     gradient_image,
     gradient_offset_px,
@@ -41,7 +40,6 @@ from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
-_T = TypeVar("_T")
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
 IArr = npt.NDArray[np.intp]
@@ -322,10 +320,11 @@ class BlockEngine:
         threads (the caller's among them) that take the batches in turn, each
         with its own work arrays.
 
-        ``before`` runs on the calling thread once the pool workers have
-        started and before the caller takes a batch; meanwhile the workers
-        may take only the first batch. If it raises, no further batch is
-        started and the exception propagates once the workers have stopped.
+        ``before`` runs on the calling thread once the pool workers (one
+        fewer than ``threads``) have started and before the caller takes a
+        batch; meanwhile the workers may take only the first batch. If it
+        raises, no further batch is started and the exception propagates once
+        the workers have stopped.
         """
         batches = self._batches
         order = itertools.count()  # next() is atomic: it holds the GIL
@@ -353,26 +352,20 @@ class BlockEngine:
             finally:
                 opened.set()
 
-        self._run_all([functools.partial(run, t) for t in range(self._threads)], open_batches)
-
-    def _run_all(self, tasks: list[Callable[[], _T]], before: Callable[[], None]) -> list[_T]:
-        """Run ``tasks``, returning their results in order: the caller runs
-        ``before`` and then the first, the process-wide pool the others (from
-        before ``before``), when ``threads`` is above 1."""
-        if self._threads <= 1 or len(tasks) <= 1:
-            before()
-            return [t() for t in tasks]
-        pool = _worker_pool(self._threads - 1)
-        futures: list[Future[_T]] = [pool.submit(t) for t in tasks[1:]]
+        futures: list[Future[None]] = []
+        if self._threads > 1:
+            pool = _worker_pool(self._threads - 1)
+            futures = [pool.submit(run, t) for t in range(1, self._threads)]
         try:
-            before()
-            first = tasks[0]()
+            open_batches()
+            run(0)
         finally:
-            # The tasks write into shared arrays: never return (or raise)
+            # The workers write into shared arrays: never return (or raise)
             # while one is still running.
             for f in futures:
                 f.exception()
-        return [first, *(f.result() for f in futures)]
+        for f in futures:
+            f.result()  # a worker's exception
 
     def prepare(
         self, heights: npt.NDArray[np.floating], *, out: F32 | None = None
@@ -395,9 +388,7 @@ class BlockEngine:
         its rows down to the bottom of the first batch's windows (``top``:
         the current frame's window corners) are done here, the rest and the
         check in the returned function; otherwise all of it there."""
-        rows = int(heights.shape[0])
-        compiled = self.config.gradient == "x" and heights.dtype in (np.float32, np.float64)
-        if self._threads <= 1 or not compiled:
+        if self._threads <= 1 or not compiled_gradient(heights, self.config.gradient):
 
             def whole() -> None:
                 check(self.prepare(heights, out=grad)[1])
@@ -405,24 +396,20 @@ class BlockEngine:
             return whole
         # Every read of the current gradient by a batch (windowing, MSE
         # verification) lies within its windows' rows.
+        rows = int(heights.shape[0])
         split = min(rows, int(top[self._batches[0]].max()) + self.layout.ext[0])
-        head = _kernels.gradient_x(heights[:split], grad[:split])
+        _, head = gradient_and_stats(heights[:split], "x", out=grad[:split])
 
         def rest() -> None:
-            tail = (
-                _kernels.gradient_x(heights[split:], grad[split:])
-                if split < rows
-                else (True, 0, True)
-            )
-            check(
-                FrameStats(
-                    finite=bool(head[0] and tail[0]),
-                    nonzero=int(head[1] + tail[1]),
-                    uniform=bool(
-                        head[2] and tail[2] and (split == rows or grad[0, 0] == grad[split, 0])
-                    ),
+            stats = head
+            if split < rows:
+                _, tail = gradient_and_stats(heights[split:], "x", out=grad[split:])
+                stats = FrameStats(
+                    finite=head.finite and tail.finite,
+                    nonzero=head.nonzero + tail.nonzero,
+                    uniform=head.uniform and tail.uniform and bool(grad[0, 0] == grad[split, 0]),
                 )
-            )
+            check(stats)
 
         return rest
 
