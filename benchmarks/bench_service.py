@@ -36,7 +36,7 @@ import psutil
 import zmq.asyncio
 
 from afmdrift.client import Subscriber
-from afmdrift.service import FrameMsg, ModelMsg, OffsetMsg
+from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIO = """

@@ -117,11 +117,13 @@ async def _run_demo(args: argparse.Namespace) -> int:
 
     from afmdrift.client import Subscriber
     from afmdrift.config import load_config
-    from afmdrift.drivers import Frame, NanoScopeDriver, ScanDirection
+    from afmdrift.drivers import NanoScopeDriver
     from afmdrift.drivers.sim import SimulatedAFM
     from afmdrift.drivers.sim._server import SimulatorServer
     from afmdrift.model import truth_frame_mean
-    from afmdrift.service import DriftService, FrameMsg, OffsetMsg, RunStore
+    from afmdrift.records import Frame, ScanDirection
+    from afmdrift.service import DriftService, RunStore
+    from afmdrift.wire import FrameMsg, OffsetMsg
 
     # Detector noise from the SNR: the sample's height spread over one noiseless frame.
     probe = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=0.0))

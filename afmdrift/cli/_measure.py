@@ -44,8 +44,9 @@ from afmdrift.cli._import import add_file_options, pixel_size_option
 from afmdrift.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
+    from afmdrift.config import RegistrationConfig
     from afmdrift.io import AfmImage
-    from afmdrift.registration import DriftResult, RegistrationConfig
+    from afmdrift.registration import DriftResult
 
 
 def register(sub: Any) -> None:
@@ -162,8 +163,7 @@ def measurement_config(
     """
     from pydantic import ValidationError
 
-    from afmdrift.config import describe_validation_error
-    from afmdrift.registration import RegistrationConfig
+    from afmdrift.config import RegistrationConfig, describe_validation_error
 
     overrides: dict[str, Any] = {
         k: v for k, v in (("block_size", block_size), ("extended_size", extended_size)) if v

@@ -24,8 +24,8 @@ def register(sub: Any) -> None:
 def _watch(args: argparse.Namespace) -> int:
     import asyncio
 
+    from afmdrift.client._watch import watch
     from afmdrift.config import load_config
-    from afmdrift.service._watch import watch
 
     endpoint = args.endpoint or load_config(args.config).service.pub_endpoint
     try:

@@ -21,7 +21,8 @@ import zmq.asyncio
 import zmq.auth
 
 from afmdrift.errors import AfmdriftError
-from afmdrift.service._wire import (
+from afmdrift.model import OffsetCurve
+from afmdrift.wire import (
     TOPICS,
     ControlReply,
     ControlRequest,
@@ -155,8 +156,6 @@ class Subscriber:
         if self.model is None:
             raise NoModelError("no model received yet; wait for a 'model' message")
         if self._curve is None:
-            from afmdrift.model import OffsetCurve
-
             self._curve = OffsetCurve.from_dict(self.model.curve)
         t = self.instrument_time() if t_s is None else t_s
         value = self._curve.at([t])

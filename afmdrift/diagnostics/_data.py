@@ -10,6 +10,7 @@ run directory written by ``afmdrift replay`` or the daemon
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,9 +19,11 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, ScanDirection
 from afmdrift.errors import InputError
-from afmdrift.model import History, Observation
+from afmdrift.model import History, HistoryFeed, Observation
+from afmdrift.records import ChannelSample, Event, ScanDirection
+from afmdrift.service import DB_NAME, RunStore
+from afmdrift.session import read_session
 
 __all__ = ["RunData", "load_run"]
 
@@ -161,12 +164,9 @@ class RunData:
 
     def history(self, *, until_s: float | None = None) -> History:
         """Channels and events logged up to ``until_s`` (default: all)."""
-        h = History()
-        for c in self.channels:
-            if until_s is None or c.t_s <= until_s:
-                h.add_channels(c)
-        h.add_events([e for e in self.events if until_s is None or e.t_s <= until_s])
-        return h
+        feed = HistoryFeed(self.channels, self.events)
+        feed.advance(math.inf if until_s is None else until_s)
+        return feed.history
 
     def channel_names(self) -> list[str]:
         names: set[str] = set()
@@ -205,8 +205,6 @@ def load_run(run_dir: str | Path, *, session_dir: str | Path | None = None) -> R
     InputError
         If the directory holds no run store or fewer than two measured frames.
     """
-    from afmdrift.service import RunStore
-    from afmdrift.service._store import DB_NAME
 
     rd = Path(run_dir)
     if not (rd / DB_NAME).is_file():
@@ -234,8 +232,6 @@ def load_run(run_dir: str | Path, *, session_dir: str | Path | None = None) -> R
     truth_t = truth = None
     sdir = Path(session_dir) if session_dir is not None else None
     if sdir is not None:
-        from afmdrift.session import read_session
-
         s = read_session(sdir)
         if s.truth is not None:
             truth_t = np.asarray(s.truth[:, 0], dtype=np.float64)

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import PhysicsConfig
 from afmdrift.diagnostics._candidates import (
     CandidateResult,
     ModelDesign,
@@ -45,10 +46,12 @@ from afmdrift.diagnostics._stats import (
     find_episodes,
     ljung_box,
     lomb_scargle,
+    robust_z,
     up_down_difference,
 )
 from afmdrift.errors import ConfigError, InputError
-from afmdrift.model import History, PhysicsConfig, PhysicsPredictor, available_terms
+from afmdrift.model import History, HistoryFeed, OffsetCurve, PhysicsPredictor, available_terms
+from afmdrift.records import EventKind
 
 __all__ = [
     "DiagnoseOptions",
@@ -133,25 +136,15 @@ def run_model(data: RunData, physics: PhysicsConfig, *, truth: bool = True) -> M
         raise InputError(f"only {len(obs)} frames fed the model; need at least 3 to diagnose")
     fed = np.flatnonzero(data.fed)
     predictor = PhysicsPredictor(physics)
-    history = History()
-    ci = ei = 0
-    channels, events = data.channels, data.events
+    feed = HistoryFeed(data.channels, data.events)
+    history = feed.history
     truth_t_all = data.truth_t_s if truth else None
     tt: list[FloatArray] = []
     te: list[FloatArray] = []
     t_end = data.t_end_s[fed]
     for j, o in enumerate(obs):
         upto = float(t_end[j])
-        while ci < len(channels) and channels[ci].t_s <= upto:
-            if not history.channel_t_s or channels[ci].t_s >= history.channel_t_s[-1]:
-                history.add_channels(channels[ci])
-            ci += 1
-        new_events = []
-        while ei < len(events) and events[ei].t_s <= upto:
-            new_events.append(events[ei])
-            ei += 1
-        if new_events:
-            history.add_events(new_events)
+        feed.advance(upto)
         predictor.update(o, history)
         if truth_t_all is not None and j + 1 < len(obs) and j >= 1:
             sel = (truth_t_all > upto) & (truth_t_all <= float(t_end[j + 1]))
@@ -206,8 +199,6 @@ def run_from_store(data: RunData, physics: PhysicsConfig) -> ModelRun | None:
     errors = measured - data.pred_nm[fed]
     truth_t = truth_e = None
     if data.truth_t_s is not None and data.curves:
-        from afmdrift.model import OffsetCurve
-
         tt: list[FloatArray] = []
         te: list[FloatArray] = []
         for j in range(1, fed.size - 1):
@@ -493,8 +484,6 @@ def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
     run, jump (x, y) in nm): a robust z of the Euclidean increment above
     :data:`JUMP_Z`, or, across an offset move, an increment larger than
     :data:`JUMP_MOVE_FRACTION` of the move."""
-    from afmdrift.diagnostics._stats import robust_z
-    from afmdrift.drivers._base import EventKind
 
     inc = np.diff(run.measured_nm, axis=0)
     if inc.shape[0] < 8:

@@ -28,13 +28,15 @@ import numpy.typing as npt
 
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnose import Diagnosis
-from afmdrift.diagnostics._stats import cross_correlation
+from afmdrift.diagnostics._stats import cross_correlation, lomb_scargle
 from afmdrift.errors import InputError
+from afmdrift.registration import measure_drift
+from afmdrift.session import read_session
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
 
-    from afmdrift.registration import RegistrationConfig
+    from afmdrift.config import RegistrationConfig
 
 __all__ = ["write_report"]
 
@@ -124,8 +126,6 @@ def _fig_residuals(dg: Diagnosis) -> Figure:
 def _fig_acf_periodogram(dg: Diagnosis) -> Figure:
     import matplotlib.pyplot as plt
     from statsmodels.tsa.stattools import acf
-
-    from afmdrift.diagnostics._stats import lomb_scargle
 
     run = dg.run
     b = dg.burn_in_frames
@@ -248,8 +248,6 @@ def _frame_images(
         if a.is_file() and b.is_file():
             return np.load(a), np.load(b)
     if data.session_dir is not None:
-        from afmdrift.session import read_session
-
         s = read_session(data.session_dir)
         if seq < len(s):
             return np.asarray(s.frames[seq - 1]), np.asarray(s.frames[seq])
@@ -260,8 +258,6 @@ def _fig_vector_field(
     dg: Diagnosis, data: RunData, registration: RegistrationConfig | None
 ) -> tuple[Figure | None, str]:
     import matplotlib.pyplot as plt
-
-    from afmdrift.registration import measure_drift
 
     norm = np.hypot(dg.run.errors_nm[:, 0], dg.run.errors_nm[:, 1])
     if not np.isfinite(norm).any():

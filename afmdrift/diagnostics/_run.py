@@ -16,13 +16,13 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.diagnostics._data import RunData, load_run
 from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
 from afmdrift.errors import InputError
+from afmdrift.service import DB_NAME, replay_session
 
 __all__ = ["config_with_effects", "diagnose_path", "is_run_dir", "prepare_run"]
 
 
 def is_run_dir(path: str | Path) -> bool:
     """True if ``path`` holds a run store (else it should be a session)."""
-    from afmdrift.service._store import DB_NAME
 
     return (Path(path) / DB_NAME).is_file()
 
@@ -72,7 +72,6 @@ def prepare_run(
         return load_run(p, session_dir=session_dir)
     if not (p / "session.json").is_file():
         raise InputError(f"{p}: neither a run directory (run.sqlite) nor a session (session.json)")
-    from afmdrift.service import replay_session
 
     cfg = config_with_effects(config, effects)
     if run_dir is not None:

@@ -1,21 +1,15 @@
 """Instrument drivers: NanoScope-style controller, simulator, replay.
 
-Runtime code depends only on :class:`Instrument` and the records defined here;
+Runtime code depends only on :class:`Instrument` and the records of
+:mod:`afmdrift.records` (re-exported here);
 the simulator lives in :mod:`afmdrift.drivers.sim` and is never imported by the
 service.
 """
 
-from afmdrift.drivers._base import (
-    ChannelSample,
-    Event,
-    EventKind,
-    Frame,
-    Instrument,
-    InstrumentInfo,
-    ScanDirection,
-)
-from afmdrift.drivers._config import DriverConfig, instrument_from_config
+from afmdrift.config import DriverConfig
+from afmdrift.drivers._base import Instrument
 from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers._open import instrument_from_config
 from afmdrift.drivers._protocol import (
     ChecksumError,
     InstrumentDisconnected,
@@ -26,6 +20,7 @@ from afmdrift.drivers._protocol import (
 )
 from afmdrift.drivers._replay import ReplayInstrument
 from afmdrift.drivers._transport import ScriptedTransport, SerialTransport, Transport
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo, ScanDirection
 
 __all__ = [
     "ChannelSample",

@@ -1,133 +1,19 @@
-"""Records that cross the driver boundary, and the instrument interface.
+"""The instrument interface.
 
 Everything upstream of a driver (registration, models, the service) sees an
-instrument only through :class:`Instrument` and these records, whether it is a
-real NanoScope-style controller, the simulator, or a replayed session.
-
-Conventions
------------
-* Times ``*_s`` are seconds on the instrument's clock since the session start.
-* Heights are in nm. Images are indexed ``[row, col]``; x runs along columns
-  (the fast scan axis) and y along rows.
-* ``pixel_size_nm`` is ``(x, y)``.
-* An ``up`` frame scans rows 0 → N−1, a ``down`` frame N−1 → 0.
+instrument only through :class:`Instrument` and the records of
+:mod:`afmdrift.records`, whether it is a real NanoScope-style controller, the
+simulator, or a replayed session.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from enum import StrEnum
-from types import MappingProxyType, TracebackType
+from types import TracebackType
 from typing import Protocol, TypeVar, runtime_checkable
 
-import numpy as np
-import numpy.typing as npt
+from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
-__all__ = [
-    "ChannelSample",
-    "ConnectOnEnter",
-    "Event",
-    "EventKind",
-    "Frame",
-    "Instrument",
-    "InstrumentInfo",
-    "ScanDirection",
-]
-
-
-class ScanDirection(StrEnum):
-    """Slow-axis direction of a frame."""
-
-    UP = "up"  # rows 0 -> N-1
-    DOWN = "down"  # rows N-1 -> 0
-
-
-class EventKind(StrEnum):
-    """Kinds of logged instrument events (session format v1, ``events.csv``)."""
-
-    OFFSET_MOVE = "offset_move"  # commanded XY offset moved by (x_nm, y_nm)
-    MANIPULATION = "manipulation"  # tip push at (x_nm, y_nm)
-    TIP_CHANGE = "tip_change"
-    POWER_ON = "power_on"
-
-
-@dataclass(frozen=True, slots=True)
-class Frame:
-    """One completed height image and its timing.
-
-    Attributes
-    ----------
-    index : int
-        Frame number since the session start (0-based, increasing).
-    heights_nm : ndarray, shape (rows, cols)
-        Heights in nm, float32 or float64, row 0 first whatever the direction.
-    pixel_size_nm : (float, float)
-        Pixel size along x (columns) and y (rows), in nm.
-    t_start_s, t_end_s : float
-        Instrument time of the start of the first scanned line and of the end
-        of the last one.
-    direction : ScanDirection
-        Slow-axis direction.
-    """
-
-    index: int
-    heights_nm: npt.NDArray[np.floating]
-    pixel_size_nm: tuple[float, float]
-    t_start_s: float
-    t_end_s: float
-    direction: ScanDirection = ScanDirection.UP
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        rows, cols = self.heights_nm.shape
-        return int(rows), int(cols)
-
-    @property
-    def t_mid_s(self) -> float:
-        """Mid-scan time, where a frame's drift measurement is placed."""
-        return 0.5 * (self.t_start_s + self.t_end_s)
-
-    @property
-    def line_time_s(self) -> float:
-        """Time per scan line (trace and retrace)."""
-        return (self.t_end_s - self.t_start_s) / self.shape[0]
-
-    def row_times_s(self) -> npt.NDArray[np.float64]:
-        """Mid-line time of each row ``r`` (indexed as stored), shape (rows,)."""
-        rows = self.shape[0]
-        order = np.arange(rows, dtype=np.float64)
-        if self.direction is ScanDirection.DOWN:
-            order = order[::-1]
-        return self.t_start_s + (order + 0.5) * self.line_time_s
-
-
-@dataclass(frozen=True, slots=True)
-class Event:
-    """One entry of the instrument's event log."""
-
-    t_s: float
-    kind: EventKind
-    x_nm: float = 0.0
-    y_nm: float = 0.0
-
-
-@dataclass(frozen=True, slots=True)
-class ChannelSample:
-    """Logged sensor values at one instant (``temperature_c``, ``humidity_pct``, ...)."""
-
-    t_s: float
-    values: Mapping[str, float] = field(default_factory=lambda: MappingProxyType({}))
-
-
-@dataclass(frozen=True, slots=True)
-class InstrumentInfo:
-    """Answer to the identify query."""
-
-    vendor: str
-    model: str
-    serial: str
-    firmware: str
+__all__ = ["ConnectOnEnter", "Instrument"]
 
 
 @runtime_checkable

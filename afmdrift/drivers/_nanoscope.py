@@ -34,7 +34,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from afmdrift.drivers._base import ChannelSample, ConnectOnEnter, Event, Frame, InstrumentInfo
+from afmdrift.drivers._base import ConnectOnEnter
 from afmdrift.drivers._protocol import (
     COMMANDS,
     InstrumentDisconnected,
@@ -55,6 +55,7 @@ from afmdrift.drivers._protocol import (
     parse_reply,
 )
 from afmdrift.drivers._transport import SerialTransport, Transport
+from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
 __all__ = ["NanoScopeDriver"]
 

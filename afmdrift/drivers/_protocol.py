@@ -32,8 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, EventKind, Frame, ScanDirection
 from afmdrift.errors import AfmdriftError
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, ScanDirection
 
 __all__ = [
     "COMMANDS",

@@ -26,22 +26,13 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 from types import MappingProxyType
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from afmdrift._version import __version__
-from afmdrift.drivers._base import (
-    ChannelSample,
-    ConnectOnEnter,
-    Event,
-    EventKind,
-    Frame,
-    InstrumentInfo,
-)
-
-if TYPE_CHECKING:
-    from afmdrift.session import Session
+from afmdrift.drivers._base import ConnectOnEnter
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo
+from afmdrift.session import Session, read_session
 
 __all__ = ["ReplayInstrument"]
 
@@ -70,8 +61,6 @@ class ReplayInstrument(ConnectOnEnter):
         clock: Callable[[], float] = time.monotonic,
         start_s: float | None = None,
     ) -> None:
-        from afmdrift.session import Session, read_session
-
         if speed is not None and not (np.isfinite(speed) and speed >= 0):
             raise ValueError(f"speed must be >= 0 or None, got {speed!r}")
         self.session: Session = session if isinstance(session, Session) else read_session(session)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.errors import InputError
+from afmdrift.records import ScanDirection
 
 __all__ = ["AfmImage", "ImageFileError", "height_factor_nm", "length_unit_to_nm"]
 

@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.io._afmreader import afmreader_module
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
+from afmdrift.records import ScanDirection
 
 __all__ = ["NanoscopeHeader", "is_nanoscope_suffix", "parse_nanoscope_header", "read_nanoscope"]
 

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.io._image import AfmImage, ImageFileError, height_factor_nm, length_unit_to_nm
+from afmdrift.records import ScanDirection
 
 __all__ = ["read_netcdf"]
 

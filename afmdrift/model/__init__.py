@@ -8,9 +8,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+from afmdrift.config import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.model._base import History, Observation, Prediction, Predictor
 from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
-from afmdrift.model._config import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.model._effects import (
     ENTRY_POINT_GROUP,
     LIBRARY,
@@ -20,6 +20,7 @@ from afmdrift.model._effects import (
     load_term_class,
     make_term,
 )
+from afmdrift.model._feed import FeedBatch, HistoryFeed
 from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
 from afmdrift.model._physics import PhysicsPredictor, solve_wls
 from afmdrift.model._positions import (
@@ -48,7 +49,9 @@ __all__ = [
     "PREDICTOR_NAMES",
     "ConstantVelocityPredictor",
     "EffectTerm",
+    "FeedBatch",
     "History",
+    "HistoryFeed",
     "KalmanCAPredictor",
     "KalmanConfig",
     "KalmanPredictor",

@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, ScanDirection
+from afmdrift.records import ChannelSample, Event, ScanDirection
 
 __all__ = ["History", "Observation", "Prediction", "Predictor"]
 

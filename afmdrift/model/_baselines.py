@@ -15,8 +15,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.model._base import History, Observation, Prediction, Predictor
+from afmdrift.records import ScanDirection
 
 __all__ = ["ConstantVelocityPredictor", "LastValuePredictor", "ObservationLog"]
 

@@ -47,9 +47,9 @@ import numpy as np
 import numpy.typing as npt
 from scipy.signal import lfilter
 
-from afmdrift.drivers._base import EventKind
 from afmdrift.errors import ConfigError
 from afmdrift.model._base import History
+from afmdrift.records import EventKind
 
 __all__ = [
     "ENTRY_POINT_GROUP",

@@ -36,9 +36,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, ScanDirection
-from afmdrift.model._base import History, Observation
-from afmdrift.model._config import ModelConfig
+from afmdrift.config import ModelConfig, RegistrationConfig
+from afmdrift.model._base import Observation
+from afmdrift.model._feed import HistoryFeed
 from afmdrift.model._positions import (
     correct_slow_axis_timing,
     drift_from_measurements,
@@ -47,7 +47,8 @@ from afmdrift.model._positions import (
 )
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
 from afmdrift.model._registry import make_predictor
-from afmdrift.registration._config import RegistrationConfig
+from afmdrift.records import ScanDirection
+from afmdrift.registration import DriftTracker
 from afmdrift.session import Session
 
 __all__ = ["MeasuredSeries", "evaluate_series", "measure_session"]
@@ -88,8 +89,6 @@ def measure_session(
     measurement against its reference frame is removed
     (:func:`correct_slow_axis_timing`).
     """
-    from afmdrift.registration import DriftTracker
-
     tracker = DriftTracker(pixel_size_nm=session.meta.pixel_size_nm, config=config)
     n = len(session)
     m = np.full((n, 2), np.nan)
@@ -153,32 +152,6 @@ def _stats(e: FloatArray) -> dict[str, Any]:
             "peak_nm": float(np.max(np.abs(v))),
         }
     return out
-
-
-class _HistoryFeed:
-    """Feeds a session's channels and events into a History as time advances."""
-
-    def __init__(self, session: Session) -> None:
-        self.history = History()
-        self._samples = session.channel_samples()
-        self._events = sorted(session.events, key=lambda e: e.t_s)
-        self._k = 0
-        self._j = 0
-
-    def advance(self, t_s: float) -> History:
-        batch: list[ChannelSample] = []
-        while self._k < len(self._samples) and self._samples[self._k].t_s <= t_s:
-            batch.append(self._samples[self._k])
-            self._k += 1
-        for s in batch:
-            self.history.add_channels(s)
-        new = []
-        while self._j < len(self._events) and self._events[self._j].t_s <= t_s:
-            new.append(self._events[self._j])
-            self._j += 1
-        if new:
-            self.history.add_events(new)
-        return self.history
 
 
 def evaluate_series(
@@ -259,7 +232,7 @@ def _run_one(
     period: float,
 ) -> dict[str, Any]:
     predictor = make_predictor(name, config)
-    feed = _HistoryFeed(session)
+    feed = HistoryFeed(session.channel_samples(), session.events)
     err_meas = np.full((idx.size, 2), np.nan)
     err_truth = np.full((idx.size, 2), np.nan)
     t_update = np.zeros(idx.size)
@@ -270,7 +243,8 @@ def _run_one(
     for k, i in enumerate(idx):
         t_i = float(series.t_s[i])
         t_done = float(series.t_end_s[i])
-        history = feed.advance(t_done)
+        feed.advance(t_done)
+        history = feed.history
         if k >= skip:
             t0 = time.perf_counter()
             pred = predictor.predict([t_i], history).mean_nm[0]

@@ -42,9 +42,9 @@ import numpy.typing as npt
 import torch
 from torch.func import jacrev
 
+from afmdrift.config import NNConfig
 from afmdrift.model._base import History, Observation, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
-from afmdrift.model._config import NNConfig
 
 __all__ = ["NNPredictor", "NNSeriesModel", "lm_fit", "lm_solve"]
 

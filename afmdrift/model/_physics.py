@@ -44,9 +44,10 @@ import numpy as np
 import numpy.typing as npt
 from scipy.optimize import minimize_scalar
 
+from afmdrift.config import NNConfig, PhysicsConfig
+from afmdrift.errors import ConfigError
 from afmdrift.model._base import History, Observation, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
-from afmdrift.model._config import NNConfig, PhysicsConfig
 from afmdrift.model._effects import EffectTerm, available_terms
 
 __all__ = [
@@ -175,15 +176,11 @@ class PhysicsPredictor(_LoggingPredictor):
         known = available_terms(self.config.plugins)
         unknown = [t for t in self.config.terms if t not in known]
         if unknown:
-            from afmdrift.errors import ConfigError
-
             raise ConfigError(
                 f"model.physics.terms: unknown term(s) {', '.join(map(repr, unknown))} "
                 f"(known: {', '.join(sorted(known))})"
             )
         if len(set(self.config.terms)) != len(self.config.terms):
-            from afmdrift.errors import ConfigError
-
             raise ConfigError(f"model.physics.terms: duplicate names in {self.config.terms}")
         self.terms: list[EffectTerm] = [known[name]() for name in self.config.terms]
         self.params: dict[str, dict[str, float]] = {t.name: t.default_params() for t in self.terms}

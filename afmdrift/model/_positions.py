@@ -49,7 +49,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import Event, EventKind, Frame
+from afmdrift.records import Event, EventKind, Frame
 
 __all__ = [
     "commanded_offset_nm",

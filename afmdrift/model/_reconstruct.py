@@ -36,9 +36,9 @@ from typing import Any, Literal
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import ModelConfig
 from afmdrift.errors import InputError
 from afmdrift.model._base import History, Predictor
-from afmdrift.model._config import ModelConfig
 
 __all__ = [
     "OffsetCurve",

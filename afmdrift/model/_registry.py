@@ -18,33 +18,32 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from afmdrift.config import ModelConfig
 from afmdrift.errors import ConfigError
 from afmdrift.model._base import Predictor
-from afmdrift.model._config import ModelConfig
+from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
+from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
+from afmdrift.model._physics import PhysicsNNPredictor, PhysicsPredictor
 
 __all__ = ["PREDICTOR_NAMES", "make_predictor"]
 
 
 def _last_value(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._baselines import LastValuePredictor
 
     return LastValuePredictor()
 
 
 def _constant_velocity(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._baselines import ConstantVelocityPredictor
 
     return ConstantVelocityPredictor()
 
 
 def _kalman(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._kalman import KalmanPredictor
 
     return KalmanPredictor(motion=cfg.kalman.motion, window=cfg.kalman.window)
 
 
 def _kalman_ca(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._kalman import KalmanCAPredictor
 
     return KalmanCAPredictor(window=cfg.kalman.window)
 
@@ -56,13 +55,11 @@ def _nn(cfg: ModelConfig) -> Predictor:
 
 
 def _physics(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._physics import PhysicsPredictor
 
     return PhysicsPredictor(cfg.physics, nn_config=cfg.nn)
 
 
 def _physics_nn(cfg: ModelConfig) -> Predictor:
-    from afmdrift.model._physics import PhysicsNNPredictor
 
     return PhysicsNNPredictor(cfg.physics, nn_config=cfg.nn)
 

@@ -14,8 +14,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, EventKind, ScanDirection
 from afmdrift.model._base import History, Observation
+from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
 __all__ = ["SyntheticSeries", "synthetic_series"]
 

@@ -31,7 +31,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
-from afmdrift.registration._config import RegistrationConfig
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 
 if TYPE_CHECKING:

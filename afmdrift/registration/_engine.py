@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import (
     BlockLayout,
@@ -35,7 +36,6 @@ from afmdrift.registration._blocks import (
     gradient_shape,
     raised_cosine,
 )
-from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]

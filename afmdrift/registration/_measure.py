@@ -11,10 +11,10 @@ from collections.abc import Callable
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import FrameStats
 from afmdrift.registration._coarse import coarse_shift
-from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER

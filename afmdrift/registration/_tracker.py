@@ -44,9 +44,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration._blocks import FrameStats
 from afmdrift.registration._coarse import CoarseShift, coarse_shift
-from afmdrift.registration._config import RegistrationConfig
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import RegistrationError
 from afmdrift.registration._measure import (
@@ -61,7 +61,7 @@ from afmdrift.registration._measure import (
 from afmdrift.registration._result import BlockField, DriftResult
 
 if TYPE_CHECKING:
-    from afmdrift.drivers import Frame
+    from afmdrift.records import Frame
 
 __all__ = ["DriftTracker", "TrackStep"]
 

@@ -41,15 +41,17 @@ from typing import Any, Literal, TypeVar
 import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig, load_config
-from afmdrift.drivers._base import ChannelSample, Event, Frame, Instrument
+from afmdrift.drivers import Instrument
 from afmdrift.errors import AfmdriftError
-from afmdrift.model import OffsetCurve
-from afmdrift.model._positions import commanded_offset_nm
+from afmdrift.model import OffsetCurve, commanded_offset_nm, make_predictor
+from afmdrift.pipeline import FrameOutcome, FramePipeline
+from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
 from afmdrift.registration import warm_up
-from afmdrift.service._pipeline import FrameOutcome, FramePipeline, process_and_record
+from afmdrift.service._record import process_and_record
 from afmdrift.service._safety import InstrumentClock, OffsetLimiter, is_stale
 from afmdrift.service._store import RunStore
-from afmdrift.service._wire import (
+from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
+from afmdrift.wire import (
     ClockSync,
     ControlReply,
     ControlRequest,
@@ -58,7 +60,6 @@ from afmdrift.service._wire import (
     OffsetMsg,
     StatusMsg,
 )
-from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
 
 __all__ = ["INSTRUMENT_ERRORS", "DriftService"]
 
@@ -148,7 +149,7 @@ class DriftService:
         self._event_cursor = 0
         self._events: list[Event] = []
         self._pending_channels: list[ChannelSample] = []
-        self._pending_events: list[tuple[int, int, Event]] = []
+        self._pending_events: list[LoggedEvent] = []
         self._event_lock = asyncio.Lock()
         self._connected = asyncio.Event()
         self._reconnect = asyncio.Event()
@@ -267,13 +268,14 @@ class DriftService:
         if state is None:
             return
         records = store.last_frames(max(self.svc.training_window, 1) * 2)
-        events = [e for _, _, e in store.events()]
+        logged = store.events()
+        events = [e for _, _, e in logged]
         channels = store.channels()
         meta = store.meta()
         self._t_offset_s = float(meta.get("t_offset_s", "0"))
         await asyncio.get_running_loop().run_in_executor(
             self._executor,
-            lambda: self.pipeline.resume(state, records=records, channels=channels, events=events),
+            lambda: self.pipeline.resume(state, records=records, channels=channels, events=logged),
         )
         self._seq = state.last.seq + 1
         self._epoch = state.epoch
@@ -483,7 +485,7 @@ class DriftService:
             entries = await self._call(self.instrument.events, start)
             for k, e in enumerate(entries):
                 shifted = dataclasses.replace(e, t_s=self._shift(e.t_s))
-                self._pending_events.append((self._epoch, start + k, shifted))
+                self._pending_events.append(LoggedEvent(self._epoch, start + k, shifted))
                 self._events.append(shifted)
             self._event_cursor = start + len(entries)
 
@@ -797,7 +799,6 @@ class DriftService:
                 "name one in config_path"
             )
         new = load_config(path)
-        from afmdrift.model import make_predictor
 
         def reload() -> int:
             predictor = make_predictor(new.model.predictor, new.model)

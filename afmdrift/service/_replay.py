@@ -1,15 +1,15 @@
 """Replay a recorded session through the daemon's pipeline, as fast as possible.
 
 ``afmdrift replay SESSION --out RUN_DIR`` feeds every frame of a session
-(format v1) to :func:`afmdrift.service._pipeline.process_and_record`, the
-function the daemon runs for each new frame, together with the channel
-samples and event-log entries logged up to the end of that frame. It writes
-the run store and ``RUN_DIR/measurements.csv`` (columns in docs/service.md).
+(format v1) to :func:`process_and_record`, the function the daemon runs for
+each new frame; the session's channels and events are known from the start,
+and each reaches the model with the first frame that ends after it was logged
+(:class:`~afmdrift.model.HistoryFeed`). It writes the run store and
+``RUN_DIR/measurements.csv`` (columns in docs/service.md).
 """
 
 from __future__ import annotations
 
-import bisect
 import math
 import statistics
 import time
@@ -18,7 +18,8 @@ from pathlib import Path
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
-from afmdrift.service._pipeline import FramePipeline, process_and_record
+from afmdrift.pipeline import FramePipeline
+from afmdrift.service._record import process_and_record
 from afmdrift.service._store import RunStore
 from afmdrift.session import Session, read_session
 
@@ -73,25 +74,11 @@ def replay_session(
             }
         )
         pipeline = FramePipeline(config=config)
-        samples = s.channel_samples()
-        sample_t = [c.t_s for c in samples]
-        event_t = [e.t_s for e in s.events]
-        next_sample = next_event = 0
+        pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
         fed = 0
         for k, frame in enumerate(s.iter_frames()):
-            upto_c = bisect.bisect_right(sample_t, frame.t_end_s)
-            upto_e = bisect.bisect_right(event_t, frame.t_end_s)
-            outcome = process_and_record(
-                pipeline,
-                store,
-                frame,
-                channels=samples[next_sample:upto_c],
-                events=[(0, i, s.events[i]) for i in range(next_event, upto_e)],
-                seq=k,
-                t_now_s=frame.t_end_s,
-            )
-            next_sample, next_event = max(next_sample, upto_c), max(next_event, upto_e)
+            outcome = process_and_record(pipeline, store, frame, seq=k, t_now_s=frame.t_end_s)
             fed += outcome.record.fed_model
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)

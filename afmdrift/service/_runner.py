@@ -10,8 +10,8 @@ from pathlib import Path
 import zmq.asyncio
 from pydantic import ValidationError
 
-from afmdrift.config import AfmdriftConfig
-from afmdrift.drivers import DriverConfig, Instrument, instrument_from_config
+from afmdrift.config import AfmdriftConfig, DriverConfig
+from afmdrift.drivers import Instrument, instrument_from_config
 from afmdrift.errors import AfmdriftError, ConfigError
 from afmdrift.service._daemon import DriftService
 

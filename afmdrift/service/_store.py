@@ -20,27 +20,27 @@ import math
 import os
 import sqlite3
 import time
-from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, fields
+from collections.abc import Sequence
+from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, EventKind
 from afmdrift.errors import AfmdriftError
+from afmdrift.pipeline import (
+    MEASUREMENT_COLUMNS,
+    FrameRecord,
+    ResumeState,
+    measurement_row,
+)
+from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
 
-__all__ = [
-    "MEASUREMENT_COLUMNS",
-    "STORE_SCHEMA_VERSION",
-    "FrameRecord",
-    "ResumeState",
-    "RunStore",
-    "StoreError",
-]
+__all__ = ["DB_NAME", "STORE_SCHEMA_VERSION", "RunStore", "StoreError"]
 
 STORE_SCHEMA_VERSION = 1
+#: File name of the run store inside a run directory.
 DB_NAME = "run.sqlite"
 
 
@@ -48,106 +48,8 @@ class StoreError(AfmdriftError):
     """The run store cannot be opened or is not a store this version can read."""
 
 
-@dataclass(frozen=True, slots=True)
-class FrameRecord:
-    """Everything the service knows about one processed frame (one store row).
-
-    ``seq`` numbers frames as the service saw them (0, 1, 2, ...);
-    ``instrument_frame`` is the instrument's own index. Measured values are
-    NaN when the measurement failed or the frame is the reference.
-    """
-
-    seq: int
-    instrument_frame: int
-    epoch: int
-    t_start_s: float
-    t_end_s: float
-    t_mid_s: float
-    direction: str
-    rows: int
-    cols: int
-    pixel_x_nm: float
-    pixel_y_nm: float
-    dx_nm: float
-    dy_nm: float
-    image_x_nm: float
-    image_y_nm: float
-    x_nm: float
-    y_nm: float
-    sigma_nm: float
-    valid: bool
-    fed_model: bool
-    reason: str
-    valid_blocks: int
-    total_blocks: int
-    keyframe_index: int
-    reanchored: bool
-    pred_x_nm: float
-    pred_y_nm: float
-    pred_sigma_nm: float
-    offset_x_nm: float
-    offset_y_nm: float
-    wall_s: float
-    latency_s: float
-    field_json: str
-
-    @property
-    def resid_x_nm(self) -> float:
-        return self.x_nm - self.pred_x_nm
-
-    @property
-    def resid_y_nm(self) -> float:
-        return self.y_nm - self.pred_y_nm
-
-    @property
-    def pred_error_nm(self) -> float:
-        """Distance between the prediction and the measured position (NaN if either is)."""
-        return math.hypot(self.resid_x_nm, self.resid_y_nm)
-
-
 _FRAME_FIELDS = [f.name for f in fields(FrameRecord)]
 _SQL_TYPES = {"int": "INTEGER", "float": "REAL", "str": "TEXT", "bool": "INTEGER"}
-
-#: Columns of ``measurements.csv`` (see docs/service.md).
-MEASUREMENT_COLUMNS: tuple[str, ...] = (
-    "frame",
-    "t_s",
-    "dx_nm",
-    "dy_nm",
-    "x_nm",
-    "y_nm",
-    "sigma_nm",
-    "valid_blocks",
-    "pred_x_nm",
-    "pred_y_nm",
-    "total_blocks",
-    "valid",
-    "fed_model",
-    "image_x_nm",
-    "image_y_nm",
-    "offset_x_nm",
-    "offset_y_nm",
-    "pred_sigma_nm",
-    "pred_error_nm",
-    "reason",
-)
-
-
-@dataclass(frozen=True, slots=True)
-class ResumeState:
-    """What a restarted service needs from the store."""
-
-    last: FrameRecord
-    predictor: str
-    predictor_state: dict[str, Any] | None
-    curve: dict[str, Any] | None
-    reference: npt.NDArray[np.float32] | None
-    reference_seq: int | None
-    reference_x_nm: float
-    reference_y_nm: float
-    event_cursor: int
-    epoch: int
-    t_ref_s: float | None
 
 
 def _schema() -> list[str]:
@@ -366,7 +268,7 @@ class RunStore:
                 out.append(ChannelSample(t_s=float(t_s), values={name: v}))
         return out
 
-    def events(self, *, epoch: int | None = None) -> list[tuple[int, int, Event]]:
+    def events(self, *, epoch: int | None = None) -> list[LoggedEvent]:
         """Committed events as ``(epoch, log_index, Event)`` in log order."""
         query = "SELECT epoch, log_index, t_s, kind, x_nm, y_nm FROM events"
         args: tuple[Any, ...] = ()
@@ -375,7 +277,9 @@ class RunStore:
             args = (epoch,)
         cur = self._db.execute(query + " ORDER BY epoch, log_index", args)
         return [
-            (int(e), int(i), Event(t_s=float(t), kind=EventKind(k), x_nm=float(x), y_nm=float(y)))
+            LoggedEvent(
+                int(e), int(i), Event(t_s=float(t), kind=EventKind(k), x_nm=float(x), y_nm=float(y))
+            )
             for e, i, t, k, x, y in cur
         ]
 
@@ -463,7 +367,7 @@ class RunStore:
             w = csv.writer(fh)
             w.writerow(MEASUREMENT_COLUMNS)
             for r in self.frames():
-                w.writerow(_measurement_row(r))
+                w.writerow(measurement_row(r))
         tmp.replace(out)
         return out
 
@@ -533,24 +437,3 @@ class _Transaction:
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
         self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
-
-
-def _fmt(v: Any) -> str:
-    if isinstance(v, bool):
-        return "1" if v else "0"
-    if isinstance(v, float):
-        return "" if not math.isfinite(v) else repr(v)
-    return str(v)
-
-
-def _measurement_row(r: FrameRecord) -> list[str]:
-    values = asdict(r)
-    values["frame"] = r.seq
-    values["t_s"] = r.t_mid_s
-    values["pred_error_nm"] = r.pred_error_nm
-    return [_fmt(values[c]) for c in MEASUREMENT_COLUMNS]
-
-
-def records_to_rows(records: Iterable[FrameRecord]) -> list[list[str]]:
-    """``measurements.csv`` rows (without header) of ``records``."""
-    return [_measurement_row(r) for r in records]

@@ -17,9 +17,9 @@ import zmq.asyncio
 import zmq.auth
 from zmq.auth.asyncio import AsyncioAuthenticator
 
+from afmdrift.config import ServiceConfig, endpoint_is_local
 from afmdrift.errors import AfmdriftError
-from afmdrift.service._config import ServiceConfig, endpoint_is_local
-from afmdrift.service._wire import (
+from afmdrift.wire import (
     ControlReply,
     ControlRequest,
     FrameMsg,

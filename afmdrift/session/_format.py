@@ -30,8 +30,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ChannelSample, Event, EventKind, Frame, ScanDirection
 from afmdrift.errors import InputError
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, ScanDirection
 
 __all__ = [
     "FORMAT_NAME",

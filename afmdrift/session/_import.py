@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.io import AfmImage, PixelSize, load_stack
+from afmdrift.records import ScanDirection
 from afmdrift.session._format import Session, SessionError, SessionMeta
 
 __all__ = ["import_files"]

@@ -18,7 +18,7 @@ from service_sim import driver, running_service, scenario_data, service_config
 from afmdrift.client import Subscriber, control
 from afmdrift.config import parse_config
 from afmdrift.drivers.sim import parse_scenario
-from afmdrift.service import FrameMsg, StatusMsg
+from afmdrift.wire import FrameMsg, StatusMsg
 
 ROLLING = 8
 

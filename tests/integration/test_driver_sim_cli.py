@@ -11,7 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from afmdrift.drivers import DriverConfig, NanoScopeDriver, instrument_from_config
+from afmdrift.config import DriverConfig
+from afmdrift.drivers import NanoScopeDriver, instrument_from_config
 
 SCENARIO_TOML = """
 name = "cli-test"

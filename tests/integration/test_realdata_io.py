@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.io import ImageFileError, load_image, load_stack, parse_nanoscope_header
+from afmdrift.records import ScanDirection
 
 pytestmark = pytest.mark.realdata
 

@@ -20,7 +20,8 @@ from service_sim import driver, running_service, service_config, sim_server, sma
 from afmdrift.client import Subscriber
 from afmdrift.drivers import Frame, ScanDirection
 from afmdrift.model import truth_frame_mean
-from afmdrift.service import FrameMsg, ModelMsg, OffsetMsg, RunStore
+from afmdrift.service import RunStore
+from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
 

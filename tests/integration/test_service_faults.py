@@ -29,7 +29,8 @@ from service_sim import (
 )
 
 from afmdrift.client import Subscriber
-from afmdrift.service import OffsetMsg, RunStore
+from afmdrift.service import RunStore
+from afmdrift.wire import OffsetMsg
 
 pytestmark = pytest.mark.slow
 

@@ -30,7 +30,8 @@ import zmq.asyncio
 from service_sim import REPO, SimProcess, scenario_data, write_scenario
 
 from afmdrift.client import Subscriber
-from afmdrift.service import FrameMsg, OffsetMsg, RunStore, StatusMsg
+from afmdrift.service import RunStore
+from afmdrift.wire import FrameMsg, OffsetMsg, StatusMsg
 
 pytestmark = [pytest.mark.soak, pytest.mark.timeout(1800)]
 

@@ -17,9 +17,9 @@ from afmdrift.diagnostics._stats import (
     lomb_scargle,
     robust_z,
 )
-from afmdrift.drivers._base import ChannelSample, Event, EventKind
 from afmdrift.errors import ConfigError, InputError
 from afmdrift.model import PhysicsConfig
+from afmdrift.records import ChannelSample, Event, EventKind
 
 
 def test_error_summary_of_known_errors() -> None:

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.errors import InputError
 from afmdrift.io import ImageFileError, length_unit_to_nm, load_image, load_stack, parse_spec
+from afmdrift.records import ScanDirection
 
 
 def _texture(rows: int = 24, cols: int = 32, seed: int = 0) -> np.ndarray:

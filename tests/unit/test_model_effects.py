@@ -11,7 +11,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.drivers._base import ChannelSample, Event, EventKind, ScanDirection
 from afmdrift.errors import ConfigError
 from afmdrift.model import (
     LIBRARY,
@@ -25,6 +24,7 @@ from afmdrift.model import (
     load_term_class,
 )
 from afmdrift.model._synthetic import synthetic_series
+from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
 PERIOD_S = 256.0
 

@@ -9,7 +9,6 @@ import math
 import numpy as np
 import pytest
 
-from afmdrift.drivers._base import Event, EventKind, Frame, ScanDirection
 from afmdrift.model import (
     PREDICTOR_NAMES,
     History,
@@ -23,6 +22,7 @@ from afmdrift.model import (
 )
 from afmdrift.model._kalman import KalmanPredictor, estimate_noise
 from afmdrift.model._synthetic import synthetic_series
+from afmdrift.records import Event, EventKind, Frame, ScanDirection
 
 PERIOD_S = 256.0
 

@@ -140,8 +140,8 @@ def test_offset_curve_from_bad_dict_names_the_field(patch: dict, message: str) -
 def test_reconstruct_offset_follows_the_config() -> None:
     h = History()
     p = make_predictor("constant_velocity")
-    from afmdrift.drivers._base import ScanDirection
     from afmdrift.model import Observation
+    from afmdrift.records import ScanDirection
 
     for i in range(4):
         p.update(Observation(PERIOD_S * i, 2.0 * i, -1.0 * i, 0.1, ScanDirection.UP, i), h)

@@ -7,9 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.config import parse_config
+from afmdrift.config import DriverConfig, parse_config
 from afmdrift.drivers import (
-    DriverConfig,
     Event,
     EventKind,
     Instrument,

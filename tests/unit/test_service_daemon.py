@@ -16,10 +16,11 @@ import zmq.auth
 from service_sim import driver, running_service, service_config
 
 from afmdrift.client import ClientError, Subscriber, control
+from afmdrift.client._watch import watch
 from afmdrift.config import parse_config
-from afmdrift.service import DriftService, OffsetMsg, StatusMsg
-from afmdrift.service._watch import watch
+from afmdrift.service import DriftService
 from afmdrift.service._zmq import ServiceSocketError, load_curve_keys
+from afmdrift.wire import OffsetMsg, StatusMsg
 
 
 def _closed_port() -> int:

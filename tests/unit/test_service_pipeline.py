@@ -21,7 +21,8 @@ from afmdrift.drivers.sim import SimulatedAFM
 from afmdrift.drivers.sim._record import record_session
 from afmdrift.errors import InputError
 from afmdrift.model import make_predictor, truth_frame_mean
-from afmdrift.service import MEASUREMENT_COLUMNS, FramePipeline, RunStore, replay_session
+from afmdrift.pipeline import MEASUREMENT_COLUMNS, FramePipeline
+from afmdrift.service import RunStore, replay_session
 from afmdrift.session import read_session, write_session
 
 
@@ -115,7 +116,7 @@ def test_commanded_offset_moves_are_removed_from_the_drift_position(
     frames = _frames(sim, 3)
     sim.set_offset(40.0, -24.0)
     frames += _frames(sim, 4)[1:]  # the first frame may straddle the move
-    pipe.ingest([], sim.events)
+    pipe.push((), sim.events)
     outs = [pipe.process(f, seq=k) for k, f in enumerate(frames)]
     ref = _truth(sim, frames[0])
     last = outs[-1].record

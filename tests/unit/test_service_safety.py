@@ -6,9 +6,8 @@ import math
 
 import pytest
 
-from afmdrift.config import parse_config
+from afmdrift.config import ServiceConfig, endpoint_is_local, parse_config
 from afmdrift.errors import ConfigError
-from afmdrift.service._config import ServiceConfig, endpoint_is_local
 from afmdrift.service._safety import InstrumentClock, OffsetLimiter, is_stale
 
 

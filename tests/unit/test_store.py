@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from afmdrift.drivers import ChannelSample, Event, EventKind
-from afmdrift.service._store import MEASUREMENT_COLUMNS, FrameRecord, RunStore, StoreError
+from afmdrift.pipeline import MEASUREMENT_COLUMNS, FrameRecord
+from afmdrift.service import RunStore, StoreError
 
 
 def make_record(seq: int, **changes: object) -> FrameRecord:

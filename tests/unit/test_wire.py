@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from afmdrift.service._wire import (
+from afmdrift.wire import (
     SCHEMA_VERSION,
     ClockSync,
     ControlReply,

@@ -25,18 +25,11 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift._version import __version__
-from afmdrift.drivers._base import (
-    ChannelSample,
-    Event,
-    EventKind,
-    Frame,
-    InstrumentInfo,
-    ScanDirection,
-)
 from afmdrift.drivers.sim._physics import DriftPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scanner import FrameRaster, ScanGeometry, render_lines
 from afmdrift.drivers.sim._scenario import Scenario, check_scan_geometry, load_scenario
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo, ScanDirection
 
 __all__ = ["SimulatedAFM"]
 

@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import Frame, ScanDirection
 from afmdrift.drivers.sim._instrument import SimulatedAFM
 from afmdrift.drivers.sim._physics import COMPONENTS
 from afmdrift.drivers.sim._scenario import Scenario, load_scenario
+from afmdrift.records import Frame, ScanDirection
 from afmdrift.session import Session, SessionMeta, write_session
 
 __all__ = ["RecordSummary", "drift_statistics", "record_session"]

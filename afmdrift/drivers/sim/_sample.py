@@ -28,6 +28,7 @@ from scipy import ndimage
 
 from afmdrift.drivers.sim._scenario import SampleConfig
 from afmdrift.errors import ConfigError
+from afmdrift.io import load_image
 
 __all__ = ["Sample", "gaussian_field", "periodic_component"]
 
@@ -392,7 +393,6 @@ def _terraces(
 
 def _load_with_afmdrift_io(path: Path) -> tuple[FloatArray, tuple[float, float] | None]:
     """Read a height image with the project's readers (imported lazily)."""
-    from afmdrift.io import load_image
 
     try:
         image = load_image(path)

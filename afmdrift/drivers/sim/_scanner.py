@@ -27,10 +27,10 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers._base import ScanDirection
 from afmdrift.drivers.sim._physics import DriftPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scenario import ArtefactsConfig
+from afmdrift.records import ScanDirection
 
 __all__ = ["FrameRaster", "ScanGeometry", "render_lines"]
 

@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from afmdrift.config import describe_validation_error
 from afmdrift.errors import ConfigError
 
 __all__ = [
@@ -350,7 +351,6 @@ def parse_scenario(data: dict[str, Any], *, source: str = "<scenario>") -> Scena
     ConfigError
         One line per problem, naming the dotted key, the value and the allowed range.
     """
-    from afmdrift.config import describe_validation_error
 
     try:
         return Scenario.model_validate(data)

@@ -42,7 +42,6 @@ from typing import Literal, Protocol
 
 import numpy as np
 
-from afmdrift.drivers._base import ChannelSample, Event, Frame, InstrumentInfo
 from afmdrift.drivers._protocol import (
     COMMANDS,
     ERROR_MESSAGES,
@@ -62,6 +61,7 @@ from afmdrift.drivers._protocol import (
     parse_command,
 )
 from afmdrift.errors import AfmdriftError
+from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
 __all__ = [
     "ERROR_QUEUE_SIZE",

@@ -1,10 +1,12 @@
-"""The configuration root: one pydantic model, loaded from TOML.
+"""The configuration: one pydantic root model, loaded from TOML.
 
-Each part of afmdrift owns the model of its own section (``registration``,
-``driver``, ``model``, ``service``, ...), defined next to the code that uses it.
-This module assembles them into :class:`AfmdriftConfig`, rejects unknown keys
-and out-of-range values, and turns pydantic's errors into messages that name
-the key, the value and the allowed range.
+Part of the ground floor: every layer may import it, so it imports none of
+them. Each section (``registration``, ``driver``, ``model``, ``service``) has
+its own module here, and the package it configures re-exports it
+(``afmdrift.registration.RegistrationConfig``, ...). This module assembles them
+into :class:`AfmdriftConfig`, rejects unknown keys and out-of-range values, and
+turns pydantic's errors into messages that name the key, the value and the
+allowed range.
 """
 
 from __future__ import annotations
@@ -17,22 +19,31 @@ import annotated_types
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
-from afmdrift.drivers._config import DriverConfig
+from afmdrift.config._driver import REPLAY_PREFIX, DriverConfig
+from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
+from afmdrift.config._registration import RegistrationConfig
+from afmdrift.config._service import ServiceConfig, endpoint_is_local
 from afmdrift.errors import ConfigError
-from afmdrift.model._config import ModelConfig
-from afmdrift.registration._config import RegistrationConfig
-from afmdrift.service._config import ServiceConfig
 
 __all__ = [
     "DEFAULT_CONFIG_PATH",
+    "REPLAY_PREFIX",
     "AfmdriftConfig",
+    "DriverConfig",
+    "KalmanConfig",
+    "ModelConfig",
+    "NNConfig",
+    "PhysicsConfig",
+    "RegistrationConfig",
+    "ServiceConfig",
     "describe_validation_error",
+    "endpoint_is_local",
     "load_config",
     "parse_config",
 ]
 
 #: ``config/default.toml`` in a source checkout.
-DEFAULT_CONFIG_PATH = Path(__file__).resolve().parent.parent / "config" / "default.toml"
+DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "default.toml"
 
 
 class AfmdriftConfig(BaseModel):

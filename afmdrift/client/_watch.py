@@ -10,7 +10,7 @@ from typing import TextIO
 import zmq.asyncio
 
 from afmdrift.client import Subscriber
-from afmdrift.service._wire import FrameMsg, OffsetMsg, StatusMsg
+from afmdrift.wire import FrameMsg, OffsetMsg, StatusMsg
 
 __all__ = ["format_frame", "format_offset", "watch"]
 

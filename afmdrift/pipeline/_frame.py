@@ -1,12 +1,14 @@
-"""The per-frame pipeline shared by the daemon and by replay.
+"""The per-frame pipeline shared by the daemon, replay and diagnose.
 
-For each new frame: measure it against the tracker's reference (block phase
+For each new frame, in named stages (:meth:`FramePipeline.process`): release
+the channels and events logged up to the end of the frame into the model's
+history (:class:`~afmdrift.model.HistoryFeed`), predict p for the frame before
+it is seen, measure it against the tracker's reference (block phase
 correlation), turn the measured image position into a drift position p by
-adding back the commanded offset moves, score the prediction made for this
-frame before it arrived, update the predictor, and rebuild the continuous
-offset curve d(t). :class:`FramePipeline` does exactly this, synchronously; the
-daemon calls it in a worker thread, ``afmdrift replay`` calls it in a loop, so
-both run the same code.
+adding back the commanded offset moves, update the predictor and rebuild the
+continuous offset curve d(t), and make the frame's record. The daemon calls it
+in a worker thread, ``afmdrift replay`` (and so ``afmdrift diagnose``) in a
+loop, so all of them run the same code.
 
 Positions (see ``afmdrift.model._positions`` for the sign convention)::
 
@@ -27,23 +29,32 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.drivers._base import ChannelSample, Event, Frame
 from afmdrift.errors import InputError
-from afmdrift.model import History, Observation, OffsetCurve, Predictor
-from afmdrift.model._positions import commanded_offset_nm
+from afmdrift.model import (
+    FeedBatch,
+    History,
+    HistoryFeed,
+    Observation,
+    OffsetCurve,
+    Predictor,
+    commanded_offset_nm,
+    make_predictor,
+    reconstruct_offset,
+)
+from afmdrift.pipeline._records import FrameRecord, ResumeState, observation_from_record
+from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
 from afmdrift.registration import DriftTracker, TrackStep
-from afmdrift.service._store import FrameRecord, ResumeState, RunStore
-from afmdrift.service._wire import FieldSummary
+from afmdrift.wire import FieldSummary
 
-__all__ = ["FrameOutcome", "FramePipeline", "process_and_record"]
+__all__ = ["FrameOutcome", "FramePipeline", "summarise_field"]
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +72,34 @@ class FrameOutcome:
     reference: npt.NDArray[np.float32] | None
     image: npt.NDArray[np.floating]
     low_confidence: bool
+    #: Channels and events that reached the model's history with this frame.
+    history: FeedBatch
+
+
+@dataclass(slots=True)
+class _Position:
+    """Where a frame sits: image position m, drift position p, and the measurement."""
+
+    offset: npt.NDArray[np.float64]
+    reason: str
+    m: npt.NDArray[np.float64] = field(default_factory=lambda: np.full(2, np.nan))
+    p: npt.NDArray[np.float64] = field(default_factory=lambda: np.full(2, np.nan))
+    dx: float = math.nan
+    dy: float = math.nan
+    sigma: float = math.nan
+    valid_blocks: int = 0
+    total_blocks: int = 0
+    keyframe_index: int = 0
+    reanchored: bool = False
+    field: FieldSummary | None = None
+    reference_image: npt.NDArray[np.float32] | None = None
+    fed: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class _Fed:
+    fed: bool
+    reason: str
 
 
 TrackerFactory = Callable[[tuple[float, float]], DriftTracker]
@@ -94,7 +133,7 @@ class FramePipeline:
         self.config = config
         self._tracker_factory = tracker_factory or self._default_tracker_factory
         self.predictor = predictor if predictor is not None else self._make_predictor(config)
-        self.history = History()
+        self.feed = HistoryFeed()
         self.observations: deque[Observation] = deque(maxlen=config.service.training_window)
         self.n_fed = 0
         self._tracker: DriftTracker | None = None
@@ -104,6 +143,11 @@ class FramePipeline:
         self._last_p_nm: npt.NDArray[np.float64] | None = None
         self._reset_requested = False
         self.curve: OffsetCurve | None = None
+
+    @property
+    def history(self) -> History:
+        """Channels and events the model has seen (up to the last frame's end)."""
+        return self.feed.history
 
     @property
     def t_ref_s(self) -> float | None:
@@ -117,21 +161,17 @@ class FramePipeline:
 
     @staticmethod
     def _make_predictor(config: AfmdriftConfig) -> Predictor:
-        from afmdrift.model import make_predictor
-
         return make_predictor(config.model.predictor, config.model)
 
     # ------------------------------------------------------------------ inputs
 
-    def ingest(self, channels: Sequence[ChannelSample], events: Sequence[Event]) -> None:
-        """Add channel samples and event-log entries that arrived since the last call."""
-        for sample in channels:
-            if self.history.channel_t_s and sample.t_s < self.history.channel_t_s[-1]:
-                log.warning("channel sample at t=%.3f s is out of order; dropped", sample.t_s)
-                continue
-            self.history.add_channels(sample)
-        if events:
-            self.history.add_events(events)
+    def push(
+        self, channels: Iterable[ChannelSample] = (), events: Iterable[Event | LoggedEvent] = ()
+    ) -> None:
+        """Make channel samples and event-log entries known (as they arrive, or a
+        whole session at once); each reaches the model with the first frame that
+        ends after it was logged."""
+        self.feed.push(channels, events)
 
     def request_reset(self) -> None:
         """Make the next frame the registration reference (p stays continuous)."""
@@ -152,7 +192,7 @@ class FramePipeline:
         *,
         records: Sequence[FrameRecord],
         channels: Sequence[ChannelSample],
-        events: Sequence[Event],
+        events: Sequence[LoggedEvent],
     ) -> None:
         """Continue after a restart from what the store committed.
 
@@ -161,12 +201,13 @@ class FramePipeline:
         stored reference image when there is one; otherwise the next frame
         becomes a new reference.
         """
-        self.ingest(channels, events)
+        self.feed.push(channels, events)
+        self.feed.advance(state.last.t_end_s)
         if state.predictor_state is not None:
             self.predictor.load_state_dict(state.predictor_state)
         fed = [r for r in records if r.fed_model]
         for r in fed[-self.config.service.training_window :]:
-            self.observations.append(_observation(r))
+            self.observations.append(observation_from_record(r))
         self.n_fed = len(fed) if state.predictor_state is not None else 0
         self._t_ref_s = state.t_ref_s
         last = state.last
@@ -207,98 +248,145 @@ class FramePipeline:
     ) -> FrameOutcome:
         """Run the whole pipeline on one frame. Bad input never raises; it is recorded.
 
+        The stages, in the order every tool runs them: the history up to the
+        end of the frame, the prediction made before the frame, registration,
+        the drift position, the model update and d(t), the record.
         ``t_now_s`` is the instrument time from which the new curve is used
         (default: the end of the frame).
         """
         started = time.time() if detected_wall_s is None else detected_wall_s
-        t = frame.t_mid_s
-        pred = self._predict(t)
-        image = frame.heights_nm
+        batch = self.feed.advance(frame.t_end_s)
+        pred = self._predict(frame.t_mid_s)
+        step, reason, new_reference = self._register(frame, seq)
+        pos = self._position(frame, step, reason, new_reference, pred, paused)
+        fed = self._feed_model(frame, pos, seq=seq, paused=paused, t_now_s=t_now_s)
+        record = _frame_record(
+            frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
+        )
+        return FrameOutcome(
+            record=record,
+            curve=self.curve,
+            curve_dict=None if self.curve is None else self.curve.to_dict(),
+            predictor_name=self.predictor.name,
+            predictor_state=self.predictor.state_dict() if fed.fed else None,
+            field=pos.field,
+            reference=pos.reference_image,
+            image=frame.heights_nm,
+            low_confidence=not fed.fed and not paused and fed.reason not in ("reference",),
+            history=batch,
+        )
+
+    def _register(self, frame: Frame, seq: int) -> tuple[TrackStep | None, str, bool]:
+        """Registration against the tracker's reference: ``(step, reason, new_reference)``.
+
+        A new tracker (a new reference) is made for the first frame, after
+        :meth:`request_reset`, and when the frame's shape or pixel size changed.
+        """
         key = (frame.shape, frame.pixel_size_nm)
         new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
-        reason = ""
-        step: TrackStep | None = None
-        reference_image: npt.NDArray[np.float32] | None = None
         tracker = self._tracker
         if tracker is None or new_reference:
             tracker = self._tracker = self._tracker_factory(frame.pixel_size_nm)
             self._tracker_key = key
             self._reset_requested = False
         try:
-            step = tracker.update(image)
+            return tracker.update(frame.heights_nm), "", new_reference
         except InputError as err:
             reason = f"registration failed: {err}"
             log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)
             if new_reference:
                 self._tracker = None  # the next frame tries again to become the reference
+            return None, reason, new_reference
+
+    def _position(
+        self,
+        frame: Frame,
+        step: TrackStep | None,
+        reason: str,
+        new_reference: bool,
+        pred: tuple[npt.NDArray[np.float64], float],
+        paused: bool,
+    ) -> _Position:
+        """Image position m and drift position p = m + O(t) − O(t_ref) of the frame."""
+        t = frame.t_mid_s
         if self._t_ref_s is None and not reason:
             self._t_ref_s = t
         t_ref = self._t_ref_s if self._t_ref_s is not None else t
-        offset = (
-            commanded_offset_nm([t], self.history.events)[0]
-            - (commanded_offset_nm([t_ref], self.history.events)[0])
-        )
-        dx = dy = sigma = math.nan
-        valid_blocks = total_blocks = 0
-        keyframe_index = 0
-        reanchored = False
-        field: FieldSummary | None = None
-        m = np.full(2, np.nan)
-        fed = False
+        events = self.history.events
+        offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
+        pos = _Position(offset=offset, reason=reason)
         if not reason and step is None:
-            # This frame is the new reference: its position is known (p = 0 for
-            # the session reference) or estimated (prediction or last position).
-            if self._last_p_nm is None and self.n_fed == 0:
-                p_est = np.zeros(2)
-                reason = "reference"
-                fed = not paused
-                sigma = 0.0
-            else:
-                if np.all(np.isfinite(pred[0])):
-                    p_est = pred[0]
-                elif self._last_p_nm is not None:
-                    p_est = self._last_p_nm
-                else:
-                    p_est = np.zeros(2)
-                reason = "new reference (position estimated)"
-            m = p_est - offset
-            self._base_nm = m.copy()
-            reference_image = np.asarray(image, dtype=np.float32)
+            self._place_reference(frame, pos, pred[0], paused)
         elif step is not None:
-            # increment: since the previous accepted frame; measurement: against
-            # the reference (keyframe), which is what the position rests on.
-            inc, meas = step.increment, step.measurement
-            accepted = bool(step.accepted)
-            dx, dy = float(inc.dx_nm), float(inc.dy_nm)
-            sigma = float(meas.sigma_nm)
-            valid_blocks, total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
-            keyframe_index = int(step.keyframe_index)
-            reanchored = bool(step.reanchored)
-            field = _summarise_field(inc, frame.pixel_size_nm)
-            if accepted:
-                m = self._base_nm + np.asarray(step.position_nm, dtype=np.float64).reshape(2)
-                if reanchored or self.config.registration.reference == "consecutive":
-                    reference_image = np.asarray(image, dtype=np.float32)
+            self._place_measured(frame, step, pos, paused)
+        pos.p = pos.m + offset
+        return pos
+
+    def _place_reference(
+        self, frame: Frame, pos: _Position, pred: npt.NDArray[np.float64], paused: bool
+    ) -> None:
+        """The frame is the new reference: its position is known (p = 0 for the
+        session reference) or estimated (prediction, else the last position)."""
+        if self._last_p_nm is None and self.n_fed == 0:
+            p_est = np.zeros(2)
+            pos.reason = "reference"
+            pos.fed = not paused
+            pos.sigma = 0.0
+        else:
+            if np.all(np.isfinite(pred)):
+                p_est = pred
+            elif self._last_p_nm is not None:
+                p_est = self._last_p_nm
             else:
-                dx = dy = math.nan
-                reason = f"measurement rejected: {meas.reason or 'invalid'}"
-            low = (not accepted) or valid_blocks < self.config.service.min_valid_blocks
-            if low and not reason:
-                reason = (
-                    f"low confidence: {valid_blocks} valid blocks < "
-                    f"service.min_valid_blocks={self.config.service.min_valid_blocks}"
-                )
-            fed = not low and not paused and bool(np.all(np.isfinite(m)))
-        p = m + offset
+                p_est = np.zeros(2)
+            pos.reason = "new reference (position estimated)"
+        pos.m = p_est - pos.offset
+        self._base_nm = pos.m.copy()
+        pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
+
+    def _place_measured(self, frame: Frame, step: TrackStep, pos: _Position, paused: bool) -> None:
+        """A measured frame: increment since the previous accepted frame, and the
+        measurement against the reference (keyframe), which the position rests on."""
+        inc, meas = step.increment, step.measurement
+        accepted = bool(step.accepted)
+        pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
+        pos.sigma = float(meas.sigma_nm)
+        pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
+        pos.keyframe_index = int(step.keyframe_index)
+        pos.reanchored = bool(step.reanchored)
+        pos.field = summarise_field(inc, frame.pixel_size_nm)
+        if accepted:
+            pos.m = self._base_nm + np.asarray(step.position_nm, dtype=np.float64).reshape(2)
+            if pos.reanchored or self.config.registration.reference == "consecutive":
+                pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
+        else:
+            pos.dx = pos.dy = math.nan
+            pos.reason = f"measurement rejected: {meas.reason or 'invalid'}"
+        min_blocks = self.config.service.min_valid_blocks
+        low = (not accepted) or pos.valid_blocks < min_blocks
+        if low and not pos.reason:
+            pos.reason = (
+                f"low confidence: {pos.valid_blocks} valid blocks < "
+                f"service.min_valid_blocks={min_blocks}"
+            )
+        pos.fed = not low and not paused and bool(np.all(np.isfinite(pos.m)))
+
+    def _feed_model(
+        self, frame: Frame, pos: _Position, *, seq: int, paused: bool, t_now_s: float | None
+    ) -> _Fed:
+        """Feed the drift position to the predictor and rebuild d(t) (when it may)."""
+        reason = pos.reason
         if paused and not reason:
             reason = "paused"
-        obs: Observation | None = None
+        fed = pos.fed
         if fed:
+            t = frame.t_mid_s
+            sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
             obs = Observation(
                 t_s=t,
-                x_nm=float(p[0]),
-                y_nm=float(p[1]),
-                sigma_nm=sigma if math.isfinite(sigma) else 0.0,
+                x_nm=float(pos.p[0]),
+                y_nm=float(pos.p[1]),
+                sigma_nm=sigma,
                 direction=frame.direction,
                 frame=seq,
             )
@@ -306,61 +394,15 @@ class FramePipeline:
                 reason = f"frame time {t:.3f} s is not after the last fed frame"
                 log.warning("frame %d: %s; not fed to the model", seq, reason)
                 fed = False
-        if fed and obs is not None:
-            self.predictor.update(obs, self.history)
-            self.observations.append(obs)
-            self.n_fed += 1
-            t_pub = frame.t_end_s if t_now_s is None else max(t_now_s, frame.t_end_s)
-            self.curve = self._build_curve(t_pub)
-        if np.all(np.isfinite(p)):
-            self._last_p_nm = p
-        finished = time.time()
-        record = FrameRecord(
-            seq=seq,
-            instrument_frame=frame.index,
-            epoch=epoch,
-            t_start_s=frame.t_start_s,
-            t_end_s=frame.t_end_s,
-            t_mid_s=t,
-            direction=frame.direction.value,
-            rows=frame.shape[0],
-            cols=frame.shape[1],
-            pixel_x_nm=frame.pixel_size_nm[0],
-            pixel_y_nm=frame.pixel_size_nm[1],
-            dx_nm=dx,
-            dy_nm=dy,
-            image_x_nm=float(m[0]),
-            image_y_nm=float(m[1]),
-            x_nm=float(p[0]),
-            y_nm=float(p[1]),
-            sigma_nm=sigma,
-            valid=math.isfinite(float(p[0])),
-            fed_model=fed,
-            reason=reason,
-            valid_blocks=valid_blocks,
-            total_blocks=total_blocks,
-            keyframe_index=keyframe_index,
-            reanchored=reanchored,
-            pred_x_nm=float(pred[0][0]),
-            pred_y_nm=float(pred[0][1]),
-            pred_sigma_nm=float(pred[1]),
-            offset_x_nm=float(offset[0]),
-            offset_y_nm=float(offset[1]),
-            wall_s=finished,
-            latency_s=finished - started,
-            field_json=json.dumps(None if field is None else field.model_dump()),
-        )
-        return FrameOutcome(
-            record=record,
-            curve=self.curve,
-            curve_dict=None if self.curve is None else self.curve.to_dict(),
-            predictor_name=self.predictor.name,
-            predictor_state=self.predictor.state_dict() if fed else None,
-            field=field,
-            reference=reference_image,
-            image=image,
-            low_confidence=not fed and not paused and reason not in ("reference",),
-        )
+            else:
+                self.predictor.update(obs, self.history)
+                self.observations.append(obs)
+                self.n_fed += 1
+                t_pub = frame.t_end_s if t_now_s is None else max(t_now_s, frame.t_end_s)
+                self.curve = self._build_curve(t_pub)
+        if np.all(np.isfinite(pos.p)):
+            self._last_p_nm = pos.p
+        return _Fed(fed=fed, reason=reason)
 
     # ------------------------------------------------------------------ model
 
@@ -379,8 +421,6 @@ class FramePipeline:
 
     def _build_curve(self, t_now_s: float) -> OffsetCurve | None:
         """d(t) from now on, continuous in value and slope with the previous curve."""
-        from afmdrift.model._reconstruct import reconstruct_offset
-
         try:
             return reconstruct_offset(
                 self.predictor,
@@ -396,20 +436,7 @@ class FramePipeline:
             return self.curve
 
 
-def _observation(r: FrameRecord) -> Observation:
-    from afmdrift.drivers._base import ScanDirection
-
-    return Observation(
-        t_s=r.t_mid_s,
-        x_nm=r.x_nm,
-        y_nm=r.y_nm,
-        sigma_nm=r.sigma_nm if math.isfinite(r.sigma_nm) else 0.0,
-        direction=ScanDirection(r.direction),
-        frame=r.seq,
-    )
-
-
-def _summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummary | None:
+def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummary | None:
     """Mean, spread and confidence of a DriftResult's valid block vectors (nm)."""
     fld = getattr(inc, "field", None)
     if fld is None:
@@ -438,45 +465,52 @@ def _summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSumma
     )
 
 
-def process_and_record(
-    pipeline: FramePipeline,
-    store: RunStore,
+def _frame_record(
     frame: Frame,
+    pos: _Position,
+    pred: tuple[npt.NDArray[np.float64], float],
     *,
-    channels: Sequence[ChannelSample],
-    events: Sequence[tuple[int, int, Event]],
     seq: int,
-    epoch: int = 0,
-    detected_wall_s: float | None = None,
-    paused: bool = False,
-    t_now_s: float | None = None,
-) -> FrameOutcome:
-    """One frame, start to finish: history, pipeline, and one store transaction.
-
-    The daemon (in its worker thread) and ``afmdrift replay`` both call this,
-    so a replayed session goes through exactly the daemon's code.
-    ``events`` are ``(epoch, log_index, Event)`` entries logged since the
-    previous frame, ``channels`` the samples read since then.
-    """
-    pipeline.ingest(channels, [e for _, _, e in events])
-    outcome = pipeline.process(
-        frame,
+    epoch: int,
+    fed: bool,
+    reason: str,
+    started: float,
+) -> FrameRecord:
+    """The store row of a processed frame."""
+    finished = time.time()
+    m, p, offset = pos.m, pos.p, pos.offset
+    return FrameRecord(
         seq=seq,
+        instrument_frame=frame.index,
         epoch=epoch,
-        detected_wall_s=detected_wall_s,
-        paused=paused,
-        t_now_s=t_now_s,
+        t_start_s=frame.t_start_s,
+        t_end_s=frame.t_end_s,
+        t_mid_s=frame.t_mid_s,
+        direction=frame.direction.value,
+        rows=frame.shape[0],
+        cols=frame.shape[1],
+        pixel_x_nm=frame.pixel_size_nm[0],
+        pixel_y_nm=frame.pixel_size_nm[1],
+        dx_nm=pos.dx,
+        dy_nm=pos.dy,
+        image_x_nm=float(m[0]),
+        image_y_nm=float(m[1]),
+        x_nm=float(p[0]),
+        y_nm=float(p[1]),
+        sigma_nm=pos.sigma,
+        valid=math.isfinite(float(p[0])),
+        fed_model=fed,
+        reason=reason,
+        valid_blocks=pos.valid_blocks,
+        total_blocks=pos.total_blocks,
+        keyframe_index=pos.keyframe_index,
+        reanchored=pos.reanchored,
+        pred_x_nm=float(pred[0][0]),
+        pred_y_nm=float(pred[0][1]),
+        pred_sigma_nm=float(pred[1]),
+        offset_x_nm=float(offset[0]),
+        offset_y_nm=float(offset[1]),
+        wall_s=finished,
+        latency_s=finished - started,
+        field_json=json.dumps(None if pos.field is None else pos.field.model_dump()),
     )
-    for sample in channels:
-        store.add_channels(sample)
-    for ep, idx, e in events:
-        store.add_event(epoch=ep, log_index=idx, event=e)
-    store.record_frame(
-        outcome.record,
-        predictor=outcome.predictor_name,
-        predictor_state=outcome.predictor_state,
-        curve=outcome.curve_dict if outcome.predictor_state is not None else None,
-        image=outcome.image,
-        reference=outcome.reference,
-    )
-    return outcome

@@ -1,15 +1,10 @@
-"""Configuration of the instrument connection (``[driver]``), and opening it."""
+"""Configuration of the instrument connection (``[driver]``)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-if TYPE_CHECKING:
-    from afmdrift.drivers._base import Instrument
-
-__all__ = ["REPLAY_PREFIX", "DriverConfig", "instrument_from_config"]
+__all__ = ["REPLAY_PREFIX", "DriverConfig"]
 
 #: URL prefix that selects :class:`~afmdrift.drivers.ReplayInstrument`.
 REPLAY_PREFIX = "replay:"
@@ -56,28 +51,3 @@ class DriverConfig(BaseModel):
         if url.startswith(REPLAY_PREFIX) and not url[len(REPLAY_PREFIX) :].strip():
             raise ValueError("replay: needs a session directory, e.g. replay:runs/session1")
         return url
-
-
-def instrument_from_config(config: DriverConfig) -> Instrument:
-    """The :class:`Instrument` that ``config`` describes (not yet connected).
-
-    ``replay:PATH`` gives a :class:`~afmdrift.drivers.ReplayInstrument` paced at
-    ``replay_speed``; any other URL a :class:`~afmdrift.drivers.NanoScopeDriver`
-    on a :class:`~afmdrift.drivers.SerialTransport`.
-    """
-    if config.transport.startswith(REPLAY_PREFIX):
-        from afmdrift.drivers._replay import ReplayInstrument
-
-        path = config.transport[len(REPLAY_PREFIX) :].strip()
-        return ReplayInstrument(path, speed=config.replay_speed or None)
-    from afmdrift.drivers._nanoscope import NanoScopeDriver
-    from afmdrift.drivers._transport import SerialTransport
-
-    return NanoScopeDriver(
-        SerialTransport(config.transport, baudrate=config.baudrate),
-        timeout_s=config.timeout_s,
-        frame_timeout_s=config.frame_timeout_s,
-        reconnect_attempts=config.reconnect_attempts,
-        backoff_initial_s=config.backoff_initial_s,
-        backoff_max_s=config.backoff_max_s,
-    )

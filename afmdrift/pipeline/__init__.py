@@ -1,0 +1,27 @@
+"""The per-frame pipeline: from a frame to a drift position, a prediction and d(t).
+
+Between the model and the service: the daemon, ``afmdrift replay`` and
+``afmdrift diagnose`` run every frame through :class:`FramePipeline` (its
+stages are listed in :meth:`FramePipeline.process`), and the run store keeps
+the :class:`FrameRecord` it produces.
+"""
+
+from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, summarise_field
+from afmdrift.pipeline._records import (
+    MEASUREMENT_COLUMNS,
+    FrameRecord,
+    ResumeState,
+    measurement_row,
+    observation_from_record,
+)
+
+__all__ = [
+    "MEASUREMENT_COLUMNS",
+    "FrameOutcome",
+    "FramePipeline",
+    "FrameRecord",
+    "ResumeState",
+    "measurement_row",
+    "observation_from_record",
+    "summarise_field",
+]
