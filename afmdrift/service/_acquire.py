@@ -1,0 +1,141 @@
+"""Acquisition: frames, channels and events from the instrument, one batch per frame.
+
+:class:`Acquisition` polls the instrument through the
+:class:`~afmdrift.service._link.InstrumentLink` (so every time is already on
+the service axis) and queues one :class:`FrameBatch` per new frame: the frame,
+the event-log entries read up to it (every offset move up to the frame is
+known), and the channel samples read since the previous batch. Polling goes on
+while the worker processes a frame, so a frame that takes longer than the
+frame period does not make the next one be missed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from dataclasses import dataclass, field
+
+from afmdrift.config import ServiceConfig
+from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
+from afmdrift.service._link import InstrumentLink, every
+
+__all__ = ["Acquisition", "FrameBatch"]
+
+log = logging.getLogger(__name__)
+
+#: Frames waiting for the worker before the oldest is dropped (and logged).
+_FRAME_QUEUE = 32
+
+
+@dataclass(slots=True)
+class FrameBatch:
+    """A new frame with what was logged since the previous batch."""
+
+    frame: Frame
+    detected_wall_s: float
+    channels: list[ChannelSample] = field(default_factory=list)
+    events: list[LoggedEvent] = field(default_factory=list)
+
+
+class Acquisition:
+    """Polls frames, channels and events into :attr:`batches`.
+
+    Attributes
+    ----------
+    batches : asyncio.Queue of FrameBatch
+        New frames in order; when the worker falls ``_FRAME_QUEUE`` frames
+        behind, the oldest frame is dropped (its channels and events are not).
+    events : list of Event
+        The whole event log read so far (service axis), for commanded offsets.
+    event_cursor : int
+        Next entry of the current epoch's event log to read.
+    """
+
+    def __init__(self, link: InstrumentLink, config: ServiceConfig) -> None:
+        self.link = link
+        self.config = config
+        self.batches: asyncio.Queue[FrameBatch] = asyncio.Queue(maxsize=_FRAME_QUEUE)
+        self.events: list[Event] = []
+        self.event_cursor = 0
+        self.frames_dropped = 0
+        self._last_frame_key: tuple[int, float] | None = None
+        self._channels: list[ChannelSample] = []
+        self._events: list[LoggedEvent] = []
+        self._event_lock = asyncio.Lock()
+        link.on_epoch(self._new_epoch)
+
+    def resume(
+        self, *, events: list[Event], event_cursor: int, last_index: int, last_t_end_s: float
+    ) -> None:
+        """Continue after a restart: the event log and the last frame committed
+        (its instrument index, and its end on the service axis)."""
+        self.events = list(events)
+        self.event_cursor = event_cursor
+        self._last_frame_key = (last_index, last_t_end_s - self.link.t_offset_s)
+
+    def _new_epoch(self, epoch: int, t_offset_s: float) -> None:
+        self.event_cursor = 0
+        self._last_frame_key = None
+
+    # ------------------------------------------------------------------ loops
+
+    async def channel_loop(self) -> None:
+        async def tick() -> None:
+            self._channels.append(await self.link.read_channels())
+
+        await every(self.config.channel_poll_interval_s, tick)
+
+    async def event_loop(self) -> None:
+        await every(self.config.event_poll_interval_s, self.poll_events)
+
+    async def poll_events(self) -> None:
+        async with self._event_lock:
+            start = self.event_cursor
+            entries = await self.link.events(start)
+            for k, e in enumerate(entries):
+                self._events.append(LoggedEvent(self.link.epoch, start + k, e))
+                self.events.append(e)
+            self.event_cursor = start + len(entries)
+
+    async def frame_loop(self) -> None:
+        await every(self.config.frame_poll_interval_s, self._poll_frame)
+
+    async def _poll_frame(self) -> None:
+        frame = await self.link.latest_frame()
+        if frame is None:
+            return
+        key = (frame.index, frame.t_end_s)
+        if key == self._last_frame_key:
+            return
+        if self._last_frame_key is not None and frame.t_end_s < self._last_frame_key[1]:
+            # An older frame than the last one: the instrument was restarted
+            # (its driver may have reconnected on its own). Read its clock.
+            epoch = self.link.epoch
+            await self.link.now_s()
+            if epoch == self.link.epoch:
+                log.warning("frame %d ends before the previous one; ignored", frame.index)
+                return
+        detected = time.time()
+        if self._last_frame_key is not None and frame.index > self._last_frame_key[0] + 1:
+            log.warning(
+                "instrument frames %d..%d were replaced before they were read",
+                self._last_frame_key[0] + 1,
+                frame.index - 1,
+            )
+        await self.poll_events()  # every offset move up to this frame is known
+        self._last_frame_key = key
+        batch = FrameBatch(self.link.frame_on_service_axis(frame), detected)
+        batch.channels, self._channels = self._channels, []
+        batch.events, self._events = self._events, []
+        if self.batches.full():
+            dropped = self.batches.get_nowait()
+            self.frames_dropped += 1
+            log.warning(
+                "processing is %d frames behind; frame %d dropped",
+                self.batches.qsize() + 1,
+                dropped.frame.index,
+            )
+            batch.channels[:0] = dropped.channels
+            batch.events[:0] = dropped.events
+        self.batches.put_nowait(batch)
