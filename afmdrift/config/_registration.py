@@ -92,9 +92,8 @@ class RegistrationConfig(BaseModel):
         2,
         ge=1,
         le=64,
-        description="Threads for the per-frame block work (chunks of 32 blocks run "
-        "concurrently; results do not depend on it). Default 2: the cores of the reference "
-        "machine, and a 512² frame has two chunks.",
+        description="Threads for the per-frame block work (they take batches of blocks in "
+        "turn; results do not depend on it). Default 2: the cores of the reference machine.",
     )
     fftw_planner: Literal["estimate", "measure", "patient"] = Field(
         "measure", description="FFTW planner effort (plans are made once per shape)."

@@ -59,14 +59,13 @@ NMS_RADIUS = 2
 #: before the next starts, so its work arrays (about 1 MB for 8 blocks of
 #: 128²) stay near the core instead of streaming the whole block stack
 #: through memory once per pass. The engine's threads take the batches in
-#: turn (see BlockEngine), so a thread on a slower core simply does fewer:
-#: on the reference machine (KVM, 2 vCPUs) the second vCPU was at times
-#: 1.6 times slower than the first, and a fixed half of the blocks on it
-#: set the frame's time. The last ``2 * BATCH_BLOCKS`` blocks go in half
-#: batches, so that the threads end closer together: with whole batches one
-#: thread waited 0.25-0.33 ms (median) for the other's last batch, with half
-#: batches at the end 0.08-0.11 ms. The split into batches depends only on
-#: the layout (:func:`batch_split`).
+#: turn (see BlockEngine), so a thread on a slower core simply does fewer
+#: (virtual CPUs can differ in speed from minute to minute, and a fixed half
+#: of the blocks on the slower one would set the frame's time). The last
+#: ``2 * BATCH_BLOCKS`` blocks go in half batches, so that the threads end
+#: closer together and neither waits long for the other's last batch
+#: (figures in benchmarks/RESULTS.md). The split into batches depends only
+#: on the layout (:func:`batch_split`).
 BATCH_BLOCKS = 8
 
 _pool_lock = threading.Lock()

@@ -5,8 +5,8 @@ normalise the spectra, multiply by the reference, search the peaks, verify
 them by MSE, refine to sub-pixel) as a separate pass over the whole block
 stack, each holding the GIL for its many small operations. These kernels do
 the same arithmetic block by block in one or two passes, release the GIL,
-and so run concurrently on the engine's chunk threads beside the FFTW
-transforms. The per-block kernels work on one batch of a chunk's blocks;
+and so run concurrently on the engine's threads beside the FFTW
+transforms. The per-block kernels work on one batch of blocks;
 the small ones around them (gradient image with the frame checks' figures,
 window placement, block assembly, medians, the MAD rule) on the whole frame. All
 write into arrays the caller owns; they allocate only small scratch arrays (per-block rows,
@@ -20,8 +20,8 @@ packed square roots, divisions and products); the reference spectra are
 interleaved int16 fixed point (see :func:`normalise_reference`).
 
 Results do not depend on the thread count: every block is computed on its
-own, in a fixed order, and the split into chunks and batches is fixed by
-the frame layout.
+own, in a fixed order, and the split into batches is fixed by the frame
+layout.
 
 The kernels are compiled on first use and cached on disk by Numba
 (``__pycache__`` beside this file, or ``$NUMBA_CACHE_DIR``).
