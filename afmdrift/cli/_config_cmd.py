@@ -13,10 +13,15 @@ def register(sub: Any) -> None:
     check = csub.add_parser(
         "check",
         help="Validate a TOML configuration file.",
-        description="Validate FILE exactly as `afmdrift run` would; print each problem "
-        "with its key, value and allowed range.",
+        description="Validate FILE exactly as `afmdrift run` would (keys, types and ranges, "
+        "then the predictor, its effect terms and plugins, CURVE keys and the instrument "
+        "URL); print each problem with its key, value and allowed range. Plugins are "
+        "imported: configuration files are trusted input.",
     )
     check.add_argument("file", help="TOML configuration file")
+    check.add_argument(
+        "--instrument", default=None, help="instrument URL overriding [driver], as for `run`"
+    )
     check.set_defaults(handler=_check)
     show = csub.add_parser("show", help="Print the effective configuration as JSON.")
     show.add_argument("file", nargs="?", help="TOML file (default: config/default.toml)")
@@ -25,8 +30,9 @@ def register(sub: Any) -> None:
 
 def _check(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
+    from afmdrift.service import check_config
 
-    load_config(args.file)
+    check_config(load_config(args.file), instrument_url=args.instrument)
     print(f"{args.file}: OK")
     return 0
 

@@ -31,14 +31,16 @@ def _run(args: argparse.Namespace) -> int:
     import asyncio
 
     from afmdrift.config import load_config
-    from afmdrift.service import open_instrument, run_until_signalled
+    from afmdrift.service import check_config, run_until_signalled
 
     config = load_config(args.config)
     if args.run_dir is not None:
         config = config.model_copy(
             update={"service": config.service.model_copy(update={"run_dir": args.run_dir})}
         )
-    instrument = open_instrument(config, url=args.instrument)
+    predictor, instrument = check_config(config, instrument_url=args.instrument)
     return asyncio.run(
-        run_until_signalled(config=config, instrument=instrument, config_path=args.config)
+        run_until_signalled(
+            config=config, instrument=instrument, config_path=args.config, predictor=predictor
+        )
     )

@@ -11,6 +11,7 @@ allowed range.
 
 from __future__ import annotations
 
+import stat
 import tomllib
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
@@ -22,11 +23,12 @@ from pydantic.fields import FieldInfo
 from afmdrift.config._driver import REPLAY_PREFIX, DriverConfig
 from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.config._registration import RegistrationConfig
-from afmdrift.config._service import ServiceConfig, endpoint_is_local
+from afmdrift.config._service import ServiceConfig, check_endpoint, endpoint_is_local
 from afmdrift.errors import ConfigError
 
 __all__ = [
     "DEFAULT_CONFIG_PATH",
+    "MAX_CONFIG_BYTES",
     "REPLAY_PREFIX",
     "AfmdriftConfig",
     "DriverConfig",
@@ -36,11 +38,16 @@ __all__ = [
     "PhysicsConfig",
     "RegistrationConfig",
     "ServiceConfig",
+    "check_endpoint",
     "describe_validation_error",
     "endpoint_is_local",
     "load_config",
     "parse_config",
+    "read_toml",
 ]
+
+#: Largest configuration file read (a configuration is a few kB).
+MAX_CONFIG_BYTES = 1 << 20
 
 #: ``config/default.toml`` in a source checkout.
 DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "default.toml"
@@ -49,7 +56,7 @@ DEFAULT_CONFIG_PATH = Path(__file__).resolve().parents[2] / "config" / "default.
 class AfmdriftConfig(BaseModel):
     """Root of the configuration file. Every section is optional."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     registration: RegistrationConfig = Field(default_factory=RegistrationConfig)
     service: ServiceConfig = Field(default_factory=ServiceConfig)
@@ -60,13 +67,18 @@ class AfmdriftConfig(BaseModel):
 def parse_config(data: dict[str, Any], *, source: str = "<config>") -> AfmdriftConfig:
     """Validate a mapping (as read from TOML) into :class:`AfmdriftConfig`.
 
+    Validation is strict, as a file should be read: ``archive_frames = "yes"``,
+    ``threads = true`` or ``offset_rate_hz = "100"`` are errors, not coerced;
+    an integer is accepted where a float is expected; ``inf`` and ``nan`` are
+    rejected everywhere.
+
     Raises
     ------
     ConfigError
         One line per problem, each naming the dotted key, the value and what is allowed.
     """
     try:
-        return AfmdriftConfig.model_validate(data)
+        return AfmdriftConfig.model_validate(data, strict=True)
     except ValidationError as err:
         raise ConfigError(
             describe_validation_error(err, source=source, root=AfmdriftConfig)
@@ -90,17 +102,44 @@ def load_config(path: str | Path | None = None) -> AfmdriftConfig:
             return AfmdriftConfig()
         path = DEFAULT_CONFIG_PATH
     p = Path(path)
+    return parse_config(read_toml(p, what="configuration file"), source=str(p))
+
+
+def read_toml(path: str | Path, *, what: str, max_bytes: int = MAX_CONFIG_BYTES) -> dict[str, Any]:
+    """Read a TOML file with limits: a regular file, at most ``max_bytes``, UTF-8.
+
+    A FIFO, a device (``/dev/zero``), a directory, an oversized or non-UTF-8
+    file, or TOML nested too deeply for the parser gives one clear
+    :class:`ConfigError` naming the file, never a hang or a traceback.
+    """
+    p = Path(path)
     try:
-        text = p.read_text(encoding="utf-8")
+        st = p.stat()
     except FileNotFoundError:
-        raise ConfigError(f"{p}: configuration file not found") from None
+        raise ConfigError(f"{p}: {what} not found") from None
     except OSError as err:
-        raise ConfigError(f"{p}: cannot read configuration file: {err.strerror}") from None
+        raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise ConfigError(f"{p}: {what} is not a regular file")
+    if st.st_size > max_bytes:
+        raise ConfigError(f"{p}: {what} is {st.st_size} bytes; the limit is {max_bytes}")
     try:
-        data = tomllib.loads(text)
+        with p.open("rb") as fh:
+            raw = fh.read(max_bytes + 1)
+    except OSError as err:
+        raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
+    if len(raw) > max_bytes:
+        raise ConfigError(f"{p}: {what} is larger than {max_bytes} bytes")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ConfigError(f"{p}: {what} is not UTF-8 text (byte {err.start})") from None
+    try:
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:
         raise ConfigError(f"{p}: not valid TOML: {err}") from None
-    return parse_config(data, source=str(p))
+    except RecursionError:
+        raise ConfigError(f"{p}: TOML nested too deeply") from None
 
 
 def _describe_error(error: Any, source: str, root: type[BaseModel]) -> str:

@@ -19,7 +19,7 @@ class DriverConfig(BaseModel):
     or ``replay:PATH`` to replay a recorded session directory.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     transport: str = Field(
         "socket://127.0.0.1:5025",

@@ -12,7 +12,7 @@ __all__ = ["KalmanConfig", "ModelConfig", "NNConfig", "PhysicsConfig"]
 class NNConfig(BaseModel):
     """The paper's neural network (Yang et al. 2008, section IV)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     lags: int = Field(8, ge=1, le=64, description="Past drift increments per input (N).")
     hidden: int = Field(50, ge=1, le=1000, description="tanh hidden units.")
@@ -35,7 +35,7 @@ class NNConfig(BaseModel):
 class KalmanConfig(BaseModel):
     """Kalman filter baseline after Mokaberi & Requicha (IEEE T-ASE 2006)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     motion: Literal["velocity", "acceleration"] = Field(
         "velocity", description="Constant-velocity or constant-acceleration state model."
@@ -46,7 +46,7 @@ class KalmanConfig(BaseModel):
 class PhysicsConfig(BaseModel):
     """Physics-informed model: a sum of terms from the effects library."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     terms: list[str] = Field(
         default_factory=lambda: ["trend", "warmup", "thermal_lag", "creep", "scan_direction"],
@@ -76,7 +76,7 @@ class PhysicsConfig(BaseModel):
 class ModelConfig(BaseModel):
     """``[model]``: which predictor the service uses and how d(t) is built."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     predictor: str = Field("physics", description="Predictor used by the service.")
     evaluate: list[str] = Field(

@@ -17,7 +17,7 @@ class RegistrationConfig(BaseModel):
     verified by MSE.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     block_size: int = Field(64, ge=8, le=1024, description="Block edge in px.")
     extended_size: int = Field(128, ge=16, le=2048, description="Extended block edge in px.")

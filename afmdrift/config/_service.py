@@ -11,9 +11,29 @@ from __future__ import annotations
 import ipaddress
 from typing import Self
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-__all__ = ["ServiceConfig", "endpoint_is_local"]
+__all__ = ["ServiceConfig", "check_endpoint", "endpoint_is_local"]
+
+
+def check_endpoint(endpoint: str) -> str:
+    """``endpoint`` if it is a ZeroMQ bind endpoint this service can use, else ValueError.
+
+    ``tcp://HOST:PORT`` (PORT 1–65535, or ``*`` for a free port; an IPv6 HOST
+    in brackets), ``ipc://PATH`` or ``inproc://NAME``.
+    """
+    if endpoint.startswith(("ipc://", "inproc://")):
+        if not endpoint.split("://", 1)[1]:
+            raise ValueError(f"{endpoint!r}: needs a path or name after the scheme")
+        return endpoint
+    if not endpoint.startswith("tcp://"):
+        raise ValueError(f"{endpoint!r}: use tcp://HOST:PORT, ipc://PATH or inproc://NAME")
+    host, sep, port = endpoint[len("tcp://") :].rpartition(":")
+    if not sep or not host:
+        raise ValueError(f"{endpoint!r}: tcp endpoints are tcp://HOST:PORT")
+    if port != "*" and not (port.isdigit() and 1 <= int(port) <= 65535):
+        raise ValueError(f"{endpoint!r}: port {port!r} is not 1-65535 or *")
+    return endpoint
 
 
 def endpoint_is_local(endpoint: str) -> bool:
@@ -44,7 +64,7 @@ class ServiceConfig(BaseModel):
     the configuration is rejected otherwise.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     pub_endpoint: str = Field(
         "tcp://127.0.0.1:5560", description="ZeroMQ PUB bind endpoint (offset/model/frame/status)."
@@ -58,7 +78,29 @@ class ServiceConfig(BaseModel):
     curve_authorized_clients_dir: str | None = Field(
         None, description="Directory of client public certificates allowed to connect."
     )
-    run_dir: str = Field("runs/latest", description="Run directory (store, archive, logs).")
+    control_auth: bool = Field(
+        True,
+        description="State-changing control commands (pause, resume, reset_reference, "
+        "reload_model) need the token in control_token_file.",
+    )
+    control_token_file: str | None = Field(
+        None,
+        min_length=1,
+        description="Token file written at start-up, readable only by the daemon's user; "
+        "default RUN_DIR/control.token.",
+    )
+    control_max_request_bytes: int = Field(
+        65536, ge=256, le=16 << 20, description="Larger control requests are dropped."
+    )
+    reload_config_dir: str | None = Field(
+        None,
+        min_length=1,
+        description="Directory reload_model may read configuration files from, besides the "
+        "directory of the daemon's own configuration file.",
+    )
+    run_dir: str = Field(
+        "runs/latest", min_length=1, description="Run directory (store, archive, logs)."
+    )
     archive_frames: bool = Field(False, description="Also keep every image as frames/NNNNNN.npy.")
     keep_model_states: int = Field(
         100, ge=0, le=10_000_000, description="Predictor states kept in the store (0: all)."
@@ -109,6 +151,11 @@ class ServiceConfig(BaseModel):
     sndhwm: int = Field(
         10000, ge=1, le=10_000_000, description="PUB high-water mark; slow subscribers drop."
     )
+
+    @field_validator("pub_endpoint", "control_endpoint")
+    @classmethod
+    def _check_endpoint(cls, endpoint: str) -> str:
+        return check_endpoint(endpoint)
 
     @model_validator(mode="after")
     def _require_curve_off_loopback(self) -> Self:

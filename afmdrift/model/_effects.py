@@ -507,6 +507,12 @@ def load_term_class(spec: str) -> type[EffectTerm]:
         module = importlib.import_module(module_name)
     except ImportError as err:
         raise ConfigError(f"effect plugin {spec!r}: cannot import {module_name!r}: {err}") from None
+    except (Exception, SystemExit) as err:
+        # A plugin is operator code: whatever its import raises (even
+        # sys.exit) is a configuration error, never the end of the daemon.
+        raise ConfigError(
+            f"effect plugin {spec!r}: importing {module_name!r} raised {type(err).__name__}: {err}"
+        ) from None
     obj = getattr(module, attr, None)
     if obj is None:
         raise ConfigError(f"effect plugin {spec!r}: module {module_name!r} has no {attr!r}")

@@ -13,6 +13,8 @@ from pydantic import ValidationError
 from afmdrift.config import AfmdriftConfig, DriverConfig
 from afmdrift.drivers import Instrument, instrument_from_config
 from afmdrift.errors import AfmdriftError, ConfigError
+from afmdrift.model import Predictor
+from afmdrift.pipeline import FramePipeline
 from afmdrift.service._daemon import DriftService
 
 __all__ = ["open_instrument", "run_until_signalled"]
@@ -41,6 +43,7 @@ async def run_until_signalled(
     instrument: Instrument,
     config_path: str | Path | None = None,
     ctx: zmq.asyncio.Context | None = None,
+    predictor: Predictor | None = None,
 ) -> int:
     """Run :class:`DriftService` until SIGINT or SIGTERM; return the exit code.
 
@@ -48,7 +51,10 @@ async def run_until_signalled(
     the sockets and the store. A task that died is reported and gives exit 1.
     """
     loop = asyncio.get_running_loop()
-    service = DriftService(config=config, instrument=instrument, ctx=ctx, config_path=config_path)
+    pipeline = FramePipeline(config=config, predictor=predictor)
+    service = DriftService(
+        config=config, instrument=instrument, ctx=ctx, config_path=config_path, pipeline=pipeline
+    )
     task = asyncio.create_task(service.run(), name="afmdrift-service")
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, task.cancel)

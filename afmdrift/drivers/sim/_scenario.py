@@ -13,13 +13,12 @@ configuration file, :func:`afmdrift.config.describe_validation_error`).
 
 from __future__ import annotations
 
-import tomllib
 from pathlib import Path
 from typing import Annotated, Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from afmdrift.config import describe_validation_error
+from afmdrift.config import describe_validation_error, read_toml
 from afmdrift.errors import ConfigError
 
 __all__ = [
@@ -375,12 +374,4 @@ def resolve_scenario_path(name_or_path: str | Path) -> Path:
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario TOML file (a path or a built-in scenario name)."""
     p = resolve_scenario_path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as err:
-        raise ConfigError(f"{p}: cannot read scenario file: {err.strerror}") from None
-    try:
-        data = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{p}: not valid TOML: {err}") from None
-    return parse_scenario(data, source=str(p))
+    return parse_scenario(read_toml(p, what="scenario file"), source=str(p))
