@@ -25,6 +25,8 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from afmdrift.errors import AfmdriftError
 
 __all__ = [
+    "MAX_JSON_DEPTH",
+    "MAX_PAYLOAD_BYTES",
     "SCHEMA_VERSION",
     "TOPICS",
     "ClockSync",
@@ -62,6 +64,18 @@ class _Msg(BaseModel):
     v: Literal[1] = SCHEMA_VERSION
 
 
+class _Published(_Msg):
+    """Fields every PUB message carries besides its topic's own.
+
+    ``seq`` counts this topic's messages from 0; ``run_id`` is new each time
+    the daemon starts (its sequence numbers restart with it), ``epoch``
+    counts instrument restarts within the run (times stay on one axis).
+    """
+
+    run_id: str = Field("", max_length=64)
+    epoch: int = Field(0, ge=0)
+
+
 class ClockSync(BaseModel):
     """Mapping from the publisher's wall clock to the instrument clock.
 
@@ -81,7 +95,7 @@ class ClockSync(BaseModel):
         return self.instrument_s + self.rate * (wall_s - self.wall_s)
 
 
-class OffsetMsg(_Msg):
+class OffsetMsg(_Published):
     """One sample of the offset stream d(t) (topic ``offset``).
 
     ``valid`` is false before the first model, while the stream is stale, or
@@ -99,7 +113,7 @@ class OffsetMsg(_Msg):
     clamped: bool = False
 
 
-class ModelMsg(_Msg):
+class ModelMsg(_Published):
     """The current model after a frame (topic ``model``).
 
     ``curve`` is ``OffsetCurve.to_dict()``; a subscriber rebuilds it with
@@ -135,7 +149,7 @@ class FieldSummary(BaseModel):
     median_confidence: float | None
 
 
-class FrameMsg(_Msg):
+class FrameMsg(_Published):
     """One frame's measurement (topic ``frame``).
 
     ``dx_nm, dy_nm`` is the measured increment, ``x_nm, y_nm`` the drift
@@ -168,7 +182,7 @@ class FrameMsg(_Msg):
     latency_s: float
 
 
-class StatusMsg(_Msg):
+class StatusMsg(_Published):
     """Heartbeat (topic ``status``).
 
     ``state`` is ``running``, ``paused``, ``stale`` or ``stopping``. ``flags``
@@ -176,7 +190,12 @@ class StatusMsg(_Msg):
     (last frame did not feed the model), ``stale`` (no frame for more than
     ``stale_factor`` expected intervals), ``instrument_error`` (the driver is
     failing and being reconnected), ``clamped`` (the last offset was limited),
-    ``paused``.
+    ``paused``. ``dropped_offset_ticks`` counts offset samples skipped since
+    the daemon started because its event loop fell more than 50 ms behind
+    the offset schedule (the stream then restarts from now instead of
+    bursting). A status inside a control reply is a snapshot: its ``seq`` is
+    that of the last published heartbeat, so replies never take numbers from
+    the ``status`` topic.
     """
 
     topic: Literal["status"] = "status"
@@ -191,6 +210,7 @@ class StatusMsg(_Msg):
     rolling_error_nm: float | None
     rolling_max_error_nm: float | None
     rolling_window: int
+    dropped_offset_ticks: int = Field(0, ge=0)
 
 
 Message = Annotated[OffsetMsg | ModelMsg | FrameMsg | StatusMsg, Field(discriminator="topic")]
@@ -200,15 +220,20 @@ _MESSAGE_ADAPTER: TypeAdapter[OffsetMsg | ModelMsg | FrameMsg | StatusMsg] = Typ
 class ControlRequest(_Msg):
     """A command on the control socket.
 
-    ``cmd``: ``status`` (reply carries a StatusMsg), ``pause`` (stop feeding
+    ``cmd``: ``status`` (reply carries a StatusMsg), ``model`` (reply also
+    carries the current ModelMsg, so a late subscriber need not wait a frame
+    period for it), ``pause`` (stop feeding
     the model and publishing valid offsets), ``resume``, ``reset_reference``
     (the next frame becomes the registration reference; the drift position
     continues), ``reload_model`` (re-read ``[model]`` from ``config_path`` or
-    the daemon's configuration file and refit on the kept history).
+    the daemon's configuration file and refit on the kept history). The last
+    four change the daemon's state and need ``token`` (the content of the
+    daemon's token file) unless the daemon runs with ``control_auth = false``.
     """
 
-    cmd: Literal["status", "pause", "resume", "reset_reference", "reload_model"]
-    config_path: str | None = None
+    cmd: Literal["status", "model", "pause", "resume", "reset_reference", "reload_model"]
+    config_path: str | None = Field(None, max_length=4096)
+    token: str | None = Field(None, max_length=256)
 
 
 class ControlReply(_Msg):
@@ -217,6 +242,7 @@ class ControlReply(_Msg):
     ok: bool
     error: str | None = None
     status: StatusMsg | None = None
+    model: ModelMsg | None = None
 
 
 def encode(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> list[bytes]:
@@ -224,11 +250,50 @@ def encode(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> list[bytes]:
     return [msg.topic.encode("ascii"), msg.model_dump_json().encode("utf-8")]
 
 
+#: Deepest nesting of JSON arrays and objects a decoder accepts (the schemas need 3).
+MAX_JSON_DEPTH = 16
+
+#: Largest payload a decoder parses, bytes (a model message is a few kB).
+MAX_PAYLOAD_BYTES = 1 << 20
+
+
+def _json_depth(payload: bytes) -> int:
+    """Deepest nesting of ``[``/``{`` outside strings (a scan, no recursion)."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for b in payload:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif b == 0x5C:  # backslash
+                escaped = True
+            elif b == 0x22:  # quote
+                in_string = False
+        elif b == 0x22:
+            in_string = True
+        elif b in (0x5B, 0x7B):
+            depth += 1
+            deepest = max(deepest, depth)
+        elif b in (0x5D, 0x7D):
+            depth -= 1
+    return deepest
+
+
 def _load_json(payload: bytes, what: str) -> dict[str, Any]:
+    """Parse a payload with limits: size, nesting depth, number length, UTF-8."""
+    if len(payload) > MAX_PAYLOAD_BYTES:
+        raise WireError(
+            f"{what}: payload of {len(payload)} bytes; the limit is {MAX_PAYLOAD_BYTES}"
+        )
+    brackets = payload.count(b"[") + payload.count(b"{")
+    if brackets > MAX_JSON_DEPTH and _json_depth(payload) > MAX_JSON_DEPTH:
+        raise WireError(f"{what}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     try:
         doc = json.loads(payload)
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
         raise WireError(f"{what}: payload is not JSON ({err})") from None
+    except (ValueError, RecursionError) as err:  # e.g. an integer of over 4300 digits
+        raise WireError(f"{what}: payload is not usable JSON ({err})") from None
     if not isinstance(doc, dict):
         raise WireError(f"{what}: payload must be a JSON object, got {type(doc).__name__}")
     version = doc.get("v")
@@ -260,7 +325,7 @@ def decode(parts: list[bytes]) -> OffsetMsg | ModelMsg | FrameMsg | StatusMsg:
     try:
         return _MESSAGE_ADAPTER.validate_python(doc)
     except ValidationError as err:
-        raise WireError(f"topic {topic!r}: invalid payload: {err}") from None
+        raise WireError(f"topic {topic!r}: invalid payload: {_one_line(err)}") from None
 
 
 def decode_control_request(payload: bytes) -> ControlRequest:
@@ -278,4 +343,11 @@ def _decode_control(payload: bytes, model: type[_M], what: str) -> _M:
     try:
         return model.model_validate(doc)
     except ValidationError as err:
-        raise WireError(f"{what}: {err}") from None
+        raise WireError(f"{what}: {_one_line(err)}") from None
+
+
+def _one_line(err: ValidationError) -> str:
+    """Every problem of ``err`` on one line: ``field: message; ...``."""
+    return "; ".join(
+        f"{'.'.join(str(part) for part in e['loc']) or 'message'}: {e['msg']}" for e in err.errors()
+    )

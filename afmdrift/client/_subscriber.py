@@ -211,21 +211,31 @@ async def control(
     cmd: str,
     *,
     config_path: str | None = None,
+    token: str | None = None,
+    token_file: str | Path | None = None,
     timeout_s: float = 5.0,
     ctx: zmq.asyncio.Context | None = None,
     curve: CurveClientKeys | None = None,
 ) -> ControlReply:
     """Send one command to the control socket and return the reply.
 
-    ``cmd`` is ``status``, ``pause``, ``resume``, ``reset_reference`` or
-    ``reload_model`` (with an optional ``config_path``).
+    ``cmd`` is ``status``, ``model`` (the reply carries the current model
+    message), ``pause``, ``resume``, ``reset_reference`` or ``reload_model``
+    (with an optional ``config_path``). The last four need the daemon's
+    token: pass it, or the file the daemon wrote it to (``token_file``,
+    default for a daemon: ``RUN_DIR/control.token``).
 
     Raises
     ------
     ClientError
-        No reply within ``timeout_s``, or the service answered ``ok: false``.
+        The token file cannot be read, no reply within ``timeout_s``, or the
+        service answered ``ok: false``.
     """
-    request = ControlRequest.model_validate({"cmd": cmd, "config_path": config_path})
+    if token is None and token_file is not None:
+        token = await asyncio.to_thread(_read_token, cmd, Path(token_file))
+    request = ControlRequest.model_validate(
+        {"cmd": cmd, "config_path": config_path, "token": token}
+    )
     context = ctx or zmq.asyncio.Context.instance()
     sock = context.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
@@ -246,3 +256,10 @@ async def control(
     if not reply.ok:
         raise ClientError(f"control {cmd!r} refused: {reply.error}")
     return reply
+
+
+def _read_token(cmd: str, path: Path) -> str:
+    try:
+        return path.read_text(encoding="ascii").strip()
+    except (OSError, UnicodeError) as err:
+        raise ClientError(f"control {cmd!r}: cannot read token file {path}: {err}") from None

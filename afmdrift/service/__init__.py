@@ -20,6 +20,7 @@ client; the per-frame pipeline is :mod:`afmdrift.pipeline`.
 
 from afmdrift.config import ServiceConfig, endpoint_is_local
 from afmdrift.pipeline import MEASUREMENT_COLUMNS, FrameRecord
+from afmdrift.service._check import check_config
 from afmdrift.service._daemon import INSTRUMENT_ERRORS, DriftService
 from afmdrift.service._record import process_and_record
 from afmdrift.service._replay import ReplaySummary, replay_session
@@ -38,6 +39,7 @@ __all__ = [
     "ServiceConfig",
     "ServiceSocketError",
     "StoreError",
+    "check_config",
     "endpoint_is_local",
     "open_instrument",
     "process_and_record",

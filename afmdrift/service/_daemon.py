@@ -39,20 +39,20 @@ from typing import TypeVar
 
 import zmq.asyncio
 
-from afmdrift.config import AfmdriftConfig, load_config
+from afmdrift.config import AfmdriftConfig
 from afmdrift.drivers import Instrument
-from afmdrift.errors import AfmdriftError
-from afmdrift.model import commanded_offset_nm, make_predictor
+from afmdrift.model import commanded_offset_nm
 from afmdrift.pipeline import FramePipeline
 from afmdrift.records import InstrumentInfo
 from afmdrift.registration import warm_up
 from afmdrift.service._acquire import Acquisition, FrameBatch
+from afmdrift.service._control import Controller
 from afmdrift.service._link import INSTRUMENT_ERRORS, InstrumentLink, every
 from afmdrift.service._publish import Publishing
 from afmdrift.service._record import process_and_record
 from afmdrift.service._store import RunStore
 from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
-from afmdrift.wire import ControlReply, ControlRequest, OffsetMsg, StatusMsg
+from afmdrift.wire import OffsetMsg, StatusMsg
 
 __all__ = ["INSTRUMENT_ERRORS", "DriftService"]
 
@@ -106,7 +106,16 @@ class DriftService:
             instrument, reconnect_delay_s=self.svc.reconnect_delay_s, flags=self.flags
         )
         self.acquisition = Acquisition(self.link, self.svc)
-        self.publishing = Publishing(self.svc, clock=self.link.clock, flags=self.flags)
+        self.publishing = Publishing(
+            self.svc, clock=self.link.clock, flags=self.flags, epoch=lambda: self.link.epoch
+        )
+        self.controller = Controller(
+            config=config,
+            config_path=self.config_path,
+            pipeline=self.pipeline,
+            publishing=self.publishing,
+            in_worker=self._in_worker,
+        )
         self.link.on_epoch(self._new_epoch)
         self.link.on_connected(self._on_connected)
         self.frames_processed = 0
@@ -138,7 +147,13 @@ class DriftService:
         return self.acquisition.frames_dropped
 
     def status_msg(self) -> StatusMsg:
-        return self.publishing.status_msg()
+        """The status now (a snapshot: it takes no ``status`` sequence number)."""
+        return self.publishing.status_snapshot()
+
+    @property
+    def control_token_path(self) -> Path:
+        """The file holding the token state-changing control commands need."""
+        return self.controller.token_path
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -171,7 +186,13 @@ class DriftService:
                 self.svc.pub_endpoint, ctx=ctx, sndhwm=self.svc.sndhwm, curve=curve_keys
             )
             self.publishing.publisher = publisher
-            self._control = ControlSocket(self.svc.control_endpoint, ctx=ctx, curve=curve_keys)
+            self._control = ControlSocket(
+                self.svc.control_endpoint,
+                ctx=ctx,
+                curve=curve_keys,
+                max_request_bytes=self.svc.control_max_request_bytes,
+            )
+            self.controller.start()
             self.pub_endpoint = publisher.endpoint
             self.control_endpoint = self._control.endpoint
             log.info(
@@ -191,6 +212,7 @@ class DriftService:
                 # Let a frame in flight finish writing: the store stays consistent.
                 await asyncio.shield(asyncio.to_thread(self._executor.shutdown, wait=True))
             await self.link.close()
+            self.controller.stop()
             if self._store is not None:
                 self._store.close()
             for sock in (publisher, self._control):
@@ -212,10 +234,13 @@ class DriftService:
             "channels": self.acquisition.channel_loop,
             "events": self.acquisition.event_loop,
             "offset": lambda: every(
-                1.0 / svc.offset_rate_hz, self.publishing.offset_tick, catch_up_s=0.05
+                1.0 / svc.offset_rate_hz,
+                self.publishing.offset_tick,
+                catch_up_s=0.05,
+                skipped=self.publishing.offset_ticks_skipped,
             ),
             "status": lambda: every(svc.heartbeat_interval_s, self._status_tick),
-            "control": self._control_loop,
+            "control": self._serve_control,
         }
         if svc.closed_loop:
             loops["closed"] = lambda: every(svc.closed_loop_interval_s, self._closed_loop_tick)
@@ -326,55 +351,9 @@ class DriftService:
                 return
             await asyncio.sleep(poll_s)
 
-    # ------------------------------------------------------------------ control
-
-    async def _control_loop(self) -> None:
+    async def _serve_control(self) -> None:
         assert self._control is not None
-        control = self._control
-        while True:
-            req = await control.receive()
-            if isinstance(req, ControlReply):
-                await control.reply(req)
-                continue
-            try:
-                reply = await self._handle_control(req)
-            except AfmdriftError as err:
-                reply = ControlReply(ok=False, error=str(err))
-            await control.reply(reply)
-
-    async def _handle_control(self, req: ControlRequest) -> ControlReply:
-        log.info("control: %s", req.cmd)
-        if req.cmd == "pause":
-            self.publishing.paused = True
-        elif req.cmd == "resume":
-            self.publishing.paused = False
-        elif req.cmd == "reset_reference":
-            self.pipeline.request_reset()
-        elif req.cmd == "reload_model":
-            await self._reload_model(req.config_path)
-        return ControlReply(ok=True, status=self.publishing.status_msg())
-
-    async def _reload_model(self, config_path: str | None) -> None:
-        path = config_path or (str(self.config_path) if self.config_path else None)
-        if path is None:
-            raise AfmdriftError(
-                "reload_model: the daemon was started without a configuration file; "
-                "name one in config_path"
-            )
-        new = load_config(path)
-
-        def reload() -> int:
-            predictor = make_predictor(new.model.predictor, new.model)
-            return self.pipeline.reload_model(predictor)
-
-        n = await self._in_worker(reload)
-        self.config = self.config.model_copy(update={"model": new.model})
-        self.pipeline.config = self.config
-        if self.pipeline.curve is not None:
-            self.publishing.curve = self.pipeline.curve
-        log.info(
-            "reloaded [model] from %s (%s), refitted on %d points", path, new.model.predictor, n
-        )
+        await self.controller.serve(self._control)
 
     # ------------------------------------------------------------------ closed loop
 

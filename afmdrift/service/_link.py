@@ -286,6 +286,7 @@ async def every(
     body: Callable[[], Awaitable[None]],
     *,
     catch_up_s: float = 0.0,
+    skipped: Callable[[int], None] | None = None,
 ) -> None:
     """Run ``body`` every ``period_s`` on an absolute schedule, for ever.
 
@@ -293,8 +294,9 @@ async def every(
     ones at once, so the average rate holds (the offset stream: the event
     loop's sleeps are rounded up to whole milliseconds, which alone would turn
     1 kHz into about 700 Hz). Later than that, the schedule restarts from now
-    rather than bursting (polls after a reconnect). A tick whose instrument
-    call failed is skipped; the link reconnects.
+    rather than bursting (polls after a reconnect), and ``skipped`` is told
+    how many ticks were left out. A tick whose instrument call failed is
+    skipped; the link reconnects.
     """
     loop = asyncio.get_running_loop()
     next_t = loop.time()
@@ -302,7 +304,10 @@ async def every(
         next_t += period_s
         delay = next_t - loop.time()
         await asyncio.sleep(delay if delay > 0 else 0.0)
-        if loop.time() - next_t > max(period_s, catch_up_s):
+        late = loop.time() - next_t
+        if late > max(period_s, catch_up_s):
+            if skipped is not None:
+                skipped(int(late / period_s))
             next_t = loop.time()
         try:
             await body()

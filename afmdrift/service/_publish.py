@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import itertools
 import math
+import secrets
 import statistics
 import time
 from collections import deque
+from collections.abc import Callable
 from typing import Literal
 
 from afmdrift.config import ServiceConfig
@@ -39,6 +41,8 @@ class Publishing:
         The instrument link's clock (instrument time from wall time).
     flags : set of str
         The service's status flags, shared with the instrument link.
+    epoch : callable
+        The instrument link's current epoch (carried by every message).
 
     Attributes
     ----------
@@ -48,10 +52,22 @@ class Publishing:
         Set by the ``pause`` control command: offsets are published invalid.
     """
 
-    def __init__(self, config: ServiceConfig, *, clock: InstrumentClock, flags: set[str]) -> None:
+    def __init__(
+        self,
+        config: ServiceConfig,
+        *,
+        clock: InstrumentClock,
+        flags: set[str],
+        epoch: Callable[[], int] = lambda: 0,
+    ) -> None:
         self.config = config
         self.clock = clock
         self.flags = flags
+        self.epoch = epoch
+        #: New at every start: a subscriber sees the sequence numbers restart with it.
+        self.run_id = secrets.token_hex(8)
+        self.last_model: ModelMsg | None = None
+        self.dropped_offset_ticks = 0
         self.flags.add("no_model")
         self.state: State = "starting"
         self.paused = False
@@ -72,6 +88,10 @@ class Publishing:
         n = self._seq[topic]
         self._seq[topic] = n + 1
         return n
+
+    def offset_ticks_skipped(self, n: int) -> None:
+        """The offset schedule restarted from now, ``n`` ticks late."""
+        self.dropped_offset_ticks += n
 
     # ------------------------------------------------------------------ frames
 
@@ -114,19 +134,20 @@ class Publishing:
         if outcome.curve_dict is not None and r.fed_model:
             anchor = self.clock.anchor()
             wall, inst, rate = anchor if anchor is not None else (now, r.t_end_s, 1.0)
-            await self.publisher.send(
-                ModelMsg(
-                    seq=self._next("model"),
-                    frame=r.seq,
-                    t_s=r.t_mid_s,
-                    wall_s=now,
-                    predictor=outcome.predictor_name,
-                    curve=outcome.curve_dict,
-                    clock=ClockSync(wall_s=wall, instrument_s=inst, rate=rate),
-                    max_offset_nm=self.config.max_offset_nm,
-                    max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
-                )
+            self.last_model = ModelMsg(
+                seq=self._next("model"),
+                frame=r.seq,
+                t_s=r.t_mid_s,
+                wall_s=now,
+                predictor=outcome.predictor_name,
+                curve=outcome.curve_dict,
+                clock=ClockSync(wall_s=wall, instrument_s=inst, rate=rate),
+                max_offset_nm=self.config.max_offset_nm,
+                max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
+                run_id=self.run_id,
+                epoch=self.epoch(),
             )
+            await self.publisher.send(self.last_model)
         latency = time.time() - detected_wall_s
         await self.publisher.send(
             FrameMsg(
@@ -150,6 +171,8 @@ class Publishing:
                 pred_y_nm=_opt(r.pred_y_nm),
                 pred_error_nm=_opt(r.pred_error_nm),
                 latency_s=latency,
+                run_id=self.run_id,
+                epoch=self.epoch(),
             )
         )
         return latency
@@ -185,7 +208,14 @@ class Publishing:
         seq = self._next("offset")
         if t_s is None or self.curve is None:
             return OffsetMsg(
-                seq=seq, t_s=t_s or 0.0, wall_s=wall_s, x_nm=0.0, y_nm=0.0, valid=False
+                seq=seq,
+                t_s=t_s or 0.0,
+                wall_s=wall_s,
+                x_nm=0.0,
+                y_nm=0.0,
+                valid=False,
+                run_id=self.run_id,
+                epoch=self.epoch(),
             )
         target = self.curve.at([t_s]).reshape(-1)
         tx, ty = float(target[0]), float(target[1])
@@ -204,6 +234,8 @@ class Publishing:
             y_nm=out.y_nm,
             valid=valid,
             clamped=out.clamped,
+            run_id=self.run_id,
+            epoch=self.epoch(),
         )
 
     async def offset_tick(self) -> None:
@@ -217,6 +249,14 @@ class Publishing:
     # ------------------------------------------------------------------ status
 
     def status_msg(self) -> StatusMsg:
+        """The next heartbeat (takes the next ``status`` sequence number)."""
+        return self._status(self._next("status"))
+
+    def status_snapshot(self) -> StatusMsg:
+        """The status now, for a control reply: ``seq`` is the last heartbeat's."""
+        return self._status(max(self._seq["status"] - 1, 0))
+
+    def _status(self, seq: int) -> StatusMsg:
         wall = time.time()
         t = self.clock.at(wall)
         flags = set(self.flags)
@@ -237,7 +277,7 @@ class Publishing:
             state = "running"
         errs = list(self._errors_nm)
         return StatusMsg(
-            seq=self._next("status"),
+            seq=seq,
             t_s=t,
             wall_s=wall,
             state=state,
@@ -248,6 +288,9 @@ class Publishing:
             rolling_error_nm=statistics.fmean(errs) if errs else None,
             rolling_max_error_nm=max(errs) if errs else None,
             rolling_window=self.config.rolling_window,
+            dropped_offset_ticks=self.dropped_offset_ticks,
+            run_id=self.run_id,
+            epoch=self.epoch(),
         )
 
 

@@ -10,6 +10,7 @@ subscriber only.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 from pathlib import Path
 
 import zmq
@@ -31,7 +32,14 @@ from afmdrift.wire import (
     encode,
 )
 
-__all__ = ["ControlSocket", "CurveKeys", "Publisher", "ServiceSocketError", "load_curve_keys"]
+__all__ = [
+    "ControlMessage",
+    "ControlSocket",
+    "CurveKeys",
+    "Publisher",
+    "ServiceSocketError",
+    "load_curve_keys",
+]
 
 log = logging.getLogger(__name__)
 
@@ -106,10 +114,19 @@ def load_curve_keys(config: ServiceConfig) -> CurveKeys | None:
 
 
 def _bind(
-    ctx: zmq.asyncio.Context, kind: int, endpoint: str, key: str, curve: CurveKeys | None
+    ctx: zmq.asyncio.Context,
+    kind: int,
+    endpoint: str,
+    key: str,
+    curve: CurveKeys | None,
+    options: dict[int, int] | None = None,
 ) -> zmq.asyncio.Socket:
+    """A socket of ``kind`` bound to ``endpoint``; ``options`` are set before the
+    bind (ZeroMQ applies most options only to connections made after them)."""
     sock = ctx.socket(kind)
     sock.setsockopt(zmq.LINGER, 0)
+    for option, value in (options or {}).items():
+        sock.setsockopt(option, value)
     if curve is not None and not endpoint_is_local(endpoint):
         curve.apply(sock)
     try:
@@ -145,8 +162,9 @@ class Publisher:
         curve: CurveKeys | None = None,
     ) -> None:
         self._ctx = ctx or zmq.asyncio.Context.instance()
-        self._sock = _bind(self._ctx, zmq.PUB, endpoint, "pub_endpoint", curve)
-        self._sock.setsockopt(zmq.SNDHWM, sndhwm)
+        self._sock = _bind(
+            self._ctx, zmq.PUB, endpoint, "pub_endpoint", curve, {zmq.SNDHWM: sndhwm}
+        )
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
         self.sent = 0
         self.dropped = 0
@@ -163,8 +181,30 @@ class Publisher:
         self._sock.close(linger=0)
 
 
+@dataclass(frozen=True, slots=True)
+class ControlMessage:
+    """One message received on the control socket, with its route back.
+
+    ``request`` is the decoded request, or ``None`` when the message was not
+    one (then ``error`` says why and the reply is an error).
+    """
+
+    envelope: tuple[bytes, ...]
+    request: ControlRequest | None
+    error: str | None = None
+
+
 class ControlSocket:
-    """REP socket answering :class:`ControlRequest` messages."""
+    """The control socket: any peer's request gets exactly one reply.
+
+    A ROUTER socket, so a malformed peer cannot wedge it the way it wedges a
+    REP socket: a REQ client's message is ``[identity, b"", request]`` and its
+    reply goes back behind the same envelope; a DEALER peer that sends
+    ``[request]`` without the empty delimiter gets ``[reply]`` the same way; a
+    request of several frames gets an error reply. Messages over
+    ``max_request_bytes`` are dropped by ZeroMQ itself (the peer is
+    disconnected) before they take memory.
+    """
 
     def __init__(
         self,
@@ -172,22 +212,47 @@ class ControlSocket:
         *,
         ctx: zmq.asyncio.Context | None = None,
         curve: CurveKeys | None = None,
+        max_request_bytes: int = 65536,
     ) -> None:
         self._ctx = ctx or zmq.asyncio.Context.instance()
-        self._sock = _bind(self._ctx, zmq.REP, endpoint, "control_endpoint", curve)
+        # MAXMSGSIZE applies to each frame, before it is read into memory.
+        self._sock = _bind(
+            self._ctx,
+            zmq.ROUTER,
+            endpoint,
+            "control_endpoint",
+            curve,
+            {zmq.MAXMSGSIZE: max_request_bytes},
+        )
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
 
-    async def receive(self) -> ControlRequest | ControlReply:
-        """The next request, or a ready error reply when the request is malformed."""
-        payload = await self._sock.recv()
+    async def receive(self) -> ControlMessage:
+        """The next message, decoded, with the envelope its reply must carry."""
+        frames = await self._sock.recv_multipart()
+        identity, rest = frames[0], frames[1:]
+        envelope: tuple[bytes, ...]
+        if rest and rest[0] == b"":
+            envelope, body = (identity, b""), rest[1:]
+        else:
+            envelope, body = (identity,), rest
+        if len(body) != 1:
+            error = f"control request: expected one frame, got {len(body)}"
+            log.warning("control: rejected message: %s", error)
+            return ControlMessage(envelope, None, error)
         try:
-            return decode_control_request(payload)
+            return ControlMessage(envelope, decode_control_request(body[0]))
         except WireError as err:
             log.warning("control: rejected request: %s", err)
-            return ControlReply(ok=False, error=str(err))
+            return ControlMessage(envelope, None, str(err))
 
-    async def reply(self, reply: ControlReply) -> None:
-        await self._sock.send(reply.model_dump_json().encode("utf-8"))
+    async def reply(self, message: ControlMessage, reply: ControlReply) -> None:
+        """Send ``reply`` back along ``message``'s envelope (never blocks; a peer
+        that has gone is skipped)."""
+        payload = reply.model_dump_json().encode("utf-8")
+        try:
+            await self._sock.send_multipart([*message.envelope, payload], flags=zmq.NOBLOCK)
+        except zmq.ZMQError as err:
+            log.warning("control: reply not sent: %s", err)
 
     def close(self) -> None:
         self._sock.close(linger=0)

@@ -43,7 +43,7 @@ async def test_reload_with_the_missing_effect_lowers_the_rolling_error(tmp_path:
     data["scan"]["directions"] = "alternate"
     data["physics"]["scan_direction"] = {"enabled": True, "bias_nm": [8.0, 6.0]}
     scenario = parse_scenario(data, source="reload-test")
-    base = service_config(tmp_path / "run", rolling_window=ROLLING)
+    base = service_config(tmp_path / "run", rolling_window=ROLLING, reload_config_dir=str(tmp_path))
     model = {
         "predictor": "physics",
         "physics": {"terms": ["trend"], "residual": "ar1"},
@@ -75,6 +75,7 @@ async def test_reload_with_the_missing_effect_lowers_the_rolling_error(tmp_path:
                         service.control_endpoint,
                         "reload_model",
                         config_path=str(fixed),
+                        token_file=service.control_token_path,
                         timeout_s=60.0,
                         ctx=ctx,
                     )

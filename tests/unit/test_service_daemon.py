@@ -74,18 +74,21 @@ async def test_control_socket_pause_resume_and_bad_request(
     cfg = service_config(tmp_path / "run")
     instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
     async with running_service(cfg, instrument, ctx) as service:
-        reply = await control(service.control_endpoint, "pause", ctx=ctx)
+        token = service.control_token_path
+        reply = await control(service.control_endpoint, "pause", token_file=token, ctx=ctx)
         assert reply.status is not None
         assert reply.status.state == "paused"
         assert "paused" in reply.status.flags
-        reply = await control(service.control_endpoint, "resume", ctx=ctx)
+        reply = await control(service.control_endpoint, "resume", token_file=token, ctx=ctx)
         assert reply.status is not None
         assert reply.status.state != "paused"
-        reply = await control(service.control_endpoint, "reset_reference", ctx=ctx)
+        reply = await control(
+            service.control_endpoint, "reset_reference", token_file=token, ctx=ctx
+        )
         assert reply.ok
         # reload_model without a config file names the missing item
         with pytest.raises(ClientError, match="config_path"):
-            await control(service.control_endpoint, "reload_model", ctx=ctx)
+            await control(service.control_endpoint, "reload_model", token_file=token, ctx=ctx)
         req = ctx.socket(zmq.REQ)
         req.setsockopt(zmq.LINGER, 0)
         try:
@@ -100,17 +103,30 @@ async def test_control_socket_pause_resume_and_bad_request(
 
 @pytest.mark.asyncio
 async def test_reload_model_reads_the_named_file(tmp_path: Path, ctx: zmq.asyncio.Context) -> None:
-    cfg = service_config(tmp_path / "run")
+    cfg = service_config(tmp_path / "run", reload_config_dir=str(tmp_path))
     new = tmp_path / "new.toml"
     new.write_text('[model]\npredictor = "last_value"\n', encoding="utf-8")
     bad = tmp_path / "bad.toml"
     bad.write_text('[model]\npredictor = "crystal_ball"\n', encoding="utf-8")
     instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
     async with running_service(cfg, instrument, ctx) as service:
-        await control(service.control_endpoint, "reload_model", config_path=str(new), ctx=ctx)
+        token = service.control_token_path
+        await control(
+            service.control_endpoint,
+            "reload_model",
+            config_path=str(new),
+            token_file=token,
+            ctx=ctx,
+        )
         assert service.pipeline.predictor.name == "last_value"
         with pytest.raises(ClientError, match="crystal_ball"):
-            await control(service.control_endpoint, "reload_model", config_path=str(bad), ctx=ctx)
+            await control(
+                service.control_endpoint,
+                "reload_model",
+                config_path=str(bad),
+                token_file=token,
+                ctx=ctx,
+            )
         assert service.pipeline.predictor.name == "last_value"
 
 

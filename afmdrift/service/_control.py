@@ -1,0 +1,211 @@
+"""The control socket's commands, who may give them, and what ``reload_model`` may read.
+
+Trust model (``docs/service.md``, *Control socket*):
+
+* Any local process can connect to a loopback endpoint, so commands that
+  change the daemon's state (``pause``, ``resume``, ``reset_reference``,
+  ``reload_model``) need a token: a random string the daemon writes at start
+  to ``service.control_token_file`` (default ``RUN_DIR/control.token``),
+  readable only by the daemon's user. ``status`` and ``model`` only read.
+  ``control_auth = false`` turns the check off; endpoints off loopback
+  require CURVE as well.
+* ``reload_model`` reads only regular files in the directory of the daemon's
+  own configuration file or in ``service.reload_config_dir``, at most
+  :data:`~afmdrift.config.MAX_CONFIG_BYTES`, in the worker thread (never on
+  the event loop). Configuration files are trusted input: effect plugins
+  they name are imported.
+* Every message gets exactly one reply; no message, however malformed, ends
+  the control task.
+"""
+
+from __future__ import annotations
+
+import hmac
+import logging
+import os
+import secrets
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Protocol, TypeVar
+
+from afmdrift.config import AfmdriftConfig, load_config
+from afmdrift.errors import AfmdriftError, ConfigError
+from afmdrift.model import make_predictor
+from afmdrift.pipeline import FramePipeline
+from afmdrift.service._publish import Publishing
+from afmdrift.service._zmq import ControlMessage, ControlSocket
+from afmdrift.wire import ControlReply, ControlRequest
+
+__all__ = ["STATE_CHANGING", "Controller", "write_token"]
+
+log = logging.getLogger(__name__)
+
+_T = TypeVar("_T")
+
+
+class InWorker(Protocol):
+    """Runs a function in the daemon's worker thread."""
+
+    def __call__(self, fn: Callable[[], _T], /) -> Awaitable[_T]: ...
+
+
+#: Commands that change the daemon's state (they need the token).
+STATE_CHANGING = frozenset({"pause", "resume", "reset_reference", "reload_model"})
+
+
+def write_token(path: Path) -> str:
+    """Write a new random token to ``path`` (mode 0600, atomically); return it."""
+    token = secrets.token_urlsafe(32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:
+        os.fchmod(fd, 0o600)
+        os.write(fd, token.encode("ascii"))
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
+    return token
+
+
+class Controller:
+    """Answers control messages for a daemon.
+
+    Parameters
+    ----------
+    config : AfmdriftConfig
+        The daemon's configuration (``service`` settings; ``model`` is
+        replaced by ``reload_model``).
+    config_path : Path or None
+        The daemon's configuration file (``reload_model`` without a path
+        re-reads it; its directory is one where others may be read).
+    pipeline : FramePipeline
+    publishing : Publishing
+    in_worker : callable
+        Runs a function in the daemon's worker thread.
+    """
+
+    def __init__(
+        self,
+        *,
+        config: AfmdriftConfig,
+        config_path: Path | None,
+        pipeline: FramePipeline,
+        publishing: Publishing,
+        in_worker: InWorker,
+    ) -> None:
+        self.config = config
+        self.config_path = config_path
+        self.pipeline = pipeline
+        self.publishing = publishing
+        self._in_worker = in_worker
+        svc = config.service
+        self.token_path = Path(svc.control_token_file or Path(svc.run_dir) / "control.token")
+        self._token: str | None = None
+        dirs = [config_path.resolve().parent] if config_path is not None else []
+        if svc.reload_config_dir is not None:
+            dirs.append(Path(svc.reload_config_dir).resolve())
+        self._reload_dirs = dirs
+
+    def start(self) -> None:
+        """Write the token file (when commands need a token)."""
+        if self.config.service.control_auth:
+            self._token = write_token(self.token_path)
+            log.info("control token written to %s", self.token_path)
+
+    def stop(self) -> None:
+        """Remove the token file this daemon wrote."""
+        if self._token is not None:
+            self.token_path.unlink(missing_ok=True)
+            self._token = None
+
+    async def serve(self, sock: ControlSocket) -> None:
+        """Answer every message on ``sock``, for ever."""
+        while True:
+            message = await sock.receive()
+            await sock.reply(message, await self.answer(message))
+
+    async def answer(self, message: ControlMessage) -> ControlReply:
+        """The reply to one message; an error reply for anything that goes wrong."""
+        req = message.request
+        if req is None:
+            return ControlReply(ok=False, error=message.error)
+        try:
+            return await self._handle(req)
+        except AfmdriftError as err:
+            return ControlReply(ok=False, error=str(err))
+        except Exception as err:  # a bug must not end the control task; it is logged
+            log.exception("control: %s failed", req.cmd)
+            return ControlReply(ok=False, error=f"{req.cmd}: internal error: {type(err).__name__}")
+
+    async def _handle(self, req: ControlRequest) -> ControlReply:
+        log.info("control: %s", req.cmd)
+        if req.cmd in STATE_CHANGING:
+            self._authorise(req)
+        if req.cmd == "pause":
+            self.publishing.paused = True
+        elif req.cmd == "resume":
+            self.publishing.paused = False
+        elif req.cmd == "reset_reference":
+            self.pipeline.request_reset()
+        elif req.cmd == "reload_model":
+            await self._reload_model(req.config_path)
+        elif req.cmd == "model":
+            return ControlReply(
+                ok=True,
+                status=self.publishing.status_snapshot(),
+                model=self.publishing.last_model,
+            )
+        return ControlReply(ok=True, status=self.publishing.status_snapshot())
+
+    def _authorise(self, req: ControlRequest) -> None:
+        if self._token is None:
+            return
+        given = (req.token or "").encode("utf-8", "replace")
+        if not hmac.compare_digest(given, self._token.encode("ascii")):
+            what = "a wrong token" if req.token else "no token"
+            raise AfmdriftError(
+                f"{req.cmd}: refused, {what}: state-changing commands need the token in "
+                f"{self.token_path}"
+            )
+
+    def _allowed_path(self, config_path: str | None) -> Path:
+        if config_path is None:
+            if self.config_path is None:
+                raise AfmdriftError(
+                    "reload_model: the daemon was started without a configuration file; "
+                    "name one in config_path"
+                )
+            return self.config_path
+        try:
+            os.fsencode(config_path)
+        except UnicodeError:
+            raise ConfigError("reload_model: config_path is not a valid file name") from None
+        if "\x00" in config_path:
+            raise ConfigError("reload_model: config_path is not a valid file name")
+        resolved = Path(config_path).resolve()
+        if not any(resolved.is_relative_to(d) for d in self._reload_dirs):
+            allowed = ", ".join(str(d) for d in self._reload_dirs) or "none configured"
+            raise ConfigError(
+                f"reload_model: {config_path!r} is outside the directories configuration "
+                f"files may be reloaded from ({allowed}; see service.reload_config_dir)"
+            )
+        return resolved
+
+    async def _reload_model(self, config_path: str | None) -> None:
+        path = self._allowed_path(config_path)
+
+        def reload() -> tuple[AfmdriftConfig, int]:
+            new = load_config(path)  # a regular file of bounded size, UTF-8 (read_toml)
+            predictor = make_predictor(new.model.predictor, new.model)
+            return new, self.pipeline.reload_model(predictor)
+
+        new, n = await self._in_worker(reload)
+        self.config = self.config.model_copy(update={"model": new.model})
+        self.pipeline.config = self.config
+        if self.pipeline.curve is not None:
+            self.publishing.curve = self.pipeline.curve
+        log.info(
+            "reloaded [model] from %s (%s), refitted on %d points", path, new.model.predictor, n
+        )
