@@ -414,15 +414,10 @@ def evaluate_candidate(
     base : _Basis, optional
         :func:`base_basis` of ``design`` (computed if not given).
     """
-    why = term.missing(history)
+    n = design.t_s.size - 1
+    why = _why_untestable(term, history, n)
     if why is not None:
         return CandidateResult(effect=term.name, testable=False, reason=why)
-    t = design.t_s
-    n = t.size - 1
-    if n < 10:
-        return CandidateResult(
-            effect=term.name, testable=False, reason=f"only {n + 1} measured frames"
-        )
     thresholds = thresholds or Thresholds()
     b0 = base if base is not None else base_basis(design)
     k_model = sum(q.shape[1] for q in b0.qm) + 2 + design.n_nonlinear
@@ -430,53 +425,174 @@ def evaluate_candidate(
     grid = term.nonlinear_grid()
     n_theta = len(term.nonlinear_params)
     scan = _scan(term, design, history, b0, grid)
-    totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
-    if not np.isfinite(totals).any():
+    if not np.isfinite(_totals(scan)).any():
         return CandidateResult(
             effect=term.name,
             testable=False,
             reason="its basis is constant or already spanned by the model on this run",
         )
-    basis = b0
-    if design.grids:
-        best_params = scan[int(np.argmin(totals))][0]
-        blocks = _cand_block(term, t, history, design.scan_sign, best_params)
-        raw = [design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)]
-        basis = optimise_model(design, raw)
-        scan = _scan(term, design, history, basis, grid)
-        totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
-    # One Cochrane–Orcutt step: the model with the candidate gets its own φ, from
-    # its level residuals, so the comparison is between the two models' one-step
-    # predictions y_k | y_{k-1} (conditional likelihoods of the same data).
-    best_params = scan[int(np.argmin(totals))][0]
-    design_c = replace(design, phi=_level_phi(design, basis.params, term, history, best_params))
-    basis = _basis(design_c, basis.params)
-    scan = _scan(term, design_c, history, basis, grid)
-    totals = [sum(r) if sum(z.shape[1] for z in zc) else math.inf for _, zc, r in scan]
-    per_theta = []
-    for params, zc, rss1 in scan:
-        k_c = sum(z.shape[1] for z in zc)
-        d = aicc0 - _aicc(rss1, n, k_model + k_c + n_theta) if k_c else math.nan
-        per_theta.append((params, zc, rss1, d))
-    i_best = int(np.argmin(totals))
-    params, zc, rss1, d_aicc = per_theta[i_best]
+    design_c, basis, scan = _fit_with_candidate(term, design, history, b0, grid, scan)
+    # Candidate parameters count: its linear columns plus one per scanned θ.
+    k_base = k_model + n_theta
+    profile_d = [
+        _delta_aicc(aicc0, rss1, zc, n=n, k_base=k_base) if _n_cols(zc) else math.nan
+        for _, zc, rss1 in scan
+    ]
+    i_best = int(np.argmin(_totals(scan)))
+    params, zc, rss1 = scan[i_best]
+    d_aicc = profile_d[i_best]
     if n_theta == 1:
         params, zc, rss1 = _refine(term, design_c, history, basis, grid, i_best, scan[i_best])
-        k_c = sum(z.shape[1] for z in zc)
-        d_aicc = aicc0 - _aicc(rss1, n, k_model + k_c + n_theta)
-    lags = newey_west_lags(n)
-    wald = 0.0
-    df = 0
-    for a in (0, 1):
-        w, k, _ = _wald(zc[a], basis.e0[a], lags)
-        wald += w
-        df += k
-    p = float(stats.chi2.sf(wald, df)) if df else 1.0
-    p_bonf = min(1.0, p * max(n_tests, 1))
+        d_aicc = _delta_aicc(aicc0, rss1, zc, n=n, k_base=k_base)
+    wald = _WaldTest.of(zc, basis.e0, n=n, n_tests=n_tests)
     cv_base, cv_cand, cv_ok = _blocked_cv(
         term, design, design_c, history, b0.zm, basis.zm, grid, thresholds.folds
     )
     cv_drop = (1.0 - cv_cand / cv_base) if (cv_ok and cv_base > 0) else None
+    in_sample_ok, significant = _decide(d_aicc, wald.p_bonferroni, cv_drop, thresholds)
+    return CandidateResult(
+        effect=term.name,
+        testable=True,
+        significant=bool(significant),
+        in_sample_ok=bool(in_sample_ok),
+        score=float(d_aicc),
+        delta_aicc=float(d_aicc),
+        wald=float(wald.chi2),
+        df=int(wald.df),
+        p_value=wald.p_value,
+        p_bonferroni=wald.p_bonferroni,
+        cv_rmse_base_nm=float(cv_base),
+        cv_rmse_nm=float(cv_cand),
+        cv_drop=None if cv_drop is None else float(cv_drop),
+        params=_named_params(term, design_c, history, basis, params),
+        nonlinear=dict(params),
+        profile=_profile(term, scan, profile_d),
+        av=_av_data(zc, basis.e0, n),
+    )
+
+
+def _why_untestable(term: EffectTerm, history: History, n: int) -> str | None:
+    """Why ``term`` cannot be tested before any fit (missing inputs, too few frames)."""
+    why = term.missing(history)
+    if why is not None:
+        return why
+    if n < 10:
+        return f"only {n + 1} measured frames"
+    return None
+
+
+_Scan = list[tuple[dict[str, float], list[FloatArray], list[float]]]
+
+
+def _n_cols(zc: Sequence[FloatArray]) -> int:
+    """Number of candidate columns left over both axes."""
+    return sum(z.shape[1] for z in zc)
+
+
+def _totals(scan: _Scan) -> list[float]:
+    """Per θ_C, the RSS over both axes; inf where the candidate has no column left."""
+    return [sum(r) if _n_cols(zc) else math.inf for _, zc, r in scan]
+
+
+def _fit_with_candidate(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    b0: _Basis,
+    grid: list[dict[str, float]],
+    scan: _Scan,
+) -> tuple[ModelDesign, _Basis, _Scan]:
+    """The model refitted with the candidate in place, and the candidate rescanned.
+
+    θ_M is refitted (when the model has nonlinear parameters) with the best
+    grid point of ``scan`` in place; then the model with the candidate gets
+    its own φ. Returns the design with that φ, the model basis on it and the
+    candidate's scan over ``grid`` against that basis.
+    """
+    basis = b0
+    if design.grids:
+        best_params = scan[int(np.argmin(_totals(scan)))][0]
+        blocks = _cand_block(term, design.t_s, history, design.scan_sign, best_params)
+        raw = [design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)]
+        basis = optimise_model(design, raw)
+        scan = _scan(term, design, history, basis, grid)
+    # One Cochrane–Orcutt step: the model with the candidate gets its own φ, from
+    # its level residuals, so the comparison is between the two models' one-step
+    # predictions y_k | y_{k-1} (conditional likelihoods of the same data).
+    best_params = scan[int(np.argmin(_totals(scan)))][0]
+    design_c = replace(design, phi=_level_phi(design, basis.params, term, history, best_params))
+    basis = _basis(design_c, basis.params)
+    return design_c, basis, _scan(term, design_c, history, basis, grid)
+
+
+def _delta_aicc(
+    aicc0: float, rss1: Sequence[float], zc: Sequence[FloatArray], *, n: int, k_base: int
+) -> float:
+    """AICc(M) − AICc(M + C): ``k_base`` parameters plus the candidate's columns ``zc``."""
+    k_c = _n_cols(zc)
+    return aicc0 - _aicc(rss1, n, k_base + k_c)
+
+
+def _profile(term: EffectTerm, scan: _Scan, profile_d: list[float]) -> list[tuple[float, float]]:
+    """(θ, ΔAICc) over the grid of the term's first nonlinear parameter; empty if none."""
+    if not term.nonlinear_params:
+        return []
+    pname = term.nonlinear_params[0].name
+    return [(float(pp[pname]), float(d)) for (pp, _, _), d in zip(scan, profile_d, strict=True)]
+
+
+def _av_data(
+    zc: Sequence[FloatArray], e0: Sequence[FloatArray], n: int
+) -> list[tuple[FloatArray, FloatArray]]:
+    """Added-variable plot data per axis: (first candidate column or zeros, residuals)."""
+    return [(zc[a][:, 0] if zc[a].shape[1] else np.zeros(n), e0[a]) for a in (0, 1)]
+
+
+@dataclass(frozen=True, slots=True)
+class _WaldTest:
+    """Conservative HAC Wald test of γ = 0 over both axes, with its Bonferroni p-value."""
+
+    chi2: float
+    df: int
+    p_value: float
+    p_bonferroni: float
+
+    @classmethod
+    def of(
+        cls, zc: Sequence[FloatArray], e0: Sequence[FloatArray], *, n: int, n_tests: int
+    ) -> _WaldTest:
+        """The test of candidate columns ``zc`` against model residuals ``e0``.
+
+        Parameters
+        ----------
+        zc : sequence of two ndarrays, shapes (n, K_a)
+            Partialled candidate columns per axis.
+        e0 : sequence of two ndarrays, shape (n,)
+            Partialled model residuals per axis, nm.
+        n : int
+            Quasi-differenced rows (sets the Newey–West lags).
+        n_tests : int
+            (candidate, θ) pairs tried in the diagnosis (Bonferroni factor).
+        """
+        lags = newey_west_lags(n)
+        wald = 0.0
+        df = 0
+        for a in (0, 1):
+            w, k, _ = _wald(zc[a], e0[a], lags)
+            wald += w
+            df += k
+        p = float(stats.chi2.sf(wald, df)) if df else 1.0
+        return cls(wald, df, p, min(1.0, p * max(n_tests, 1)))
+
+
+def _decide(
+    d_aicc: float, p_bonf: float, cv_drop: float | None, thresholds: Thresholds
+) -> tuple[bool, bool]:
+    """(in-sample evidence passes, significant) under ``thresholds``.
+
+    Without a blocked-CV drop the in-sample evidence must be stronger by
+    ``no_cv_factor`` (see :class:`Thresholds`).
+    """
     in_sample_ok = d_aicc > thresholds.min_delta_aicc and p_bonf < thresholds.alpha
     if cv_drop is not None:
         significant = in_sample_ok and cv_drop >= thresholds.min_cv_drop
@@ -485,9 +601,23 @@ def evaluate_candidate(
             d_aicc > thresholds.no_cv_factor * thresholds.min_delta_aicc
             and p_bonf < thresholds.alpha / thresholds.no_cv_factor
         )
-    # Linear coefficients in the term's units, from the partialled fit on each axis
-    # (by Frisch–Waugh–Lovell equal to the full quasi-differenced regression's).
-    blocks = _cand_block(term, t, history, design.scan_sign, params)
+    return in_sample_ok, significant
+
+
+def _named_params(
+    term: EffectTerm,
+    design_c: ModelDesign,
+    history: History,
+    basis: _Basis,
+    params: dict[str, float],
+) -> dict[str, float]:
+    """θ_C, the linear coefficients per axis in the term's units, and the refitted θ_M.
+
+    The coefficients come from the partialled fit on each axis (by
+    Frisch–Waugh–Lovell equal to the full quasi-differenced regression's);
+    keys are ``<coefficient>_x``/``_y`` and ``model.<term>.<parameter>``.
+    """
+    blocks = _cand_block(term, design_c.t_s, history, design_c.scan_sign, params)
     named: dict[str, float] = dict(params)
     units = term.coefficient_units
     for a, axis in enumerate("xy"):
@@ -502,36 +632,9 @@ def evaluate_candidate(
             base_name = units[j] if j < len(units) else (units[0] if units else "coef")
             label = base_name if coef_full.size == 1 else f"{base_name}[{j}]"
             named[f"{label}_{axis}"] = float(v)
-    for term_name, pname, _ in design.grids:
+    for term_name, pname, _ in design_c.grids:
         named[f"model.{term_name}.{pname}"] = float(basis.params[term_name][pname])
-    profile = []
-    if n_theta:
-        pname = term.nonlinear_params[0].name
-        profile = [(float(pp[pname]), float(d)) for pp, _, _, d in per_theta]
-    av = []
-    for a in (0, 1):
-        z = zc[a]
-        col = z[:, 0] if z.shape[1] else np.zeros(n)
-        av.append((col, basis.e0[a]))
-    return CandidateResult(
-        effect=term.name,
-        testable=True,
-        significant=bool(significant),
-        in_sample_ok=bool(in_sample_ok),
-        score=float(d_aicc),
-        delta_aicc=float(d_aicc),
-        wald=float(wald),
-        df=int(df),
-        p_value=p,
-        p_bonferroni=p_bonf,
-        cv_rmse_base_nm=float(cv_base),
-        cv_rmse_nm=float(cv_cand),
-        cv_drop=None if cv_drop is None else float(cv_drop),
-        params=named,
-        nonlinear=dict(params),
-        profile=profile,
-        av=av,
-    )
+    return named
 
 
 #: AR(1) coefficients searched for each model's conditional likelihood.

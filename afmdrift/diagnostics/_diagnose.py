@@ -50,7 +50,14 @@ from afmdrift.diagnostics._stats import (
     up_down_difference,
 )
 from afmdrift.errors import ConfigError, InputError
-from afmdrift.model import History, HistoryFeed, OffsetCurve, PhysicsPredictor, available_terms
+from afmdrift.model import (
+    EffectTerm,
+    History,
+    HistoryFeed,
+    OffsetCurve,
+    PhysicsPredictor,
+    available_terms,
+)
 from afmdrift.records import EventKind
 
 __all__ = [
@@ -537,33 +544,12 @@ def diagnose(
         Too few measured frames.
     """
     options = options or DiagnoseOptions()
-    if effects is not None:
-        effects = [e.strip() for e in effects if e.strip()]
-        if not effects:
-            raise ConfigError("--effects: give at least one effect term (e.g. trend)")
-        physics = physics.model_copy(update={"terms": list(effects)})
-    known = available_terms(physics.plugins)
-    unknown = [t for t in physics.terms if t not in known]
-    if unknown:
-        raise ConfigError(
-            f"effects: unknown term(s) {', '.join(map(repr, unknown))} "
-            f"(known: {', '.join(sorted(known))})"
-        )
+    physics, known = _chosen_physics(physics, effects)
     run = run_from_store(data, physics) or run_model(data, physics)
     burn = min(options.burn_in_frames, max(run.t_s.size - 8, 0))
     summary = run.summary(burn)
     e = run.errors_nm
-    lb: dict[str, dict[str, float]] = {}
-    pg: dict[str, dict[str, float]] = {}
-    for a, axis in enumerate("xy"):
-        q, p, lags = ljung_box(e[burn:, a])
-        lb[axis] = {"q": q, "p_value": p, "lags": float(lags)}
-        periods, power = lomb_scargle(run.t_s[burn:], e[burn:, a])
-        if power.size:
-            i = int(np.argmax(power))
-            pg[axis] = {"peak_period_s": float(periods[i]), "peak_power": float(power[i])}
-        else:
-            pg[axis] = {"peak_period_s": math.nan, "peak_power": math.nan}
+    lb, pg = _whiteness(run, burn)
     failures = find_episodes(
         data, run.t_s[burn:], run.frames[burn:], e[burn:], run.scan_sign[burn:]
     )
@@ -571,66 +557,20 @@ def diagnose(
     truth_summary = error_summary(run.truth_errors_nm) if run.truth_errors_nm is not None else None
 
     design = model_design(run)
-    history = run.history
-    terms = {name: cls() for name, cls in known.items() if name not in physics.terms}
-    testable = [t for t in terms.values() if t.missing(history) is None]
-    n_tests = sum(len(t.nonlinear_grid()) for t in testable)
-    base = base_basis(design)
-    results = [
-        evaluate_candidate(
-            term, design, history, n_tests=n_tests, thresholds=options.thresholds, base=base
-        )
-        for term in terms.values()
-    ]
-    rmse0 = summary["rmse_nm"]
-    th = options.thresholds
-    by_score = sorted(
-        (c for c in results if c.testable),
-        key=lambda c: -(c.score if math.isfinite(c.score) else -math.inf),
+    results, n_tests = _test_candidates(design, run.history, known, physics, options)
+    runs = _verify_online(
+        results, data, physics, burn=burn, rmse0_nm=summary["rmse_nm"], options=options
     )
-    runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
-    for i, c in enumerate(by_score):
-        if i < options.verify or c.significant:
-            # Prequential check (Dawid 1984): the model with the term, re-run online,
-            # predicts every frame before seeing it, like the service.
-            cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
-            r = run_model(data, cfg)
-            s = r.summary(burn)
-            runs[c.effect] = (r, s)
-            c.rmse_after_nm = s["rmse_nm"]
-            c.rmse_after_kind = "replayed"
-            if math.isfinite(rmse0) and rmse0 > 0 and math.isfinite(s["rmse_nm"]):
-                c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0
-                if c.in_sample_ok and c.prequential_drop >= th.min_cv_drop:
-                    c.significant = True
-        elif c.cv_drop is not None and math.isfinite(rmse0) and c.cv_rmse_base_nm > 0:
-            c.rmse_after_nm = rmse0 * c.cv_rmse_nm / c.cv_rmse_base_nm
-            c.rmse_after_kind = "cv_estimate"
-    # Significant first; among them the one whose online re-run predicts best.
-    results.sort(
-        key=lambda c: (
-            not c.significant,
-            not c.testable,
-            c.rmse_after_nm if (c.significant and c.rmse_after_kind == "replayed") else math.inf,
-            -(c.score if math.isfinite(c.score) else -math.inf),
-        )
-    )
+    _rank(results)
+    top = results[0] if results and results[0].significant else None
     after: ModelRun | None = None
     after_summary = None
-    if results and results[0].significant and results[0].effect in runs:
-        after, after_summary = runs[results[0].effect]
-    top = results[0] if results and results[0].significant else None
+    if top is not None and top.effect in runs:
+        after, after_summary = runs[top.effect]
     finding, config_terms = _finding(
         top, results, physics, summary, after_summary, n_tests, options
     )
-    found_jumps = jumps(run)
-    if found_jumps:
-        k, jump = found_jumps[0]
-        finding = (
-            f"Caution: the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
-            f"t = {run.t_s[k]:.0f} s ({len(found_jumps)} such jump(s)); if that is a "
-            f"measurement error, what follows may explain it rather than physics. {finding}"
-        )
+    finding = _with_jump_caution(finding, run)
     return Diagnosis(
         model_effects=list(physics.terms),
         active_effects=list(run.predictor.active),
@@ -651,6 +591,149 @@ def diagnose(
         config_terms=config_terms,
         after=after,
         after_summary=after_summary,
+    )
+
+
+def _chosen_physics(
+    physics: PhysicsConfig, effects: Sequence[str] | None
+) -> tuple[PhysicsConfig, dict[str, type[EffectTerm]]]:
+    """The configuration with ``effects`` (if given) as its terms, and the known terms.
+
+    Raises
+    ------
+    ConfigError
+        Empty ``effects`` or a term name the library and plugins do not know.
+    """
+    if effects is not None:
+        effects = [e.strip() for e in effects if e.strip()]
+        if not effects:
+            raise ConfigError("--effects: give at least one effect term (e.g. trend)")
+        physics = physics.model_copy(update={"terms": list(effects)})
+    known = available_terms(physics.plugins)
+    unknown = [t for t in physics.terms if t not in known]
+    if unknown:
+        raise ConfigError(
+            f"effects: unknown term(s) {', '.join(map(repr, unknown))} "
+            f"(known: {', '.join(sorted(known))})"
+        )
+    return physics, known
+
+
+def _whiteness(
+    run: ModelRun, burn: int
+) -> tuple[dict[str, dict[str, float]], dict[str, dict[str, float]]]:
+    """Ljung–Box test and periodogram peak of the one-step errors after burn-in, per axis.
+
+    Returns
+    -------
+    lb : dict
+        ``{"x"|"y": {"q", "p_value", "lags"}}``.
+    pg : dict
+        ``{"x"|"y": {"peak_period_s", "peak_power"}}`` (NaN when too few errors).
+    """
+    e = run.errors_nm
+    lb: dict[str, dict[str, float]] = {}
+    pg: dict[str, dict[str, float]] = {}
+    for a, axis in enumerate("xy"):
+        q, p, lags = ljung_box(e[burn:, a])
+        lb[axis] = {"q": q, "p_value": p, "lags": float(lags)}
+        periods, power = lomb_scargle(run.t_s[burn:], e[burn:, a])
+        if power.size:
+            i = int(np.argmax(power))
+            pg[axis] = {"peak_period_s": float(periods[i]), "peak_power": float(power[i])}
+        else:
+            pg[axis] = {"peak_period_s": math.nan, "peak_power": math.nan}
+    return lb, pg
+
+
+def _test_candidates(
+    design: ModelDesign,
+    history: History,
+    known: dict[str, type[EffectTerm]],
+    physics: PhysicsConfig,
+    options: DiagnoseOptions,
+) -> tuple[list[CandidateResult], int]:
+    """Added-variable evidence for every known term not in the model, and the test count.
+
+    The count (every θ of every testable candidate) is the Bonferroni factor.
+    """
+    terms = {name: cls() for name, cls in known.items() if name not in physics.terms}
+    testable = [t for t in terms.values() if t.missing(history) is None]
+    n_tests = sum(len(t.nonlinear_grid()) for t in testable)
+    base = base_basis(design)
+    results = [
+        evaluate_candidate(
+            term, design, history, n_tests=n_tests, thresholds=options.thresholds, base=base
+        )
+        for term in terms.values()
+    ]
+    return results, n_tests
+
+
+def _verify_online(
+    results: list[CandidateResult],
+    data: RunData,
+    physics: PhysicsConfig,
+    *,
+    burn: int,
+    rmse0_nm: float,
+    options: DiagnoseOptions,
+) -> dict[str, tuple[ModelRun, dict[str, float]]]:
+    """Re-run the model online with the leading and the significant candidates added.
+
+    Sets each candidate's ``rmse_after_nm`` (replayed, or estimated from the
+    blocked CV for those not re-run) and ``prequential_drop``; a candidate
+    whose in-sample evidence passes becomes significant when its re-run error
+    drops enough. Returns the re-runs and their error summaries by effect.
+    """
+    th = options.thresholds
+    by_score = sorted(
+        (c for c in results if c.testable),
+        key=lambda c: -(c.score if math.isfinite(c.score) else -math.inf),
+    )
+    runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
+    for i, c in enumerate(by_score):
+        if i < options.verify or c.significant:
+            # Prequential check (Dawid 1984): the model with the term, re-run online,
+            # predicts every frame before seeing it, like the service.
+            cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
+            r = run_model(data, cfg)
+            s = r.summary(burn)
+            runs[c.effect] = (r, s)
+            c.rmse_after_nm = s["rmse_nm"]
+            c.rmse_after_kind = "replayed"
+            if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
+                c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
+                if c.in_sample_ok and c.prequential_drop >= th.min_cv_drop:
+                    c.significant = True
+        elif c.cv_drop is not None and math.isfinite(rmse0_nm) and c.cv_rmse_base_nm > 0:
+            c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
+            c.rmse_after_kind = "cv_estimate"
+    return runs
+
+
+def _rank(results: list[CandidateResult]) -> None:
+    """Sort in place: significant first, among them the best online re-run, then by ΔAICc."""
+    results.sort(
+        key=lambda c: (
+            not c.significant,
+            not c.testable,
+            c.rmse_after_nm if (c.significant and c.rmse_after_kind == "replayed") else math.inf,
+            -(c.score if math.isfinite(c.score) else -math.inf),
+        )
+    )
+
+
+def _with_jump_caution(finding: str, run: ModelRun) -> str:
+    """``finding`` prefixed with a caution when the measured drift jumps (see :func:`jumps`)."""
+    found_jumps = jumps(run)
+    if not found_jumps:
+        return finding
+    k, jump = found_jumps[0]
+    return (
+        f"Caution: the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
+        f"t = {run.t_s[k]:.0f} s ({len(found_jumps)} such jump(s)); if that is a "
+        f"measurement error, what follows may explain it rather than physics. {finding}"
     )
 
 

@@ -56,6 +56,17 @@ img { max-width: 100%; display: block; margin: 0.4em 0; }
 """
 
 
+#: Marks how many figures the browser decoded (read by the headless-browser test).
+_FIGURE_CHECK = (
+    "<script>window.addEventListener('load',function(){"
+    "var imgs=document.querySelectorAll('img.figure');var ok=0;"
+    "imgs.forEach(function(i){if(i.complete&&i.naturalWidth>0){ok++;}});"
+    "var m=document.createElement('div');m.id='figure-check';"
+    "m.setAttribute('data-total',imgs.length);m.setAttribute('data-rendered',ok);"
+    "document.body.appendChild(m);});</script>"
+)
+
+
 def _png(fig: Figure) -> str:
     import matplotlib.pyplot as plt
 
@@ -334,6 +345,21 @@ def render_report(
     matplotlib.use("Agg")
     j = dg.to_json()
     parts = [
+        *_header(dg, j),
+        *_compare_section(dg, j),
+        *_failures_section(dg, data, j),
+        *_candidates_section(dg, j),
+        *_after_section(dg, j),
+        *_worst_frame_section(dg, data, registration),
+        _FIGURE_CHECK,
+        "</body></html>",
+    ]
+    return "".join(parts)
+
+
+def _header(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
+    """Document head, title, the model in one line and the finding box with its snippet."""
+    parts = [
         "<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>",
         "<title>afmdrift diagnose</title>",
         f"<style>{_CSS}</style></head><body>",
@@ -347,7 +373,11 @@ def render_report(
     if snippet:
         parts.append(f"<pre>{_h(snippet)}</pre>")
     parts.append("</div>")
-    parts.append("<h2>1. Compare</h2>")
+    return parts
+
+
+def _compare_section(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
+    """Section 1: one-step (and continuous-vs-truth) error table, measured vs predicted."""
     rows = [
         [
             "one-step",
@@ -370,9 +400,16 @@ def render_report(
                 _fmt(t["peak_error_nm"]),
             ]
         )
-    parts.append(_table(["error (nm)", "RMS", "RMS x", "RMS y", "mean |e|", "peak"], rows))
-    parts.append(_img(_fig_compare(dg), "measured vs predicted"))
-    parts.append("<h2>2. Where it fails</h2>")
+    return [
+        "<h2>1. Compare</h2>",
+        _table(["error (nm)", "RMS", "RMS x", "RMS y", "mean |e|", "peak"], rows),
+        _img(_fig_compare(dg), "measured vs predicted"),
+    ]
+
+
+def _failures_section(dg: Diagnosis, data: RunData, j: dict[str, Any]) -> list[str]:
+    """Section 2: errors with episodes, episode table, patterns, whiteness, channels."""
+    parts = ["<h2>2. Where it fails</h2>"]
     parts.append(_img(_fig_residuals(dg), "one-step errors with failure episodes"))
     if dg.failures:
         parts.append(
@@ -395,23 +432,7 @@ def render_report(
         parts.append("<p>No failure episode found.</p>")
     if dg.patterns:
         parts.append("<ul>" + "".join(f"<li>{_h(p)}</li>" for p in dg.patterns) + "</ul>")
-    lb = j["ljung_box"]
-    pg = j["periodogram"]
-    parts.append(
-        _table(
-            ["axis", "Ljung–Box Q", "p-value", "peak period (s)", "peak power"],
-            [
-                [
-                    a,
-                    _fmt(lb[a]["q"], ".1f"),
-                    _fmt(lb[a]["p_value"], ".2g"),
-                    _fmt(pg[a]["peak_period_s"], ".0f"),
-                    _fmt(pg[a]["peak_power"], ".2f"),
-                ]
-                for a in ("x", "y")
-            ],
-        )
-    )
+    parts.append(_whiteness_table(j))
     if j["up_down"] is not None:
         u = j["up_down"]
         parts.append(
@@ -422,7 +443,31 @@ def render_report(
     xc = _fig_xcorr(dg, data)
     if xc is not None:
         parts.append(_img(xc, "cross-correlation with channels"))
-    parts.append("<h2>3. Which effect is missing</h2>")
+    return parts
+
+
+def _whiteness_table(j: dict[str, Any]) -> str:
+    """Ljung–Box Q and p-value, periodogram peak period and power, per axis."""
+    lb = j["ljung_box"]
+    pg = j["periodogram"]
+    return _table(
+        ["axis", "Ljung–Box Q", "p-value", "peak period (s)", "peak power"],
+        [
+            [
+                a,
+                _fmt(lb[a]["q"], ".1f"),
+                _fmt(lb[a]["p_value"], ".2g"),
+                _fmt(pg[a]["peak_period_s"], ".0f"),
+                _fmt(pg[a]["peak_power"], ".2f"),
+            ]
+            for a in ("x", "y")
+        ],
+    )
+
+
+def _candidates_section(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
+    """Section 3: the candidate table and the top candidate's added-variable plot."""
+    parts = ["<h2>3. Which effect is missing</h2>"]
     parts.append(
         _table(
             [
@@ -434,67 +479,70 @@ def render_report(
                 "RMS with it (nm)",
                 "params",
             ],
-            [
-                [
-                    c["effect"],
-                    "yes" if c["significant"] else ("no" if c["testable"] else "not testable"),
-                    _fmt(c["delta_aicc"], ".1f"),
-                    _fmt(c["p_bonferroni"], ".2g"),
-                    "–" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%",
-                    _fmt(c["rmse_after_nm"])
-                    + (" (est.)" if c["rmse_after_kind"] == "cv_estimate" else ""),
-                    ", ".join(f"{k} = {_fmt(v, '.3g')}" for k, v in c["params"].items())
-                    or (c["reason"] or ""),
-                ]
-                for c in j["candidates"]
-            ],
+            [_candidate_row(c) for c in j["candidates"]],
         )
     )
     av = _fig_added_variable(dg)
     if av is not None:
         parts.append(_img(av, "added-variable plot"))
-    parts.append("<h2>4. Add it and watch the error fall</h2>")
-    if j["after"] is not None:
-        a = j["after"]
-        parts.append(
-            _table(
-                ["model", "RMS (nm)", "mean |e| (nm)", "peak (nm)"],
-                [
-                    [
-                        "before: " + ", ".join(j["model_effects"]),
-                        _fmt(j["rmse_nm"]),
-                        _fmt(j["mean_abs_error_nm"]),
-                        _fmt(j["peak_error_nm"]),
-                    ],
-                    [
-                        "after: " + ", ".join(a["effects"]),
-                        _fmt(a["rmse_nm"]),
-                        _fmt(a["mean_abs_error_nm"]),
-                        _fmt(a["peak_error_nm"]),
-                    ],
-                ],
-            )
-        )
-        ba = _fig_before_after(dg)
-        if ba is not None:
-            parts.append(_img(ba, "before and after"))
-    else:
+    return parts
+
+
+def _candidate_row(c: dict[str, Any]) -> list[str]:
+    """One row of the candidate table, from the candidate's JSON object."""
+    return [
+        c["effect"],
+        "yes" if c["significant"] else ("no" if c["testable"] else "not testable"),
+        _fmt(c["delta_aicc"], ".1f"),
+        _fmt(c["p_bonferroni"], ".2g"),
+        "–" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%",
+        _fmt(c["rmse_after_nm"]) + (" (est.)" if c["rmse_after_kind"] == "cv_estimate" else ""),
+        ", ".join(f"{k} = {_fmt(v, '.3g')}" for k, v in c["params"].items()) or (c["reason"] or ""),
+    ]
+
+
+def _after_section(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
+    """Section 4: errors before and after adding the found effect (table and figure)."""
+    parts = ["<h2>4. Add it and watch the error fall</h2>"]
+    if j["after"] is None:
         parts.append("<p>Nothing to add: no significant missing effect.</p>")
-    parts.append("<h2>5. The worst frame</h2>")
+        return parts
+    a = j["after"]
+    parts.append(
+        _table(
+            ["model", "RMS (nm)", "mean |e| (nm)", "peak (nm)"],
+            [
+                [
+                    "before: " + ", ".join(j["model_effects"]),
+                    _fmt(j["rmse_nm"]),
+                    _fmt(j["mean_abs_error_nm"]),
+                    _fmt(j["peak_error_nm"]),
+                ],
+                [
+                    "after: " + ", ".join(a["effects"]),
+                    _fmt(a["rmse_nm"]),
+                    _fmt(a["mean_abs_error_nm"]),
+                    _fmt(a["peak_error_nm"]),
+                ],
+            ],
+        )
+    )
+    ba = _fig_before_after(dg)
+    if ba is not None:
+        parts.append(_img(ba, "before and after"))
+    return parts
+
+
+def _worst_frame_section(
+    dg: Diagnosis, data: RunData, registration: RegistrationConfig | None
+) -> list[str]:
+    """Section 5: a note on the worst frame and its block vector field, if available."""
+    parts = ["<h2>5. The worst frame</h2>"]
     vf, note = _fig_vector_field(dg, data, registration)
     parts.append(f"<p>{_h(note)}</p>")
     if vf is not None:
         parts.append(_img(vf, "vector field of the worst frame"))
-    parts.append(
-        "<script>window.addEventListener('load',function(){"
-        "var imgs=document.querySelectorAll('img.figure');var ok=0;"
-        "imgs.forEach(function(i){if(i.complete&&i.naturalWidth>0){ok++;}});"
-        "var m=document.createElement('div');m.id='figure-check';"
-        "m.setAttribute('data-total',imgs.length);m.setAttribute('data-rendered',ok);"
-        "document.body.appendChild(m);});</script>"
-    )
-    parts.append("</body></html>")
-    return "".join(parts)
+    return parts
 
 
 def write_report(

@@ -28,6 +28,7 @@ import numpy.typing as npt
 from scipy import signal, stats
 
 from afmdrift.diagnostics._data import RunData
+from afmdrift.records import Event
 
 __all__ = [
     "Failure",
@@ -291,6 +292,35 @@ def find_episodes(
     ok = np.all(np.isfinite(e), axis=1)
     if ok.sum() < 8:
         return []
+    flag, kind = _flag_frames(e, ok, z_threshold=z_threshold)
+    logged = _Logged.of(data, t_s, scan_sign)
+    return [
+        _episode(g, logged, t_s=t_s, frames=frames, e_nm=e, kind=kind)
+        for g in _group_runs(np.flatnonzero(flag))
+    ]
+
+
+def _flag_frames(
+    e: FloatArray, ok: npt.NDArray[np.bool_], *, z_threshold: float
+) -> tuple[npt.NDArray[np.bool_], npt.NDArray[np.object_]]:
+    """Flag outlier frames, then CUSUM-alarmed frames, and label each flag's kind.
+
+    Parameters
+    ----------
+    e : ndarray, shape (n, 2)
+        One-step errors, nm.
+    ok : ndarray of bool, shape (n,)
+        Rows of ``e`` without NaN.
+    z_threshold : float
+        Robust z-score above which a single error is an outlier.
+
+    Returns
+    -------
+    flag : ndarray of bool, shape (n,)
+    kind : ndarray of str (object), shape (n,)
+        ``"outlier"``, ``"sustained"`` or ``""`` (not flagged); an outlier
+        keeps its kind when a CUSUM alarm covers it too.
+    """
     z = np.column_stack([robust_z(e[:, a]) for a in (0, 1)])
     flag = np.zeros(e.shape[0], dtype=bool)
     kind = np.array([""] * e.shape[0], dtype=object)
@@ -307,37 +337,111 @@ def find_episodes(
             sel &= ~flag
             flag |= sel
             kind[sel] = "sustained"
-    step = float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0
-    names = data.channel_names()
-    rates = {nm: _local_rates(data, nm, t_s, step) for nm in names}
-    typical = {
-        nm: float(np.nanmedian(np.abs(r))) if np.isfinite(r).any() else 0.0
-        for nm, r in rates.items()
-    }
-    alternating = bool(np.any(scan_sign > 0) and np.any(scan_sign < 0))
-    episodes: list[Failure] = []
-    idx = np.flatnonzero(flag)
+    return flag, kind
+
+
+def _group_runs(idx: npt.NDArray[np.intp]) -> list[list[int]]:
+    """Sorted indices grouped into runs, a gap of at most one index allowed inside."""
     groups: list[list[int]] = []
     for i in idx:
         if groups and i - groups[-1][-1] <= 2:
             groups[-1].append(int(i))
         else:
             groups.append([int(i)])
-    for g in groups:
-        lo, hi = g[0], g[-1]
-        t0, t1 = float(t_s[lo]), float(t_s[hi])
-        norm = np.hypot(e[g, 0], e[g, 1])
-        peak = float(np.nanmax(norm)) if np.isfinite(norm).any() else math.nan
-        kinds = {str(kind[i]) for i in g}
-        k = "sustained" if "sustained" in kinds else "outlier"
+    return groups
+
+
+@dataclass(frozen=True, slots=True)
+class _Logged:
+    """What the run logged, at the error frames, for describing an episode.
+
+    Attributes
+    ----------
+    events : list of Event
+        The run's events.
+    step_s : float
+        Median frame interval, s (1 with a single frame).
+    names : list of str
+        Channel names, in the run's order.
+    rates : dict of str to ndarray, shape (n,)
+        Local slope of each channel at each frame, units per hour.
+    typical : dict of str to float
+        Median |rate| of each channel over the run, units per hour.
+    scan_sign : ndarray, shape (n,)
+        +1 up, −1 down.
+    alternating : bool
+        Whether the frames have both scan directions.
+    """
+
+    events: list[Event]
+    step_s: float
+    names: list[str]
+    rates: dict[str, FloatArray]
+    typical: dict[str, float]
+    scan_sign: FloatArray
+    alternating: bool
+
+    @classmethod
+    def of(cls, data: RunData, t_s: FloatArray, scan_sign: FloatArray) -> _Logged:
+        """Channel rates over ± one frame interval, and the run's events and directions."""
+        step = float(np.median(np.diff(t_s))) if t_s.size > 1 else 1.0
+        names = data.channel_names()
+        rates = {nm: _local_rates(data, nm, t_s, step) for nm in names}
+        typical = {
+            nm: float(np.nanmedian(np.abs(r))) if np.isfinite(r).any() else 0.0
+            for nm, r in rates.items()
+        }
+        alternating = bool(np.any(scan_sign > 0) and np.any(scan_sign < 0))
+        return cls(data.events, step, names, rates, typical, scan_sign, alternating)
+
+    def describe(self, g: list[int], t0_s: float, t1_s: float) -> tuple[list[str], list[str]]:
+        """Tags and plain-language notes for the frames ``g`` (from ``t0_s`` to ``t1_s``).
+
+        Events come first, then channel ramps, then the scan direction.
+        """
+        tags, parts = self._event_notes(t0_s, t1_s)
+        for more_tags, more_parts in (self._ramp_notes(g), self._direction_notes(g)):
+            tags += more_tags
+            parts += more_parts
+        return tags, parts
+
+    def _ramp_notes(self, g: list[int]) -> tuple[list[str], list[str]]:
+        """Channels changing over ``g`` faster than twice their typical rate."""
         tags: list[str] = []
         parts: list[str] = []
-        for ev in data.events:
-            if t0 - 2.0 * step <= ev.t_s <= t1:
+        for nm in self.names:
+            r = self.rates[nm][g[0] : g[-1] + 1]
+            if not np.isfinite(r).any():
+                continue
+            mean_rate = float(np.nanmean(r))
+            if abs(mean_rate) > 2.0 * self.typical[nm] and abs(mean_rate) > 0:
+                tags.append(f"ramp:{nm}")
+                parts.append(
+                    f"{nm} changing at {mean_rate:+.3g}/h (typical {self.typical[nm]:.2g}/h)"
+                )
+        return tags, parts
+
+    def _direction_notes(self, g: list[int]) -> tuple[list[str], list[str]]:
+        """Whether ``g`` holds only up or only down frames (when the run alternates)."""
+        if not self.alternating:
+            return [], []
+        signs = self.scan_sign[g]
+        if np.all(signs > 0):
+            return ["up_frames"], ["on up frames only" if len(g) > 1 else "on an up frame"]
+        if np.all(signs < 0):
+            return ["down_frames"], ["on down frames only" if len(g) > 1 else "on a down frame"]
+        return [], []
+
+    def _event_notes(self, t0_s: float, t1_s: float) -> tuple[list[str], list[str]]:
+        """Events from two frame intervals before ``t0_s`` to ``t1_s``: tags and notes."""
+        tags: list[str] = []
+        parts: list[str] = []
+        for ev in self.events:
+            if t0_s - 2.0 * self.step_s <= ev.t_s <= t1_s:
                 tag = str(ev.kind.value)
                 if tag not in tags:
                     tags.append(tag)
-                dt_s = t0 - ev.t_s
+                dt_s = t0_s - ev.t_s
                 if dt_s < 0:
                     when = f"inside, at t = {ev.t_s:.0f} s"
                 elif dt_s < 90:
@@ -348,40 +452,40 @@ def find_episodes(
                     parts.append(f"offset move of ({ev.x_nm:+.0f}, {ev.y_nm:+.0f}) nm {when}")
                 else:
                     parts.append(f"{tag.replace('_', ' ')} {when}")
-        for nm in names:
-            r = rates[nm][lo : hi + 1]
-            if not np.isfinite(r).any():
-                continue
-            mean_rate = float(np.nanmean(r))
-            if abs(mean_rate) > 2.0 * typical[nm] and abs(mean_rate) > 0:
-                tags.append(f"ramp:{nm}")
-                parts.append(f"{nm} changing at {mean_rate:+.3g}/h (typical {typical[nm]:.2g}/h)")
-        if alternating:
-            signs = scan_sign[g]
-            if np.all(signs > 0):
-                tags.append("up_frames")
-                parts.append("on up frames only" if len(g) > 1 else "on an up frame")
-            elif np.all(signs < 0):
-                tags.append("down_frames")
-                parts.append("on down frames only" if len(g) > 1 else "on a down frame")
-        what = (
-            f"{len(g)} frame(s) with large one-step errors (peak {peak:.2f} nm)"
-            if k == "outlier"
-            else f"sustained bias over {len(g)} frames (peak {peak:.2f} nm)"
-        )
-        context = "; ".join(parts) if parts else "no logged event or channel ramp nearby"
-        episodes.append(
-            Failure(
-                t_start_s=t0,
-                t_end_s=t1,
-                frames=[int(frames[i]) for i in g],
-                peak_error_nm=peak,
-                kind=k,
-                note=f"{what}: {context}",
-                context=tags,
-            )
-        )
-    return episodes
+        return tags, parts
+
+
+def _episode(
+    g: list[int],
+    logged: _Logged,
+    *,
+    t_s: FloatArray,
+    frames: npt.NDArray[np.int64],
+    e_nm: FloatArray,
+    kind: npt.NDArray[np.object_],
+) -> Failure:
+    """The :class:`Failure` of the flagged frames ``g`` (indices into ``t_s``)."""
+    t0, t1 = float(t_s[g[0]]), float(t_s[g[-1]])
+    norm = np.hypot(e_nm[g, 0], e_nm[g, 1])
+    peak = float(np.nanmax(norm)) if np.isfinite(norm).any() else math.nan
+    kinds = {str(kind[i]) for i in g}
+    k = "sustained" if "sustained" in kinds else "outlier"
+    tags, parts = logged.describe(g, t0, t1)
+    what = (
+        f"{len(g)} frame(s) with large one-step errors (peak {peak:.2f} nm)"
+        if k == "outlier"
+        else f"sustained bias over {len(g)} frames (peak {peak:.2f} nm)"
+    )
+    context = "; ".join(parts) if parts else "no logged event or channel ramp nearby"
+    return Failure(
+        t_start_s=t0,
+        t_end_s=t1,
+        frames=[int(frames[i]) for i in g],
+        peak_error_nm=peak,
+        kind=k,
+        note=f"{what}: {context}",
+        context=tags,
+    )
 
 
 def up_down_difference(e_nm: FloatArray, scan_sign: FloatArray) -> dict[str, float] | None:

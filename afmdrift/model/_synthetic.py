@@ -98,48 +98,192 @@ def synthetic_series(
     t_obs = np.arange(frame_period_s / 2, duration, frame_period_s)
     t_ch = np.arange(0.0, duration + frame_period_s, channel_period_s)
     temp = 22.0 + temperature_amplitude_k * np.sin(2 * np.pi * t_ch / temperature_period_s)
-    # Exact first-order lag of the sampled (piecewise-linear) temperature on a fine grid.
-    a = np.exp(-channel_period_s / thermal_tau_s)
-    lag = np.empty_like(temp)
-    lag[0] = temp[0]
-    for k in range(1, temp.size):
-        lag[k] = a * lag[k - 1] + (1 - a) * temp[k]
-    lag -= temp[0]
-    walk = np.zeros((t_obs.size, 2))
-    if velocity_walk_nm_per_h > 0:
-        steps = rng.normal(0.0, velocity_walk_nm_per_h / 3600.0, size=(t_obs.size, 2))
-        vel = np.cumsum(steps, axis=0)
-        walk = np.cumsum(vel * frame_period_s, axis=0)
-    v = np.asarray(velocity_nm_per_h) / 3600.0
-    kt = np.asarray(thermal_nm_per_k)
+    lag = _lagged_temperature(temp, channel_period_s=channel_period_s, thermal_tau_s=thermal_tau_s)
+    walk = _velocity_walk(
+        rng, t_obs.size, sigma_nm_per_h=velocity_walk_nm_per_h, frame_period_s=frame_period_s
+    )
+    drift = _DriftTruth(
+        v_nm_per_s=np.asarray(velocity_nm_per_h) / 3600.0,
+        thermal_nm_per_k=np.asarray(thermal_nm_per_k),
+        t_ch_s=t_ch,
+        lag_k=lag,
+        moves=moves,
+        creep_fraction=creep_fraction,
+        creep_t0_s=creep_t0_s,
+        t_obs_s=t_obs,
+        walk_nm=walk,
+    )
+    p_obs = drift.at(t_obs)
+    p_obs = p_obs - p_obs[0]
+    history = _logged_history(t_ch, temp, moves)
+    observations = _observations(
+        t_obs, p_obs, rng, bias_nm=scan_bias_nm, alternate=alternate_directions, noise_nm=noise_nm
+    )
+    return SyntheticSeries(
+        observations,
+        history,
+        drift.relative_to(t_obs[:1]),
+        {
+            "thermal_tau_s": thermal_tau_s,
+            "creep_t0_s": creep_t0_s,
+            "creep_fraction": creep_fraction,
+        },
+    )
 
-    def truth(t_s: FloatArray) -> FloatArray:
+
+def _lagged_temperature(
+    temp_c: FloatArray, *, channel_period_s: float, thermal_tau_s: float
+) -> FloatArray:
+    """First-order lag of the logged temperature, relative to its first sample.
+
+    Exact for the sampled (piecewise-linear) temperature on the fine channel
+    grid: lag_k = a·lag_{k−1} + (1 − a)·T_k with a = exp(−Δt/τ).
+
+    Parameters
+    ----------
+    temp_c : ndarray, shape (m,)
+        Temperature at the channel times, °C.
+    channel_period_s : float
+        Channel sampling interval Δt, s.
+    thermal_tau_s : float
+        Lag τ of the scanner behind the logged temperature, s.
+
+    Returns
+    -------
+    ndarray, shape (m,)
+        Lagged temperature minus ``temp_c[0]``, K.
+    """
+    a = np.exp(-channel_period_s / thermal_tau_s)
+    lag = np.empty_like(temp_c)
+    lag[0] = temp_c[0]
+    for k in range(1, temp_c.size):
+        lag[k] = a * lag[k - 1] + (1 - a) * temp_c[k]
+    lag -= temp_c[0]
+    return lag
+
+
+def _velocity_walk(
+    rng: np.random.Generator,
+    n_frames: int,
+    *,
+    sigma_nm_per_h: float,
+    frame_period_s: float,
+) -> FloatArray | None:
+    """Position offset of a random-walk velocity at each frame, shape (n, 2), nm.
+
+    ``sigma_nm_per_h`` is the standard deviation of the per-frame velocity
+    change. None, and nothing drawn from ``rng``, when it is not positive (so
+    the measurement noise drawn afterwards stays the same).
+    """
+    if sigma_nm_per_h > 0:
+        steps = rng.normal(0.0, sigma_nm_per_h / 3600.0, size=(n_frames, 2))
+        vel = np.cumsum(steps, axis=0)
+        return np.asarray(np.cumsum(vel * frame_period_s, axis=0), dtype=np.float64)
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class _DriftTruth:
+    """The continuous drift: trend, lagged thermal expansion, creep, velocity walk.
+
+    Attributes
+    ----------
+    v_nm_per_s : ndarray, shape (2,)
+        Constant drift velocity, nm/s.
+    thermal_nm_per_k : ndarray, shape (2,)
+        Expansion coefficient, nm/K.
+    t_ch_s, lag_k : ndarray, shape (m,)
+        Channel times (s) and lagged temperature change at them (K).
+    moves : tuple of (t_s, dx_nm, dy_nm)
+        Commanded offset moves, each followed by creep.
+    creep_fraction, creep_t0_s : float
+        Creep c and t₀ (s).
+    t_obs_s : ndarray, shape (n,)
+        Frame times, s.
+    walk_nm : ndarray, shape (n, 2), or None
+        Random-walk position offset at the frame times, nm; None without walk.
+    """
+
+    v_nm_per_s: FloatArray
+    thermal_nm_per_k: FloatArray
+    t_ch_s: FloatArray
+    lag_k: FloatArray
+    moves: tuple[tuple[float, float, float], ...]
+    creep_fraction: float
+    creep_t0_s: float
+    t_obs_s: FloatArray
+    walk_nm: FloatArray | None
+
+    def at(self, t_s: FloatArray) -> FloatArray:
+        """Drift at times ``t_s`` (scalar or (q,)), shape (q, 2), nm."""
+        v, kt = self.v_nm_per_s, self.thermal_nm_per_k
         t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
-        p = t[:, None] * v[None, :] + np.interp(t, t_ch, lag)[:, None] * kt[None, :]
-        for tm, dx, dy in moves:
+        p = t[:, None] * v[None, :] + np.interp(t, self.t_ch_s, self.lag_k)[:, None] * kt[None, :]
+        for tm, dx, dy in self.moves:
             dt = t - tm
             on = dt > 0
             c = np.zeros_like(t)
-            c[on] = creep_fraction * np.log10(1 + dt[on] / creep_t0_s)
+            c[on] = self.creep_fraction * np.log10(1 + dt[on] / self.creep_t0_s)
             p += c[:, None] * np.array([dx, dy])[None, :]
-        if velocity_walk_nm_per_h > 0:
-            p[:, 0] += np.interp(t, t_obs, walk[:, 0])
-            p[:, 1] += np.interp(t, t_obs, walk[:, 1])
+        if self.walk_nm is not None:
+            p[:, 0] += np.interp(t, self.t_obs_s, self.walk_nm[:, 0])
+            p[:, 1] += np.interp(t, self.t_obs_s, self.walk_nm[:, 1])
         return np.asarray(p, dtype=np.float64)
 
-    p_obs = truth(t_obs)
-    p_obs = p_obs - p_obs[0]
+    def relative_to(self, t_ref_s: FloatArray) -> Callable[[FloatArray], FloatArray]:
+        """The drift minus its value at ``t_ref_s[0]`` (the reference frame), as a function."""
+        ref = self.at(t_ref_s)[0]
+
+        def truth_rel(t_s: FloatArray) -> FloatArray:
+            return np.asarray(self.at(t_s) - ref, dtype=np.float64)
+
+        return truth_rel
+
+
+def _logged_history(
+    t_ch_s: FloatArray, temp_c: FloatArray, moves: tuple[tuple[float, float, float], ...]
+) -> History:
+    """The history the run logs: temperature samples and one event per offset move."""
     history = History()
-    for tc, tv in zip(t_ch, temp, strict=True):
+    for tc, tv in zip(t_ch_s, temp_c, strict=True):
         history.add_channels(ChannelSample(float(tc), {"temperature_c": float(tv)}))
     history.add_events(
         [Event(float(tm), EventKind.OFFSET_MOVE, float(dx), float(dy)) for tm, dx, dy in moves]
     )
+    return history
+
+
+def _observations(
+    t_obs_s: FloatArray,
+    p_obs_nm: FloatArray,
+    rng: np.random.Generator,
+    *,
+    bias_nm: tuple[float, float],
+    alternate: bool,
+    noise_nm: float,
+) -> list[Observation]:
+    """Measured positions: drift ± half the scan bias plus white noise, per frame.
+
+    Parameters
+    ----------
+    t_obs_s : ndarray, shape (n,)
+        Frame times, s.
+    p_obs_nm : ndarray, shape (n, 2)
+        True drift at the frame times, nm.
+    rng : numpy.random.Generator
+        Source of the noise (two draws per frame, in frame order).
+    bias_nm : (float, float)
+        Up-minus-down bias of the measured position, nm.
+    alternate : bool
+        Frames alternate up, down, up, …; otherwise all are up.
+    noise_nm : float
+        White measurement noise, per coordinate, nm.
+    """
     observations = []
-    bias = np.asarray(scan_bias_nm)
-    for i, t in enumerate(t_obs):
-        up = (i % 2 == 0) or not alternate_directions
-        meas = p_obs[i] + (0.5 if up else -0.5) * bias + rng.normal(0.0, noise_nm, size=2)
+    bias = np.asarray(bias_nm)
+    for i, t in enumerate(t_obs_s):
+        up = (i % 2 == 0) or not alternate
+        meas = p_obs_nm[i] + (0.5 if up else -0.5) * bias + rng.normal(0.0, noise_nm, size=2)
         observations.append(
             Observation(
                 t_s=float(t),
@@ -150,18 +294,4 @@ def synthetic_series(
                 frame=i,
             )
         )
-    ref = truth(t_obs[:1])[0]
-
-    def truth_rel(t_s: FloatArray) -> FloatArray:
-        return np.asarray(truth(t_s) - ref, dtype=np.float64)
-
-    return SyntheticSeries(
-        observations,
-        history,
-        truth_rel,
-        {
-            "thermal_tau_s": thermal_tau_s,
-            "creep_t0_s": creep_t0_s,
-            "creep_fraction": creep_fraction,
-        },
-    )
+    return observations
