@@ -203,26 +203,65 @@ class FramePipeline:
         """
         self.feed.push(channels, events)
         self.feed.advance(state.last.t_end_s)
-        if state.predictor_state is not None:
-            self.predictor.load_state_dict(state.predictor_state)
         fed = [r for r in records if r.fed_model]
         for r in fed[-self.config.service.training_window :]:
             self.observations.append(observation_from_record(r))
-        self.n_fed = len(fed) if state.predictor_state is not None else 0
+        if self._load_predictor_state(state):
+            self.n_fed = len(fed)
+        elif state.predictor_state is not None and self.observations:
+            # The stored state is for another predictor, or damaged: this one
+            # starts fresh, refitted on the kept observations (as reload_model).
+            self.n_fed = self.reload_model(self.predictor)
+            log.warning(
+                "predictor %r started fresh, refitted on the %d observations kept in the store",
+                self.predictor.name,
+                self.n_fed,
+            )
         self._t_ref_s = state.t_ref_s
         last = state.last
         if math.isfinite(last.x_nm) and math.isfinite(last.y_nm):
             self._last_p_nm = np.array([last.x_nm, last.y_nm])
         if state.reference is not None:
-            ref = state.reference
-            key = (ref.shape[0], ref.shape[1]), (last.pixel_x_nm, last.pixel_y_nm)
-            self._tracker = self._tracker_factory(key[1])
-            self._tracker.update(ref)
-            self._tracker_key = (key[0], key[1])
-            self._base_nm = np.array([state.reference_x_nm, state.reference_y_nm])
+            self._resume_reference(state)
         if self.n_fed:
             curve = self._stored_curve(state)
             self.curve = curve if curve is not None else self._build_curve(last.t_end_s)
+
+    def _load_predictor_state(self, state: ResumeState) -> bool:
+        """Load the stored predictor state if it is this predictor's and readable."""
+        if state.predictor_state is None:
+            return False
+        if state.predictor and state.predictor != self.predictor.name:
+            log.warning(
+                "the run store's model state is for predictor %r; [model] predictor is now %r",
+                state.predictor,
+                self.predictor.name,
+            )
+            return False
+        try:
+            self.predictor.load_state_dict(state.predictor_state)
+        except (KeyError, ValueError, TypeError, IndexError) as err:
+            log.warning(
+                "the run store's model state cannot be loaded (%s: %s)", type(err).__name__, err
+            )
+            self.predictor = self._make_predictor(self.config)  # not half-loaded
+            return False
+        return True
+
+    def _resume_reference(self, state: ResumeState) -> None:
+        """Re-prime the tracker with the stored reference (a bad one: the next frame)."""
+        assert state.reference is not None
+        ref, last = state.reference, state.last
+        pixel = (last.pixel_x_nm, last.pixel_y_nm)
+        tracker = self._tracker_factory(pixel)
+        try:
+            tracker.update(ref)
+        except InputError as err:
+            log.warning("stored reference image unusable (%s); the next frame replaces it", err)
+            return
+        self._tracker = tracker
+        self._tracker_key = ((ref.shape[0], ref.shape[1]), pixel)
+        self._base_nm = np.array([state.reference_x_nm, state.reference_y_nm])
 
     @staticmethod
     def _stored_curve(state: ResumeState) -> OffsetCurve | None:
@@ -257,8 +296,8 @@ class FramePipeline:
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
-        step, reason, new_reference = self._register(frame, seq)
-        pos = self._position(frame, step, reason, new_reference, pred, paused)
+        step, reason = self._register(frame, seq)
+        pos = self._position(frame, step, reason, pred, paused)
         fed = self._feed_model(frame, pos, seq=seq, paused=paused, t_now_s=t_now_s)
         record = _frame_record(
             frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
@@ -276,8 +315,8 @@ class FramePipeline:
             history=batch,
         )
 
-    def _register(self, frame: Frame, seq: int) -> tuple[TrackStep | None, str, bool]:
-        """Registration against the tracker's reference: ``(step, reason, new_reference)``.
+    def _register(self, frame: Frame, seq: int) -> tuple[TrackStep | None, str]:
+        """Registration against the tracker's reference: ``(step, reason)``.
 
         A new tracker (a new reference) is made for the first frame, after
         :meth:`request_reset`, and when the frame's shape or pixel size changed.
@@ -286,24 +325,24 @@ class FramePipeline:
         new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
         tracker = self._tracker
         if tracker is None or new_reference:
-            tracker = self._tracker = self._tracker_factory(frame.pixel_size_nm)
-            self._tracker_key = key
-            self._reset_requested = False
+            tracker = self._tracker_factory(frame.pixel_size_nm)
         try:
-            return tracker.update(frame.heights_nm), "", new_reference
+            step = tracker.update(frame.heights_nm)
         except InputError as err:
+            # The frame was refused before it touched anything: the current
+            # reference (if any) stays, and a pending reset stays pending.
             reason = f"registration failed: {err}"
             log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)
-            if new_reference:
-                self._tracker = None  # the next frame tries again to become the reference
-            return None, reason, new_reference
+            return None, reason
+        if new_reference:
+            self._tracker, self._tracker_key, self._reset_requested = tracker, key, False
+        return step, ""
 
     def _position(
         self,
         frame: Frame,
         step: TrackStep | None,
         reason: str,
-        new_reference: bool,
         pred: tuple[npt.NDArray[np.float64], float],
         paused: bool,
     ) -> _Position:

@@ -17,7 +17,7 @@ import time
 from dataclasses import dataclass, field
 
 from afmdrift.config import ServiceConfig
-from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, LoggedEvent
 from afmdrift.service._link import InstrumentLink, every
 
 __all__ = ["Acquisition", "FrameBatch"]
@@ -63,6 +63,10 @@ class Acquisition:
         self._channels: list[ChannelSample] = []
         self._events: list[LoggedEvent] = []
         self._event_lock = asyncio.Lock()
+        #: Kind, x, y and raw instrument time of the last entry read.
+        self._last_raw_event: tuple[EventKind, float, float, float] | None = None
+        self._log_to_check: tuple[int, tuple[EventKind, float, float, float] | None] | None = None
+        self._ignored_key: tuple[int, float] | None = None
         link.on_epoch(self._new_epoch)
 
     def resume(
@@ -75,8 +79,13 @@ class Acquisition:
         self._last_frame_key = (last_index, last_t_end_s - self.link.t_offset_s)
 
     def _new_epoch(self, epoch: int, t_offset_s: float) -> None:
+        # The instrument's clock went back. If it was restarted, its event log
+        # starts afresh; if only its clock stepped, the log still holds what
+        # was read. The next poll tells the two apart (_check_log_kept).
+        self._log_to_check = (self.event_cursor, self._last_raw_event)
         self.event_cursor = 0
         self._last_frame_key = None
+        self._ignored_key = None
 
     # ------------------------------------------------------------------ loops
 
@@ -90,13 +99,52 @@ class Acquisition:
         await every(self.config.event_poll_interval_s, self.poll_events)
 
     async def poll_events(self) -> None:
+        """Read the event log from the cursor; the cursor has one owner, this lock."""
         async with self._event_lock:
+            epoch = self.link.epoch
+            if self._log_to_check is not None:
+                await self._check_log_kept()
             start = self.event_cursor
             entries = await self.link.events(start)
+            if self.link.epoch != epoch:
+                # The instrument restarted while this read was in flight: the
+                # entries belong to no known epoch; the next poll starts over.
+                return
             for k, e in enumerate(entries):
-                self._events.append(LoggedEvent(self.link.epoch, start + k, e))
+                self._events.append(LoggedEvent(epoch, start + k, e))
                 self.events.append(e)
+            if entries:
+                last = entries[-1]
+                self._last_raw_event = (
+                    last.kind,
+                    last.x_nm,
+                    last.y_nm,
+                    last.t_s - self.link.t_offset_s,
+                )
             self.event_cursor = start + len(entries)
+
+    async def _check_log_kept(self) -> None:
+        """After an epoch: keep the cursor if the instrument's log still ends where
+        the old one was read to (a clock step), else read the new log from 0."""
+        assert self._log_to_check is not None
+        cursor, last = self._log_to_check
+        self._log_to_check = None
+        if cursor == 0 or last is None:
+            return
+        entries = await self.link.events(cursor - 1)
+        if entries:
+            e = entries[0]
+            raw_t_s = last[3]
+            same = (e.kind, e.x_nm, e.y_nm) == last[:3]
+            # Raw instrument times: the entry was logged at the same instrument
+            # time whatever the service's shift is now.
+            if same and abs((e.t_s - self.link.t_offset_s) - raw_t_s) < 1e-6:
+                log.warning(
+                    "instrument clock stepped back but its event log is the same; "
+                    "reading on from entry %d",
+                    cursor,
+                )
+                self.event_cursor = cursor
 
     async def frame_loop(self) -> None:
         await every(self.config.frame_poll_interval_s, self._poll_frame)
@@ -114,7 +162,9 @@ class Acquisition:
             epoch = self.link.epoch
             await self.link.now_s()
             if epoch == self.link.epoch:
-                log.warning("frame %d ends before the previous one; ignored", frame.index)
+                if key != self._ignored_key:  # once per frame, not on every poll
+                    log.warning("frame %d ends before the previous one; ignored", frame.index)
+                    self._ignored_key = key
                 return
         detected = time.time()
         if self._last_frame_key is not None and frame.index > self._last_frame_key[0] + 1:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 import json
+import logging
 import math
 import os
 import sqlite3
@@ -38,6 +39,8 @@ from afmdrift.pipeline import (
 from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
 
 __all__ = ["DB_NAME", "STORE_SCHEMA_VERSION", "RunStore", "StoreError"]
+
+log = logging.getLogger(__name__)
 
 STORE_SCHEMA_VERSION = 1
 #: File name of the run store inside a run directory.
@@ -300,23 +303,10 @@ class RunStore:
         last = self.last_frames(1)
         if not last:
             return None
-        row = self._db.execute(
-            "SELECT predictor, state_json, curve_json FROM model_state ORDER BY seq DESC LIMIT 1"
-        ).fetchone()
-        predictor, state, curve = ("", None, None)
-        if row is not None:
-            predictor, state = str(row[0]), json.loads(row[1])
-            curve = None if row[2] is None else json.loads(row[2])
+        predictor, state, curve = self._latest_model_state()
         meta = self.meta()
-        reference = None
-        reference_seq = int(meta["reference_seq"]) if "reference_seq" in meta else None
-        if reference_seq is not None:
-            # Written before the frame's transaction and deleted only after a
-            # later one committed, so the committed reference is always on disk
-            # unless someone removed it.
-            ref_path = self._reference_path(reference_seq)
-            if ref_path.is_file():
-                reference = np.load(ref_path, allow_pickle=False)
+        reference_seq = _meta_int(meta, "reference_seq")
+        reference = None if reference_seq is None else self._load_reference(reference_seq)
         cursor_row = self._db.execute(
             "SELECT MAX(epoch), MAX(log_index) FROM events WHERE epoch = "
             "(SELECT MAX(epoch) FROM events)"
@@ -335,6 +325,54 @@ class RunStore:
             epoch=last[0].epoch,
             t_ref_s=self._session_reference_time(),
         )
+
+    def _latest_model_state(self) -> tuple[str, dict[str, Any] | None, dict[str, Any] | None]:
+        """``(predictor, state, curve)`` of the newest readable model-state row.
+
+        A row whose JSON is damaged is reported and skipped; an older one is
+        used instead (``("", None, None)`` when none is readable).
+        """
+        rows = self._db.execute(
+            "SELECT seq, predictor, state_json, curve_json FROM model_state ORDER BY seq DESC"
+        )
+        for seq, predictor, state_json, curve_json in rows:
+            try:
+                state = json.loads(state_json)
+                curve = None if curve_json is None else json.loads(curve_json)
+            except (TypeError, ValueError, RecursionError) as err:
+                log.warning("run store: model state of frame %s is damaged (%s); skipped", seq, err)
+                continue
+            if not isinstance(state, dict) or not (curve is None or isinstance(curve, dict)):
+                log.warning("run store: model state of frame %s is not an object; skipped", seq)
+                continue
+            return str(predictor), state, curve
+        return "", None, None
+
+    def _load_reference(self, seq: int) -> npt.NDArray[np.float32] | None:
+        """The committed reference image, or ``None`` (reported) when it is missing or
+        damaged: the next frame then becomes a new reference."""
+        # Written (and fsynced) before the frame's transaction and deleted only
+        # after a later one committed, so it is on disk unless something else
+        # removed or damaged it.
+        path = self._reference_path(seq)
+        try:
+            image = np.load(path, allow_pickle=False)
+        except FileNotFoundError:
+            log.warning("run store: reference image %s is missing; taking a new one", path)
+            return None
+        except (OSError, ValueError, EOFError) as err:
+            log.warning(
+                "run store: reference image %s is damaged (%s); taking a new one", path, err
+            )
+            return None
+        if image.ndim != 2 or not np.issubdtype(image.dtype, np.floating) or min(image.shape) < 2:
+            log.warning(
+                "run store: reference image %s is not a 2-D float image %s; taking a new one",
+                path,
+                image.shape,
+            )
+            return None
+        return np.asarray(image, dtype=np.float32)
 
     def _session_reference_time(self) -> float | None:
         """Mid-scan time of the session reference frame (where p = 0)."""
@@ -419,11 +457,20 @@ class RunStore:
 
     @staticmethod
     def _save_npy(path: Path, image: npt.NDArray[np.floating]) -> None:
+        """Write atomically and durably: data and directory entry are on disk
+        before the transaction that names the file commits."""
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(path.name + ".tmp")
         with tmp.open("wb") as fh:
             np.save(fh, np.asarray(image, dtype=np.float32), allow_pickle=False)
+            fh.flush()
+            os.fsync(fh.fileno())
         os.replace(tmp, path)
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
 
 
 class _Transaction:
@@ -437,3 +484,10 @@ class _Transaction:
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
         self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+
+
+def _meta_int(meta: dict[str, str], key: str) -> int | None:
+    try:
+        return int(meta[key])
+    except (KeyError, ValueError):
+        return None

@@ -1,0 +1,151 @@
+"""The instrument link and acquisition: epochs, the event cursor, repeated frames.
+
+A scripted instrument (the ``Instrument`` interface, as a device would answer)
+drives the real :class:`InstrumentLink` and :class:`Acquisition`; each test
+names the fault it guards against (issue "A daemon that cannot be knocked over").
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import numpy as np
+import pytest
+
+from afmdrift.config import ServiceConfig
+from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo
+from afmdrift.service._acquire import Acquisition
+from afmdrift.service._link import InstrumentLink
+
+
+class ScriptedInstrument:
+    """An instrument whose clock, event log and frames the test sets."""
+
+    def __init__(self) -> None:
+        self.clock_s = 100.0
+        self.log: list[Event] = []
+        self.frame: Frame | None = None
+        self.gate: asyncio.Event | None = None  # holds events() while set
+
+    async def connect(self) -> None: ...
+
+    async def close(self) -> None: ...
+
+    async def identify(self) -> InstrumentInfo:
+        return InstrumentInfo("test", "scripted", "0", "1")
+
+    async def now_s(self) -> float:
+        return self.clock_s
+
+    async def latest_frame(self) -> Frame | None:
+        return self.frame
+
+    async def read_channels(self) -> ChannelSample:
+        return ChannelSample(self.clock_s, {"temperature_c": 20.0})
+
+    async def events(self, start: int = 0) -> list[Event]:
+        entries = self.log[start:]
+        if self.gate is not None:
+            await self.gate.wait()
+        return entries
+
+    async def set_offset(self, x_nm: float, y_nm: float) -> None: ...
+
+    async def get_offset(self) -> tuple[float, float]:
+        return (0.0, 0.0)
+
+
+async def _connected(inst: ScriptedInstrument) -> tuple[InstrumentLink, Acquisition]:
+    link = InstrumentLink(inst, reconnect_delay_s=0.01, flags=set())
+    acq = Acquisition(link, ServiceConfig())
+    link.start()
+    task = asyncio.create_task(link.connect_loop())
+    await asyncio.wait_for(link.connected.wait(), 5.0)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    link.connected.set()
+    return link, acq
+
+
+def _move(t_s: float, x_nm: float) -> Event:
+    return Event(t_s, EventKind.OFFSET_MOVE, x_nm, 0.0)
+
+
+@pytest.mark.asyncio
+async def test_restart_during_an_event_read_does_not_keep_the_old_cursor() -> None:
+    """Regression: after an instrument restart the new epoch's event log was
+    never read (the cursor was reset while a poll was in flight, then
+    overwritten by it), so a later offset move was missed."""
+    inst = ScriptedInstrument()
+    inst.log = [_move(10.0, 1.0), _move(20.0, 2.0), _move(30.0, 3.0)]
+    link, acq = await _connected(inst)
+    inst.gate = asyncio.Event()
+    poll = asyncio.create_task(acq.poll_events())
+    await asyncio.sleep(0.01)  # the read of the old log is in flight
+    inst.clock_s = 5.0  # the instrument restarted: a new, short log
+    inst.log = [_move(1.0, 40.0)]
+    await link.now_s()
+    assert link.epoch == 1
+    inst.gate.set()
+    await poll
+    assert acq.event_cursor == 0
+    assert acq.events == []
+    await acq.poll_events()
+    assert acq.event_cursor == 1
+    assert [e.x_nm for e in acq.events] == [40.0]
+
+
+@pytest.mark.asyncio
+async def test_clock_step_back_without_a_restart_does_not_replay_the_event_log() -> None:
+    """Regression: a clock step back without a restart re-read the old event log
+    and counted an offset move twice."""
+    inst = ScriptedInstrument()
+    inst.log = [_move(10.0, 5.0), _move(50.0, 7.0)]
+    link, acq = await _connected(inst)
+    await acq.poll_events()
+    assert acq.event_cursor == 2
+    inst.clock_s = 60.0  # stepped back from 100 s; the log is the same
+    await link.now_s()
+    assert link.epoch == 1
+    inst.log.append(_move(70.0, 1.0))
+    await acq.poll_events()
+    assert [e.x_nm for e in acq.events] == [5.0, 7.0, 1.0]
+    assert acq.event_cursor == 3
+
+
+@pytest.mark.asyncio
+async def test_a_restarted_instrument_s_new_log_is_read_from_the_start() -> None:
+    inst = ScriptedInstrument()
+    inst.log = [_move(10.0, 5.0)]
+    link, acq = await _connected(inst)
+    await acq.poll_events()
+    inst.clock_s = 2.0
+    inst.log = [_move(1.0, 9.0)]  # another log: a restart
+    await link.now_s()
+    await acq.poll_events()
+    assert [e.x_nm for e in acq.events] == [5.0, 9.0]
+    assert acq.events[1].t_s > acq.events[0].t_s  # one increasing time axis
+
+
+@pytest.mark.asyncio
+async def test_a_frame_ending_before_the_previous_one_is_reported_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Regression: such a frame was warned about on every poll (95 lines in 30 s)."""
+    inst = ScriptedInstrument()
+    image = np.zeros((8, 8))
+    _, acq = await _connected(inst)
+    inst.frame = Frame(
+        index=5, t_start_s=80.0, t_end_s=90.0, heights_nm=image, pixel_size_nm=(1.0, 1.0)
+    )
+    await acq._poll_frame()
+    assert acq.batches.qsize() == 1
+    inst.frame = Frame(
+        index=4, t_start_s=60.0, t_end_s=70.0, heights_nm=image, pixel_size_nm=(1.0, 1.0)
+    )
+    with caplog.at_level(logging.WARNING):
+        for _ in range(20):
+            await acq._poll_frame()
+    assert caplog.text.count("ends before the previous one") == 1
+    assert acq.batches.qsize() == 1
