@@ -17,11 +17,11 @@ registration sign convention (``README.md``, Conventions).
 
 from __future__ import annotations
 
-import json
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
+from afmdrift._bounded import MAX_JSON_DEPTH, loads_json
 from afmdrift.errors import AfmdriftError
 
 __all__ = [
@@ -250,33 +250,8 @@ def encode(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> list[bytes]:
     return [msg.topic.encode("ascii"), msg.model_dump_json().encode("utf-8")]
 
 
-#: Deepest nesting of JSON arrays and objects a decoder accepts (the schemas need 3).
-MAX_JSON_DEPTH = 16
-
 #: Largest payload a decoder parses, bytes (a model message is a few kB).
 MAX_PAYLOAD_BYTES = 1 << 20
-
-
-def _json_depth(payload: bytes) -> int:
-    """Deepest nesting of ``[``/``{`` outside strings (a scan, no recursion)."""
-    depth = deepest = 0
-    in_string = escaped = False
-    for b in payload:
-        if in_string:
-            if escaped:
-                escaped = False
-            elif b == 0x5C:  # backslash
-                escaped = True
-            elif b == 0x22:  # quote
-                in_string = False
-        elif b == 0x22:
-            in_string = True
-        elif b in (0x5B, 0x7B):
-            depth += 1
-            deepest = max(deepest, depth)
-        elif b in (0x5D, 0x7D):
-            depth -= 1
-    return deepest
 
 
 def _load_json(payload: bytes, what: str) -> dict[str, Any]:
@@ -285,15 +260,10 @@ def _load_json(payload: bytes, what: str) -> dict[str, Any]:
         raise WireError(
             f"{what}: payload of {len(payload)} bytes; the limit is {MAX_PAYLOAD_BYTES}"
         )
-    brackets = payload.count(b"[") + payload.count(b"{")
-    if brackets > MAX_JSON_DEPTH and _json_depth(payload) > MAX_JSON_DEPTH:
-        raise WireError(f"{what}: JSON nested deeper than {MAX_JSON_DEPTH} levels")
     try:
-        doc = json.loads(payload)
-    except (UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise WireError(f"{what}: payload is not JSON ({err})") from None
-    except (ValueError, RecursionError) as err:  # e.g. an integer of over 4300 digits
-        raise WireError(f"{what}: payload is not usable JSON ({err})") from None
+        doc = loads_json(payload, what=what)
+    except ValueError as err:
+        raise WireError(str(err)) from None
     if not isinstance(doc, dict):
         raise WireError(f"{what}: payload must be a JSON object, got {type(doc).__name__}")
     version = doc.get("v")

@@ -11,7 +11,6 @@ allowed range.
 
 from __future__ import annotations
 
-import stat
 import tomllib
 from pathlib import Path
 from typing import Any, Literal, get_args, get_origin
@@ -20,6 +19,7 @@ import annotated_types
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
+from afmdrift._bounded import read_text
 from afmdrift.config._driver import REPLAY_PREFIX, DriverConfig
 from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.config._registration import RegistrationConfig
@@ -114,26 +114,11 @@ def read_toml(path: str | Path, *, what: str, max_bytes: int = MAX_CONFIG_BYTES)
     """
     p = Path(path)
     try:
-        st = p.stat()
+        text = read_text(p, max_bytes=max_bytes, what=what)
     except FileNotFoundError:
         raise ConfigError(f"{p}: {what} not found") from None
-    except OSError as err:
-        raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise ConfigError(f"{p}: {what} is not a regular file")
-    if st.st_size > max_bytes:
-        raise ConfigError(f"{p}: {what} is {st.st_size} bytes; the limit is {max_bytes}")
-    try:
-        with p.open("rb") as fh:
-            raw = fh.read(max_bytes + 1)
-    except OSError as err:
-        raise ConfigError(f"{p}: cannot read {what}: {err.strerror}") from None
-    if len(raw) > max_bytes:
-        raise ConfigError(f"{p}: {what} is larger than {max_bytes} bytes")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as err:
-        raise ConfigError(f"{p}: {what} is not UTF-8 text (byte {err.start})") from None
+    except ValueError as err:
+        raise ConfigError(f"{p}: {err}") from None
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:

@@ -49,6 +49,11 @@ SUFFIXES = (".npy", ".tif", ".tiff", ".spm", ".gwy", ".asd", ".nc")
 #: A pixel size in nm: one number for square pixels or ``(x, y)``.
 PixelSize = float | Sequence[float]
 
+#: Most heights read from one file (2 GiB as float64): an 8192² image is
+#: 67 M, a 1000-frame 256² HS-AFM movie 66 M. A header declaring more is
+#: refused before anything is allocated.
+MAX_VALUES = 1 << 28
+
 _FRAME_SPEC = re.compile(r"^(?P<path>.+):(?P<frame>-?\d+)$")
 _MAX_CALIBRATED_PIXEL_NM = 1e4
 
@@ -90,6 +95,32 @@ def _read_all(
     if not path.is_file():
         raise ImageFileError(f"{path}: not a file")
     suffix = path.suffix.lower()
+    try:
+        images = _dispatch(path, suffix, pixel_size_nm, channel, height_unit)
+    except ImageFileError:
+        raise
+    except MemoryError:
+        raise ImageFileError(f"{path}: too large to read into memory") from None
+    except Exception as err:
+        # A corrupt file makes third-party readers raise whatever their parsing
+        # meets (struct.error, ZeroDivisionError, ...); the user gets one line
+        # naming the file, never a traceback.
+        raise ImageFileError(
+            f"{path}: not a readable {suffix or 'image'} file ({type(err).__name__}: {err})"
+        ) from None
+    if pixel_size_nm is not None:
+        images = [dataclasses.replace(im, pixel_size_nm=pixel_size_nm) for im in images]
+    return images
+
+
+def _dispatch(
+    path: Path,
+    suffix: str,
+    pixel_size_nm: tuple[float, float] | None,
+    channel: str,
+    height_unit: str | None,
+) -> list[AfmImage]:
+    """The reader for ``suffix``."""
     images: list[AfmImage]
     if suffix == ".npy":
         images = _read_array(path, _load_npy(path), pixel_size_nm, height_unit, "a .npy array")
@@ -110,8 +141,6 @@ def _read_all(
     else:
         known = ", ".join((*SUFFIXES, ".000-.999"))
         raise ImageFileError(f"{path}: unknown image file suffix {path.suffix!r} (known: {known})")
-    if pixel_size_nm is not None:
-        images = [dataclasses.replace(im, pixel_size_nm=pixel_size_nm) for im in images]
     return images
 
 
@@ -193,12 +222,24 @@ def load_stack(
 
 def _load_npy(path: Path) -> npt.NDArray[np.float64]:
     try:
-        data = np.load(path, allow_pickle=False)
+        # Mapped first: a header that declares more data than the file holds
+        # fails here, before anything is allocated.
+        data = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
         raise ImageFileError(f"{path}: not a readable .npy array ({err})") from None
     if not isinstance(data, np.ndarray) or data.dtype.kind not in "iuf":
         raise ImageFileError(f"{path}: expected a numeric array, got {getattr(data, 'dtype', '?')}")
-    return data.astype(np.float64)
+    _check_size(path, data.shape)
+    return np.asarray(data, dtype=np.float64)
+
+
+def _check_size(path: Path, shape: tuple[int, ...]) -> None:
+    """Refuse arrays of more than :data:`MAX_VALUES` heights before reading them."""
+    n = math.prod(int(v) for v in shape)
+    if n > MAX_VALUES:
+        raise ImageFileError(
+            f"{path}: declares {n} values (shape {tuple(shape)}); the limit is {MAX_VALUES}"
+        )
 
 
 def _read_array(
@@ -239,6 +280,9 @@ def _read_tiff(
 
     try:
         with tifffile.TiffFile(path) as tif:
+            if not tif.series:
+                raise ImageFileError(f"{path}: TIFF file holds no image")
+            _check_size(path, tuple(tif.series[0].shape))
             data = np.asarray(tif.asarray(), dtype=np.float64)
             calibration = _tiff_pixel_size(tif, path)
     except (tifffile.TiffFileError, ValueError, OSError, EOFError, KeyError, IndexError) as err:

@@ -30,6 +30,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift._bounded import loads_json, read_text
 from afmdrift.errors import InputError
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, ScanDirection
 
@@ -45,6 +46,20 @@ __all__ = [
 
 FORMAT_NAME = "afmdrift-session"
 FORMAT_VERSION = 1
+#: Limits of the reader: session.json size, each CSV file's size, and the
+#: largest plausible pixel (an AFM scan of 100 µm over 16 px is 6 µm/px).
+MAX_META_BYTES = 1 << 20
+MAX_CSV_BYTES = 256 << 20
+MAX_PIXEL_NM = 1e6
+
+#: Files of a session directory that a session may lack (written only when it has them).
+_OPTIONAL_FILES = (
+    "channels.csv",
+    "events.csv",
+    "truth.csv",
+    "truth_components.csv",
+    "scenario.json",
+)
 
 
 class SessionError(InputError):
@@ -241,10 +256,15 @@ def write_session(session: Session, path: str | Path) -> Path:
     """Write ``session`` as a format-v1 directory at ``path`` (created if needed).
 
     Files are written to temporary names and renamed, so a reader never sees a
-    half-written file.
+    half-written file. Optional files of an earlier session in the same
+    directory that this session does not have (channels, events, truth, the
+    simulator's truth components and scenario) are removed, so a session
+    written over another never carries the other's data.
     """
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
+    for name in _OPTIONAL_FILES:
+        (root / name).unlink(missing_ok=True)
     _atomic_text(root / "session.json", json.dumps(session.meta.to_json(), indent=2) + "\n")
     tmp = root / "frames.npy.tmp"
     with tmp.open("wb") as fh:
@@ -297,9 +317,11 @@ def _read_meta(path: Path) -> SessionMeta:
     if not path.is_file():
         raise SessionError(f"{path}: missing")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise SessionError(f"{path}: not valid JSON ({err})") from None
+        doc = loads_json(
+            read_text(path, max_bytes=MAX_META_BYTES, what="session.json"), what="session.json"
+        )
+    except ValueError as err:
+        raise SessionError(f"{path}: {err}") from None
     if not isinstance(doc, dict):
         raise SessionError(f"{path}: expected a JSON object")
     if doc.get("format") != FORMAT_NAME:
@@ -315,10 +337,19 @@ def _read_meta(path: Path) -> SessionMeta:
     ps = doc["pixel_size_nm"]
     if isinstance(ps, int | float):
         ps = [ps, ps]
-    if not (isinstance(ps, list) and len(ps) == 2 and all(isinstance(v, int | float) for v in ps)):
-        raise SessionError(f"{path}: pixel_size_nm must be [px, py] in nm, got {ps!r}")
-    if not isinstance(doc["line_time_s"], int | float):
-        raise SessionError(f"{path}: line_time_s must be a number, got {doc['line_time_s']!r}")
+    if not (
+        isinstance(ps, list)
+        and len(ps) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in ps)
+        and all(0 < v <= MAX_PIXEL_NM for v in ps)
+    ):
+        raise SessionError(
+            f"{path}: pixel_size_nm must be [px, py] in nm, each > 0 and <= {MAX_PIXEL_NM:g}, "
+            f"got {ps!r}"
+        )
+    lt = doc["line_time_s"]
+    if not (isinstance(lt, int | float) and not isinstance(lt, bool) and 0 <= lt <= 3600):
+        raise SessionError(f"{path}: line_time_s must be a number of s in [0, 3600], got {lt!r}")
     if doc.get("fast_axis", "x") != "x":
         raise SessionError(
             f"{path}: fast_axis {doc.get('fast_axis')!r} is not supported (only 'x')"
@@ -353,18 +384,35 @@ def _read_meta(path: Path) -> SessionMeta:
 def _read_csv(path: Path, required: list[str]) -> list[tuple[int, dict[str, str]]]:
     if not path.is_file():
         raise SessionError(f"{path}: missing")
-    with path.open(newline="", encoding="utf-8") as fh:
+    if path.stat().st_size > MAX_CSV_BYTES:
+        raise SessionError(f"{path}: larger than {MAX_CSV_BYTES} bytes")
+    # utf-8-sig: a byte-order mark (spreadsheet exports) is not part of the header.
+    with path.open(newline="", encoding="utf-8-sig") as fh:
         reader = csv.DictReader(fh)
-        header = [h.strip() for h in (reader.fieldnames or [])]
-        missing = [c for c in required if c not in header]
-        if missing:
-            raise SessionError(f"{path}: missing column(s) {', '.join(missing)} (header: {header})")
-        reader.fieldnames = header
-        out: list[tuple[int, dict[str, str]]] = []
-        for row in reader:
-            if any(row.get(c) is None for c in required):
-                raise SessionError(f"{path}:{reader.line_num}: too few fields")
-            out.append((reader.line_num, row))
+        try:
+            return _csv_rows(path, reader, required)
+        except UnicodeDecodeError as err:
+            raise SessionError(
+                f"{path}:{reader.line_num + 1}: not UTF-8 text (byte {err.start} of a block)"
+            ) from None
+        except csv.Error as err:
+            raise SessionError(f"{path}:{reader.line_num}: not valid CSV ({err})") from None
+
+
+def _csv_rows(
+    path: Path, reader: csv.DictReader[str], required: list[str]
+) -> list[tuple[int, dict[str, str]]]:
+    header = [h.strip() for h in (reader.fieldnames or [])]
+    missing = [c for c in required if c not in header]
+    if missing:
+        shown = header if len(repr(header)) < 200 else f"{repr(header)[:200]}..."
+        raise SessionError(f"{path}: missing column(s) {', '.join(missing)} (header: {shown})")
+    reader.fieldnames = header
+    out: list[tuple[int, dict[str, str]]] = []
+    for row in reader:
+        if any(row.get(c) is None for c in required):
+            raise SessionError(f"{path}:{reader.line_num}: too few fields")
+        out.append((reader.line_num, row))
     return out
 
 
@@ -372,7 +420,8 @@ def _to_float(text: str, where: str, column: str) -> float:
     try:
         v = float(text)
     except (TypeError, ValueError):
-        raise SessionError(f"{where}: {column} is not a number: {text!r}") from None
+        shown = text if len(text or "") <= 40 else f"{text[:40]}..."
+        raise SessionError(f"{where}: {column} is not a number: {shown!r}") from None
     if not math.isfinite(v):
         raise SessionError(f"{where}: {column} is not finite: {text!r}")
     return v
@@ -382,7 +431,8 @@ def _to_int(text: str, where: str, column: str) -> int:
     try:
         return int(text)
     except (TypeError, ValueError):
-        raise SessionError(f"{where}: {column} is not an integer: {text!r}") from None
+        shown = text if len(text or "") <= 40 else f"{text[:40]}..."
+        raise SessionError(f"{where}: {column} is not an integer: {shown!r}") from None
 
 
 def _read_channels(
