@@ -64,6 +64,10 @@ log = logging.getLogger(__name__)
 T = TypeVar("T")
 
 
+#: Event-log entries one ``events()`` call reads at most.
+MAX_EVENTS_PER_READ = 4096
+
+
 class NanoScopeDriver(ConnectOnEnter):
     """A NanoScope/SCPI-style controller seen through the :class:`Instrument` interface.
 
@@ -336,7 +340,11 @@ class NanoScopeDriver(ConnectOnEnter):
         if first != start or count < 0:
             raise ProtocolError(f"EVENT:LOG reply {head.body!r} does not answer start={start}")
         out: list[Event] = []
-        for k in range(count):
+        # At most MAX_EVENTS_PER_READ lines per call: memory stays bounded
+        # whatever the instrument announces. Lines beyond them are late replies
+        # to this tag, skipped by the next call; the caller's cursor advances
+        # by what was returned, so the rest is read on later polls.
+        for k in range(min(count, MAX_EVENTS_PER_READ)):
             reply = self._read_reply(tag, "EVENT", text)
             index, event = decode_event(reply.body)
             if index != start + k:

@@ -284,6 +284,7 @@ class FramePipeline:
         detected_wall_s: float | None = None,
         paused: bool = False,
         t_now_s: float | None = None,
+        hold: str | None = None,
     ) -> FrameOutcome:
         """Run the whole pipeline on one frame. Bad input never raises; it is recorded.
 
@@ -291,14 +292,21 @@ class FramePipeline:
         end of the frame, the prediction made before the frame, registration,
         the drift position, the model update and d(t), the record.
         ``t_now_s`` is the instrument time from which the new curve is used
-        (default: the end of the frame).
+        (default: the end of the frame). ``hold`` is a reason why the frame is
+        measured and recorded but must not feed the model (for example: the
+        event log could not be read up to it, so commanded moves may be
+        missing from its drift position); ``paused`` is the same with the
+        reason ``"paused"``.
         """
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
         step, reason = self._register(frame, seq)
-        pos = self._position(frame, step, reason, pred, paused)
-        fed = self._feed_model(frame, pos, seq=seq, paused=paused, t_now_s=t_now_s)
+        held = paused or hold is not None
+        pos = self._position(frame, step, reason, pred, held)
+        fed = self._feed_model(
+            frame, pos, seq=seq, held=(hold or "paused") if held else None, t_now_s=t_now_s
+        )
         record = _frame_record(
             frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
         )
@@ -311,7 +319,7 @@ class FramePipeline:
             field=pos.field,
             reference=pos.reference_image,
             image=frame.heights_nm,
-            low_confidence=not fed.fed and not paused and fed.reason not in ("reference",),
+            low_confidence=not fed.fed and not held and fed.reason not in ("reference",),
             history=batch,
         )
 
@@ -411,12 +419,19 @@ class FramePipeline:
         pos.fed = not low and not paused and bool(np.all(np.isfinite(pos.m)))
 
     def _feed_model(
-        self, frame: Frame, pos: _Position, *, seq: int, paused: bool, t_now_s: float | None
+        self,
+        frame: Frame,
+        pos: _Position,
+        *,
+        seq: int,
+        held: str | None,
+        t_now_s: float | None,
     ) -> _Fed:
-        """Feed the drift position to the predictor and rebuild d(t) (when it may)."""
+        """Feed the drift position to the predictor and rebuild d(t) (unless ``held``:
+        the reason it may not)."""
         reason = pos.reason
-        if paused and not reason:
-            reason = "paused"
+        if held is not None and not reason:
+            reason = held
         fed = pos.fed
         if fed:
             t = frame.t_mid_s

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 from afmdrift.config import ServiceConfig
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, LoggedEvent
-from afmdrift.service._link import InstrumentLink, every
+from afmdrift.service._link import InstrumentDownError, InstrumentLink, every
 
 __all__ = ["Acquisition", "FrameBatch"]
 
@@ -36,6 +36,8 @@ class FrameBatch:
     detected_wall_s: float
     channels: list[ChannelSample] = field(default_factory=list)
     events: list[LoggedEvent] = field(default_factory=list)
+    #: Why the frame must not feed the model (the event log up to it is unknown).
+    hold: str | None = None
 
 
 class Acquisition:
@@ -173,9 +175,15 @@ class Acquisition:
                 self._last_frame_key[0] + 1,
                 frame.index - 1,
             )
-        await self.poll_events()  # every offset move up to this frame is known
+        hold = None
+        try:
+            await self.poll_events()  # every offset move up to this frame is known
+        except InstrumentDownError:
+            # The frame is still measured and recorded (nothing is lost), but
+            # commanded moves may be missing from its drift position.
+            hold = "event log unreadable up to this frame"
         self._last_frame_key = key
-        batch = FrameBatch(self.link.frame_on_service_axis(frame), detected)
+        batch = FrameBatch(self.link.frame_on_service_axis(frame), detected, hold=hold)
         batch.channels, self._channels = self._channels, []
         batch.events, self._events = self._events, []
         if self.batches.full():

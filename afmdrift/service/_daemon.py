@@ -331,6 +331,7 @@ class DriftService:
                 detected_wall_s=batch.detected_wall_s,
                 paused=paused,
                 t_now_s=t_now,
+                hold=batch.hold,
             )
         )
         self.frames_processed += 1

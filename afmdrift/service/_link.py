@@ -89,6 +89,7 @@ class InstrumentLink:
         self.connected = asyncio.Event()
         self._reconnect = asyncio.Event()
         self._failures = 0
+        self._failing: set[str] = set()
         self._last_seen_s: float | None = None
         self._epoch_listeners: list[Callable[[int, float], None]] = []
         self._connect_listeners: list[
@@ -127,13 +128,18 @@ class InstrumentLink:
             The call failed (the failure is counted and flagged).
         """
         await self.connected.wait()
+        name = getattr(fn, "__name__", repr(fn))
         try:
             result = await fn(*args)
         except INSTRUMENT_ERRORS as err:
+            self._failing.add(name)
             self._failed(fn, err)
             raise InstrumentDownError from err
-        if self._failures:
-            self._failures = 0
+        self._failures = 0
+        self._failing.discard(name)
+        if not self._failing:
+            # Cleared only when every operation that failed has worked again:
+            # a clock that answers does not hide an event log that does not.
             self.flags.discard("instrument_error")
         return result
 
@@ -237,6 +243,7 @@ class InstrumentLink:
                     await result
             self.flags.discard("instrument_error")
             self._failures = 0
+            self._failing.clear()
             self.connected.set()
 
     async def close(self) -> None:

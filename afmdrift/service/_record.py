@@ -23,6 +23,7 @@ def process_and_record(
     detected_wall_s: float | None = None,
     paused: bool = False,
     t_now_s: float | None = None,
+    hold: str | None = None,
 ) -> FrameOutcome:
     """Process ``frame`` and commit it, with what reached the model's history, at once.
 
@@ -40,6 +41,7 @@ def process_and_record(
         detected_wall_s=detected_wall_s,
         paused=paused,
         t_now_s=t_now_s,
+        hold=hold,
     )
     for sample in outcome.history.channels:
         store.add_channels(sample)

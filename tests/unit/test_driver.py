@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from afmdrift.drivers import EventKind, Frame, Instrument, ScanDirection
-from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers._nanoscope import MAX_EVENTS_PER_READ, NanoScopeDriver
 from afmdrift.drivers._protocol import (
     ChecksumError,
     InstrumentDisconnected,
@@ -460,3 +460,39 @@ async def test_transport_factory_gives_a_fresh_transport_on_reconnect() -> None:
     assert len(made) == 2  # one from the constructor, a fresh one on reconnect
     assert made[0].opens == 1
     made[-1].assert_done()
+
+
+@pytest.mark.asyncio
+async def test_event_log_announcing_more_than_it_sends_times_out() -> None:
+    """Regression: such an instrument stopped all frame processing; the driver
+    gives up on the missing line within its timeout (the daemon then records
+    frames held, see test_service_link)."""
+    driver, _ = _driver(
+        [(b"@1 EVENT:LOG? 0\n", b"@1 EVENT:LOG 0,5\n@1 EVENT 0,1.0,power_on,0.0,0.0\n")]
+    )
+    async with driver:
+        with pytest.raises(InstrumentTimeout):
+            await driver.events(0)
+
+
+@pytest.mark.asyncio
+async def test_event_log_read_is_bounded_whatever_the_instrument_announces() -> None:
+    """Regression: an instrument streaming 10^9 entries grew RSS without bound;
+    one call reads at most MAX_EVENTS_PER_READ lines, the cursor goes on from there."""
+    n = MAX_EVENTS_PER_READ + 50
+    lines = b"".join(b"@1 EVENT %d,%d.0,power_on,0.0,0.0\n" % (i, i) for i in range(n))
+    driver, _ = _driver(
+        [
+            (b"@1 EVENT:LOG? 0\n", b"@1 EVENT:LOG 0,1000000000\n" + lines),
+            (
+                b"@2 EVENT:LOG? %d\n" % MAX_EVENTS_PER_READ,
+                b"@2 EVENT:LOG %d,1\n@2 EVENT %d,7.0,power_on,0.0,0.0\n"
+                % (MAX_EVENTS_PER_READ, MAX_EVENTS_PER_READ),
+            ),
+        ]
+    )
+    async with driver:
+        first = await driver.events(0)
+        assert len(first) == MAX_EVENTS_PER_READ
+        # the 50 unread lines of @1 are skipped as late replies
+        assert len(await driver.events(MAX_EVENTS_PER_READ)) == 1

@@ -149,3 +149,27 @@ async def test_a_frame_ending_before_the_previous_one_is_reported_once(
             await acq._poll_frame()
     assert caplog.text.count("ends before the previous one") == 1
     assert acq.batches.qsize() == 1
+
+
+@pytest.mark.asyncio
+async def test_frames_go_on_while_the_event_log_cannot_be_read() -> None:
+    """Regression: an instrument whose event log could not be read (it announced
+    more entries than it sent) stopped all frame processing while the status
+    said running. Frames are now queued, held from the model with a reason,
+    and the instrument_error flag stays up while the clock still answers."""
+    inst = ScriptedInstrument()
+    link, acq = await _connected(inst)
+
+    async def broken(start: int = 0) -> list[Event]:
+        raise TimeoutError("EVENT line 3 of 5 never came")
+
+    inst.events = broken  # type: ignore[method-assign]
+    image = np.zeros((8, 8))
+    inst.frame = Frame(
+        index=1, t_start_s=80.0, t_end_s=90.0, heights_nm=image, pixel_size_nm=(1.0, 1.0)
+    )
+    await acq._poll_frame()
+    batch = acq.batches.get_nowait()
+    assert batch.hold == "event log unreadable up to this frame"
+    await link.now_s()  # another operation succeeds...
+    assert "instrument_error" in link.flags  # ...but the event log still fails

@@ -121,3 +121,18 @@ def test_damaged_reference_image_means_a_new_reference(
     assert state is not None
     assert state.reference is None
     assert "taking a new one" in caplog.text
+
+
+def test_a_held_frame_is_measured_and_recorded_but_does_not_feed_the_model(
+    tmp_path: Path,
+) -> None:
+    sim = SimulatedAFM(small_scenario(drift_nm_per_sqrt_s=0.1))
+    frames = _frames(sim, 4)
+    pipe = FramePipeline(config=service_config(tmp_path))
+    outs = [pipe.process(f, seq=k) for k, f in enumerate(frames[:3])]
+    held = pipe.process(frames[3], seq=3, hold="event log unreadable up to this frame")
+    assert held.record.reason == "event log unreadable up to this frame"
+    assert not held.record.fed_model
+    assert held.record.valid  # measured: its image position is known
+    assert not held.low_confidence
+    assert pipe.n_fed == sum(o.record.fed_model for o in outs)
