@@ -17,6 +17,8 @@ registration sign convention (``README.md``, Conventions).
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
@@ -27,6 +29,7 @@ from afmdrift.errors import AfmdriftError
 __all__ = [
     "MAX_JSON_DEPTH",
     "MAX_PAYLOAD_BYTES",
+    "SCHEMA_MODELS",
     "SCHEMA_VERSION",
     "TOPICS",
     "ClockSync",
@@ -43,6 +46,8 @@ __all__ = [
     "decode_control_reply",
     "decode_control_request",
     "encode",
+    "json_schemas",
+    "write_json_schemas",
 ]
 
 #: Version of every schema in this module; bumped on any incompatible change.
@@ -321,3 +326,42 @@ def _one_line(err: ValidationError) -> str:
     return "; ".join(
         f"{'.'.join(str(part) for part in e['loc']) or 'message'}: {e['msg']}" for e in err.errors()
     )
+
+
+#: JSON Schema of every message, by the file name it is published under in
+#: ``docs/schemas/`` (``<name>.schema.json``).
+SCHEMA_MODELS: dict[str, type[BaseModel]] = {
+    "offset": OffsetMsg,
+    "model": ModelMsg,
+    "frame": FrameMsg,
+    "status": StatusMsg,
+    "control_request": ControlRequest,
+    "control_reply": ControlReply,
+}
+
+
+def json_schemas() -> dict[str, dict[str, Any]]:
+    """The JSON Schema (draft 2020-12) of every message, generated from the models.
+
+    ``docs/schemas/<name>.schema.json`` holds them for clients in other
+    languages; a test keeps the files equal to this.
+    """
+    out: dict[str, dict[str, Any]] = {}
+    for name, model in SCHEMA_MODELS.items():
+        schema = model.model_json_schema(mode="serialization")
+        schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+        schema["$id"] = f"afmdrift/wire/v{SCHEMA_VERSION}/{name}.schema.json"
+        out[name] = schema
+    return out
+
+
+def write_json_schemas(directory: str | Path) -> list[Path]:
+    """Write :func:`json_schemas` as ``<name>.schema.json`` files into ``directory``."""
+    root = Path(directory)
+    root.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for name, schema in json_schemas().items():
+        path = root / f"{name}.schema.json"
+        path.write_text(json.dumps(schema, indent=2, sort_keys=True) + "\n", encoding="utf-8")
+        paths.append(path)
+    return paths

@@ -8,10 +8,12 @@ the true drift over that frame's scan lines, relative to the reference frame.
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import sqlite3
 from pathlib import Path
 
+import jsonschema
 import numpy as np
 import pytest
 import zmq.asyncio
@@ -21,9 +23,14 @@ from afmdrift.client import Subscriber
 from afmdrift.drivers import Frame, ScanDirection
 from afmdrift.model import truth_frame_mean
 from afmdrift.service import RunStore
-from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg
+from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg, encode
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
+
+
+def _schema_validator(name: str) -> jsonschema.Draft202012Validator:
+    path = Path(__file__).resolve().parents[2] / "docs" / "schemas" / f"{name}.schema.json"
+    return jsonschema.Draft202012Validator(json.loads(path.read_text(encoding="utf-8")))
 
 
 def _frame_like(t_start_s: float, t_end_s: float, rows: int) -> Frame:
@@ -82,6 +89,11 @@ async def test_pty_end_to_end_tracks_truth_and_publishes_every_topic(tmp_path: P
         ctx.term()
 
     assert checked_offset_at > 50
+    # the frame and model messages sent satisfy the published JSON Schemas
+    for name, msgs in (("frame", frames), ("model", models), ("offset", offsets[-5:])):
+        validator = _schema_validator(name)
+        for m in msgs:
+            validator.validate(json.loads(encode(m)[1]))
     # every frame the daemon saw is in the store, in order, exactly once
     assert [r.seq for r in stored] == list(range(len(stored)))
     indices = [r.instrument_frame for r in stored]
