@@ -9,8 +9,9 @@ the ``instrument_error`` flag is raised and a lost connection (or
 ``_FAILURES_BEFORE_RECONNECT`` failed calls in a row) is closed and reopened
 after ``reconnect_delay_s``. An instrument whose clock went backwards was
 restarted: the link starts a new *epoch*, shifts the instrument's times so the
-service's time axis stays increasing, and tells its listeners (who re-read the
-event log from the start and take a new registration reference).
+service's time axis goes on from where its clock stands (through the outage,
+increasing), and tells its listeners (who re-read the event log from the start
+and take a new registration reference).
 """
 
 from __future__ import annotations
@@ -259,10 +260,11 @@ class InstrumentLink:
 
         Returns the reading on the service's time axis.
         """
+        wall = time.time()
         if self._last_seen_s is not None and now_s + self.t_offset_s < self._last_seen_s - 1e-6:
-            self._new_epoch(now_s)
+            self._new_epoch(now_s, wall)
         t = now_s + self.t_offset_s
-        self.clock.observe(wall_s=time.time(), instrument_s=t)
+        self.clock.observe(wall_s=wall, instrument_s=t)
         self._see(t)
         return t
 
@@ -270,13 +272,21 @@ class InstrumentLink:
         if self._last_seen_s is None or t_s > self._last_seen_s:
             self._last_seen_s = t_s
 
-    def _new_epoch(self, now_s: float) -> None:
+    def _new_epoch(self, now_s: float, wall_s: float) -> None:
         assert self._last_seen_s is not None
         self.epoch += 1
-        # The restarted instrument's time 0 is placed right after the last time
-        # seen, so everything it logged since its start (frames, events,
-        # channels) falls after the previous epoch; the outage is not counted.
-        self.t_offset_s = self._last_seen_s
+        # The restarted instrument's reading ``now_s`` is placed where the
+        # service's clock stands now: the offset stream kept counting time
+        # through the outage, and a new axis that started behind it would
+        # freeze the published t_s (the clock never runs backwards) and keep
+        # the service stale for as long as the outage lasted. And never
+        # earlier than last-seen + now_s, so everything the instrument logged
+        # since its start (frames, events, channels) falls after the old epoch.
+        published = self.clock.at(wall_s)
+        start = self._last_seen_s + now_s
+        if published is not None and published > start:
+            start = published
+        self.t_offset_s = start - now_s
         log.warning(
             "instrument clock went back to %.3f s: it was restarted; epoch %d, "
             "times shifted by %.3f s, new registration reference",

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import time
 
 import numpy as np
 import pytest
@@ -173,3 +174,30 @@ async def test_frames_go_on_while_the_event_log_cannot_be_read() -> None:
     assert batch.hold == "event log unreadable up to this frame"
     await link.now_s()  # another operation succeeds...
     assert "instrument_error" in link.flags  # ...but the event log still fails
+
+
+@pytest.mark.asyncio
+async def test_after_a_restart_the_service_clock_goes_on_without_freezing() -> None:
+    """Regression: after an instrument restart the new epoch started where the
+    last reading was, behind the time the offset stream had been publishing,
+    so t_s stayed frozen (the clock never runs backwards) and the service
+    stayed stale for as long as the outage lasted."""
+    inst = ScriptedInstrument()
+    link, _ = await _connected(inst)
+    for k in range(4):  # an accelerated instrument: 100 s per wall second
+        inst.clock_s = 100.0 + 5.0 * k
+        await link.now_s()
+        await asyncio.sleep(0.05)
+    published_before = link.clock.at(time.time())
+    assert published_before is not None
+    await asyncio.sleep(0.3)  # the outage: about 30 instrument seconds go by
+    published = link.clock.at(time.time())
+    assert published is not None
+    inst.clock_s = 2.0  # restarted
+    t_new = await link.now_s()
+    assert link.epoch == 1
+    assert t_new >= published  # the axis goes on from what was published
+    await asyncio.sleep(0.05)
+    later = link.clock.at(time.time())
+    assert later is not None
+    assert later > t_new  # and keeps moving: no freeze
