@@ -16,8 +16,9 @@ $(STAMP): $(BIN)/python pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# --hold: the dashboard keeps serving the finished run (its address ends the summary) until Ctrl-C.
 demo: $(STAMP)
-	$(BIN)/afmdrift demo
+	$(BIN)/afmdrift demo --hold
 
 test: $(STAMP)
 	$(BIN)/python -m pytest

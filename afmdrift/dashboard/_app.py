@@ -562,10 +562,14 @@ class Dashboard:
                 continue
             self._view_seq = seq
             view = await asyncio.to_thread(self._compute_view, seq)
+            if view is None:
+                # Its store row (pixel size) is not read yet: the store poll asks again.
+                self._view_seq = None
+                continue
             self.state.frame_view = view
             self._broadcast({"type": "frame_view", "view": view})
 
-    def _compute_view(self, seq: int) -> dict[str, Any]:
+    def _compute_view(self, seq: int) -> dict[str, Any] | None:
         row = self.state.frames.get(seq, {})
         base: dict[str, Any] = {"seq": seq}
         if row.get("reason") == "reference":
@@ -590,7 +594,7 @@ class Dashboard:
         px = row.get("pixel_x_nm") or row.get("pixel_y_nm")
         py = row.get("pixel_y_nm") or px
         if px is None or py is None or not (math.isfinite(px) and math.isfinite(py)):
-            return base | {"note": f"pixel size of frame {seq} not yet read from the store"}
+            return None
         try:
             return frame_view(
                 current,

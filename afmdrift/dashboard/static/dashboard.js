@@ -90,7 +90,7 @@
           x: band.map((r) => r.t_s).concat(band.map((r) => r.t_s).reverse()),
           y: band.map((r) => r[pkey] + r.pred_sigma_nm)
             .concat(band.map((r) => r[pkey] - r.pred_sigma_nm).reverse()),
-          fill: "toself", fillcolor: COLORS.band, line: { width: 0 }, hoverinfo: "skip",
+          mode: "lines", fill: "toself", fillcolor: COLORS.band, line: { width: 0 }, hoverinfo: "skip",
           name: "prediction ± σ", legendgroup: "band", showlegend: col === 1, yaxis: yaxis, type: "scatter",
         });
       }
@@ -126,7 +126,19 @@
     return render("plot-drift", data, layout).then(() => seqs);
   }
 
-  function envelopeTraces(env, j, color, name, yaxis, showlegend) {
+  // Bins holding samples only (an empty bin is a gap in the data, not a value).
+  function filled(env) {
+    const keep = [];
+    env.count.forEach((c, i) => { if (c > 0) keep.push(i); });
+    const pick = (arr) => keep.map((i) => arr[i]);
+    return {
+      t_s: pick(env.t_s), count: pick(env.count), width_s: env.width_s,
+      min: env.min.map(pick), max: env.max.map(pick), last: env.last.map(pick), flags: env.flags.map(pick),
+    };
+  }
+
+  function envelopeTraces(full, j, color, name, yaxis, showlegend) {
+    const env = filled(full);
     const t = env.t_s;
     return [
       { x: t, y: env.max[j], mode: "lines", line: { width: 0 }, hoverinfo: "skip", showlegend: false, yaxis: yaxis, type: "scatter" },
@@ -145,17 +157,18 @@
     }
     const data = envelopeTraces(env, 0, "rgb(31,119,180)", "d_x", "y", true)
       .concat(envelopeTraces(env, 1, "rgb(214,39,40)", "d_y", "y2", true));
+    const shown = filled(env);
     const marks = [[0, "invalid", "rgba(90,90,90,0.9)"], [1, "clamped", "rgba(255,127,14,0.95)"]];
     for (const [f, name, color] of marks) {
       for (const [j, yaxis] of [[0, "y"], [1, "y2"]]) {
-        const y = env.last[j].map((v, i) => (env.flags[f][i] > 0 ? v : null));
-        data.push({ x: env.t_s, y: y, mode: "lines+markers", connectgaps: false,
+        const y = shown.last[j].map((v, i) => (shown.flags[f][i] > 0 ? v : null));
+        data.push({ x: shown.t_s, y: y, mode: "lines+markers", connectgaps: false,
           line: { color: color, width: 5 }, marker: { size: 4, color: color },
           name: name, legendgroup: name, showlegend: j === 0, yaxis: yaxis, type: "scatter" });
       }
     }
     const total = env.count.reduce((a, b) => a + b, 0);
-    $("offset-note").textContent = total + " samples in " + env.t_s.length + " bins of " + fmt(env.width_s, 3) + " s (range and last value per bin)";
+    $("offset-note").textContent = total + " samples in " + shown.t_s.length + " bins of " + fmt(env.width_s, 3) + " s (range and last value per bin)";
     return render("plot-offset", data, {
       margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.15 }, xaxis: T_AXIS,
       grid: { rows: 2, columns: 1, pattern: "coupled" },
