@@ -24,6 +24,7 @@ import ipaddress
 import json
 import logging
 import math
+import re
 import socket
 import time
 from importlib import resources
@@ -51,6 +52,7 @@ _CLIENT_QUEUE = 256
 #: Frames searched backwards for the previous accepted frame with an image.
 _VIEW_LOOKBACK = 50
 _TOKEN_COOKIE = "afmdrift_dashboard_token"
+_ENDPOINT = re.compile(r"^(tcp|ipc|inproc)://\S+$")
 
 
 def is_loopback(host: str) -> bool:
@@ -169,6 +171,7 @@ class Dashboard:
         self.first_message_timeout_s = first_message_timeout_s
         self.silent_after_s = 3.0 * max(self.config.service.heartbeat_interval_s, 1.0)
         self._reader: RunReader | None = None
+        self._sub: Subscriber | None = None
         self._cursors = {"frame": -1, "channel": 0, "event": 0, "model": -1}
         self._registration_config = self.config
         self._pages: set[_Page] = set()
@@ -212,10 +215,14 @@ class Dashboard:
             await self._poll_store_once(first=True)
         sub: Subscriber | None = None
         if self.pub_endpoint is not None:
+            if not _ENDPOINT.match(self.pub_endpoint):
+                raise DashboardError(
+                    f"--pub {self.pub_endpoint}: not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5560)"
+                )
             if self._ctx is None:
                 self._ctx = zmq.asyncio.Context()
             try:
-                sub = Subscriber(self.pub_endpoint, ctx=self._ctx)
+                sub = self._sub = Subscriber(self.pub_endpoint, ctx=self._ctx)
             except zmq.ZMQError as err:
                 raise DashboardError(f"--pub {self.pub_endpoint}: {err}") from None
         self._plotly_js = _plotly_js()
@@ -254,6 +261,9 @@ class Dashboard:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await task
         self._tasks.clear()
+        if self._sub is not None:
+            self._sub.close()
+            self._sub = None
         for page in list(self._pages):
             with contextlib.suppress(Exception):
                 await page.ws.close(code=1001, message=b"dashboard stopping")
@@ -409,28 +419,24 @@ class Dashboard:
     # ------------------------------------------------------------------ wire
 
     async def _follow(self, sub: Subscriber) -> None:
-        try:
-            while True:
-                try:
-                    msg = await sub.recv(timeout_s=1.0)
-                except TimeoutError:
-                    continue
-                except WireError as err:
-                    self.state.wire_rejected(str(err))
-                    continue
-                self._heard.set()
-                if isinstance(msg, OffsetMsg):
-                    self.state.add_offset(msg)
-                elif isinstance(msg, FrameMsg):
-                    row = self.state.add_frame_msg(msg)
-                    self._send_frames([row])
-                    self._want_view()
-                elif isinstance(msg, StatusMsg):
-                    self.state.add_status(msg)
-                elif isinstance(msg, ModelMsg):
-                    self.state.add_model(msg)
-        finally:
-            sub.close()
+        # The subscriber is closed by close(), also when this task never ran.
+        while True:
+            try:
+                msg = await sub.recv()
+            except WireError as err:
+                self.state.wire_rejected(str(err))
+                continue
+            self._heard.set()
+            if isinstance(msg, OffsetMsg):
+                self.state.add_offset(msg)
+            elif isinstance(msg, FrameMsg):
+                row = self.state.add_frame_msg(msg)
+                self._send_frames([row])
+                self._want_view()
+            elif isinstance(msg, StatusMsg):
+                self.state.add_status(msg)
+            elif isinstance(msg, ModelMsg):
+                self.state.add_model(msg)
 
     def _send_frames(self, rows: list[dict[str, Any]]) -> None:
         reset, truth = self.state.take_new_truth()
