@@ -81,6 +81,15 @@ def _spawn(args: list[str], log: Path) -> subprocess.Popen[bytes]:
         )
 
 
+def _wait_for_file(path: Path, timeout_s: float) -> None:
+    """Return once ``path`` exists (the daemon creates its store at start-up)."""
+    deadline = time.monotonic() + timeout_s
+    while not path.is_file():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{path} did not appear within {timeout_s:g} s")
+        time.sleep(0.2)
+
+
 async def _state(http: aiohttp.ClientSession, url: str) -> dict[str, Any]:
     async with http.get(url + "state.json") as resp:
         doc: dict[str, Any] = await resp.json()
@@ -114,8 +123,16 @@ extended_size = 64
     dash_port = _free_port()
     procs = [
         _spawn(
-            ["sim", "serve", "--port", str(sim_port), "--scenario", str(scenario)]
-            + ["--speed", f"{speed:g}"],
+            [
+                "sim",
+                "serve",
+                "--port",
+                str(sim_port),
+                "--scenario",
+                str(scenario),
+                "--speed",
+                f"{speed:g}",
+            ],
             tmp / "sim.log",
         )
     ]
@@ -123,13 +140,17 @@ extended_size = 64
         await asyncio.sleep(1.5)
         procs.append(
             _spawn(
-                ["run", "--config", str(tmp / "daemon.toml")]
-                + ["--instrument", f"socket://127.0.0.1:{sim_port}"],
+                [
+                    "run",
+                    "--config",
+                    str(tmp / "daemon.toml"),
+                    "--instrument",
+                    f"socket://127.0.0.1:{sim_port}",
+                ],
                 tmp / "daemon.log",
             )
         )
-        while not (run_dir / "run.sqlite").is_file():
-            await asyncio.sleep(0.2)
+        await asyncio.to_thread(_wait_for_file, run_dir / "run.sqlite", 60.0)
         dash = _spawn(
             ["dashboard", "--run-dir", str(run_dir), "--pub", pub, "--port", str(dash_port)],
             tmp / "dashboard.log",
