@@ -35,13 +35,12 @@ import zmq
 import zmq.asyncio
 from aiohttp import WSMsgType, web
 
-from afmdrift.client import Subscriber
 from afmdrift.config import AfmdriftConfig
 from afmdrift.dashboard._sources import DiagnosisFile, FrameImages, frame_view
 from afmdrift.dashboard._state import RunState, TruthSource
 from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader
 from afmdrift.errors import AfmdriftError
-from afmdrift.service import FrameMsg, ModelMsg, OffsetMsg, StatusMsg, WireError
+from afmdrift.service import FrameMsg, ModelMsg, OffsetMsg, StatusMsg, WireError, decode
 
 __all__ = ["Dashboard", "is_loopback"]
 
@@ -52,6 +51,10 @@ _CLIENT_QUEUE = 256
 #: Frames searched backwards for the previous accepted frame with an image.
 _VIEW_LOOKBACK = 50
 _TOKEN_COOKIE = "afmdrift_dashboard_token"
+#: Messages taken from the SUB socket in one go before yielding to other tasks.
+_DRAIN_MAX = 2000
+#: Shortest interval between two reads of the SUB socket, s.
+_BATCH_S = 0.01
 _ENDPOINT = re.compile(r"^(tcp|ipc|inproc)://\S+$")
 
 
@@ -171,7 +174,7 @@ class Dashboard:
         self.first_message_timeout_s = first_message_timeout_s
         self.silent_after_s = 3.0 * max(self.config.service.heartbeat_interval_s, 1.0)
         self._reader: RunReader | None = None
-        self._sub: Subscriber | None = None
+        self._sub: zmq.asyncio.Socket | None = None
         self._cursors = {"frame": -1, "channel": 0, "event": 0, "model": -1}
         self._registration_config = self.config
         self._pages: set[_Page] = set()
@@ -213,7 +216,7 @@ class Dashboard:
             self._open_store()
         if self._reader is not None:
             await self._poll_store_once(first=True)
-        sub: Subscriber | None = None
+        sub: zmq.asyncio.Socket | None = None
         if self.pub_endpoint is not None:
             if not _ENDPOINT.match(self.pub_endpoint):
                 raise DashboardError(
@@ -221,8 +224,11 @@ class Dashboard:
                 )
             if self._ctx is None:
                 self._ctx = zmq.asyncio.Context()
+            sub = self._sub = self._ctx.socket(zmq.SUB)
+            sub.setsockopt(zmq.LINGER, 0)
+            sub.setsockopt(zmq.SUBSCRIBE, b"")
             try:
-                sub = self._sub = Subscriber(self.pub_endpoint, ctx=self._ctx)
+                sub.connect(self.pub_endpoint)
             except zmq.ZMQError as err:
                 raise DashboardError(f"--pub {self.pub_endpoint}: {err}") from None
         self._plotly_js = _plotly_js()
@@ -262,7 +268,7 @@ class Dashboard:
                 await task
         self._tasks.clear()
         if self._sub is not None:
-            self._sub.close()
+            self._sub.close(linger=0)
             self._sub = None
         for page in list(self._pages):
             with contextlib.suppress(Exception):
@@ -418,25 +424,41 @@ class Dashboard:
 
     # ------------------------------------------------------------------ wire
 
-    async def _follow(self, sub: Subscriber) -> None:
-        # The subscriber is closed by close(), also when this task never ran.
+    async def _follow(self, sub: zmq.asyncio.Socket) -> None:
+        # At 1 kHz, one event-loop wake-up per message costs more than the
+        # messages themselves: wait until the socket is readable, take
+        # everything queued without blocking, then let the next messages
+        # gather. The socket is closed by close(), also when this task never ran.
+        drain: zmq.Socket[bytes] = zmq.Socket.shadow(sub.underlying)
         while True:
-            try:
-                msg = await sub.recv()
-            except WireError as err:
-                self.state.wire_rejected(str(err))
-                continue
-            self._heard.set()
-            if isinstance(msg, OffsetMsg):
-                self.state.add_offset(msg)
-            elif isinstance(msg, FrameMsg):
-                row = self.state.add_frame_msg(msg)
-                self._send_frames([row])
-                self._want_view()
-            elif isinstance(msg, StatusMsg):
-                self.state.add_status(msg)
-            elif isinstance(msg, ModelMsg):
-                self.state.add_model(msg)
+            await sub.poll()  # POLLIN by default
+            for _ in range(_DRAIN_MAX):
+                try:
+                    parts = drain.recv_multipart(flags=zmq.NOBLOCK)
+                except zmq.Again:
+                    break
+                self._handle(parts)
+            # At most 100 wake-ups per second: the messages of the next 10 ms
+            # queue in the socket (a frame reaches the pages at most 10 ms later).
+            await asyncio.sleep(_BATCH_S)
+
+    def _handle(self, parts: list[bytes]) -> None:
+        try:
+            msg = decode(parts)
+        except WireError as err:
+            self.state.wire_rejected(str(err))
+            return
+        self._heard.set()
+        if isinstance(msg, OffsetMsg):
+            self.state.add_offset(msg)
+        elif isinstance(msg, FrameMsg):
+            row = self.state.add_frame_msg(msg)
+            self._send_frames([row])
+            self._want_view()
+        elif isinstance(msg, StatusMsg):
+            self.state.add_status(msg)
+        elif isinstance(msg, ModelMsg):
+            self.state.add_model(msg)
 
     def _send_frames(self, rows: list[dict[str, Any]]) -> None:
         reset, truth = self.state.take_new_truth()
