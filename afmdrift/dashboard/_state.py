@@ -256,8 +256,9 @@ class RunState:
                     merged[k] = v
             row = merged
         is_new = old is None
+        newest = next(reversed(self.frames)) if self.frames else None
         self.frames[seq] = row
-        if is_new and self.frames and next(reversed(self.frames)) != seq:
+        if is_new and newest is not None and seq < newest:
             # Out of order (a store row older than the newest wire frame): re-sort.
             self.frames = OrderedDict(sorted(self.frames.items()))
         while len(self.frames) > self.max_frames:

@@ -245,7 +245,9 @@ async def test_finished_replay_shows_the_whole_run(tmp_path: Path) -> None:
     )
     run_dir = tmp_path / "run"
     replay_session(session, run_dir, config=config)
-    finding = "Missing effect: humidity (test finding)."
+    # A stand-in in the documented format (docs/diagnostics.md): a real diagnosis
+    # needs far more frames than this test replays.
+    finding = "Stand-in diagnose result written by the test: missing effect humidity."
     (run_dir / "diagnosis.json").write_text(
         json.dumps({"finding": finding, "config": '[model.physics]\nterms = ["humidity"]'}),
         encoding="utf-8",

@@ -154,6 +154,13 @@ def test_store_row_completes_the_wire_row_of_the_same_frame() -> None:
     assert len(state.frames) == 1
 
 
+def test_a_frame_older_than_the_newest_is_put_in_order() -> None:
+    state = RunState(max_frames=10)
+    state.add_frame_msg(_frame_msg(5, t_s=50.0, x_nm=0.0, error=None))
+    state.add_records([_record(0, t_s=0.0, x_nm=0.0), _record(3, t_s=30.0, x_nm=0.0)])
+    assert list(state.frames) == [0, 3, 5]
+
+
 def test_frames_are_a_ring_and_the_rolling_error_uses_the_window() -> None:
     state = RunState(max_frames=10, rolling_window=3)
     for k in range(25):
