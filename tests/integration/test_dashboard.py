@@ -30,15 +30,12 @@ from afmdrift.service import replay_session
 
 from service_sim import REPO, scenario_data, write_scenario  # isort: skip
 
-pytestmark = [
-    pytest.mark.skipif(
-        find_chromium() is None,
-        reason="chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)",
-    ),
-    pytest.mark.slow,
-    pytest.mark.asyncio,
-    pytest.mark.timeout(180),
-]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(180)]
+
+needs_chromium = pytest.mark.skipif(
+    find_chromium() is None,
+    reason="chromium is not installed (Debian: apt-get install chromium; .ci/run installs it)",
+)
 
 PLOTS = ("plot-drift", "plot-offset", "plot-error", "plot-frame", "plot-channels")
 
@@ -129,6 +126,8 @@ async def _plots(browser: HeadlessChromium) -> dict[str, Any]:
     return result
 
 
+@needs_chromium
+@pytest.mark.asyncio
 async def test_live_page_follows_the_daemon_and_recovers_from_a_restart(tmp_path: Path) -> None:
     run_dir = tmp_path / "run"
     pub = f"tcp://127.0.0.1:{_free_port()}"
@@ -232,6 +231,8 @@ async def test_live_page_follows_the_daemon_and_recovers_from_a_restart(tmp_path
         sim.kill()
 
 
+@needs_chromium
+@pytest.mark.asyncio
 async def test_finished_replay_shows_the_whole_run(tmp_path: Path) -> None:
     session = tmp_path / "session"
     scenario = REPO / "config" / "scenarios" / "hidden" / "humidity.toml"
@@ -292,3 +293,15 @@ async def test_finished_replay_shows_the_whole_run(tmp_path: Path) -> None:
         shot = await browser.screenshot(tmp_path / "dashboard-replay.png")
         _save_screenshot(shot, "dashboard-replay.png")
         assert browser.errors == []
+
+
+def test_demo_serves_the_dashboard_and_ends_its_summary_with_the_address(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    run = tmp_path / "demo-run"
+    assert main(["demo", "--frames", "3", "--size", "128", "--run-dir", str(run)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    started = [ln for ln in lines if ln.startswith("dashboard: http://127.0.0.1:")]
+    assert len(started) == 1
+    url = started[0].removeprefix("dashboard: ")
+    assert lines[-1].startswith(f"  dashboard: {url} (stops with the demo;")

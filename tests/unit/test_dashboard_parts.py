@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import sqlite3
 from pathlib import Path
 
@@ -208,6 +209,29 @@ def test_invalid_and_clamped_offsets_are_counted_per_bin() -> None:
     assert sum(doc["flags"][1]) == 1
     assert sum(doc["count"]) == 10
     json.dumps(doc, allow_nan=False)
+
+
+def test_diagnosis_file_is_read_when_it_changes_and_bad_files_are_named(tmp_path: Path) -> None:
+    from afmdrift.dashboard._sources import DiagnosisFile
+
+    path = tmp_path / "diagnosis.json"
+    diag = DiagnosisFile(path)
+    assert diag.poll() is False
+    assert "does not exist" in diag.note
+    path.write_text("{not json", encoding="utf-8")
+    assert diag.poll() is True
+    assert diag.result is None
+    assert "not readable as JSON" in diag.note
+    path.write_text(json.dumps({"rmse_nm": 1.0}), encoding="utf-8")
+    os.utime(path, ns=(1, 2))
+    assert diag.poll() is True
+    assert "not an afmdrift diagnose result" in diag.note
+    path.write_text(json.dumps({"finding": "F", "config": "C"}), encoding="utf-8")
+    os.utime(path, ns=(3, 4))
+    assert diag.poll() is True
+    assert diag.result is not None
+    assert (diag.result["finding"], diag.result["config"]) == ("F", "C")
+    assert diag.poll() is False
 
 
 # --------------------------------------------------------------------------- store
