@@ -24,6 +24,8 @@
   window.afmdriftDashboard = probe;
 
   const MAX_EVENTS_DRAWN = 300;
+  const MAX_TRUTH_POINTS = 8000;   // afmdrift/dashboard/_state.py _TRUTH_CAP
+  const MAX_LATENCIES = 10000;
   const PLOT_CONFIG = { displaylogo: false, responsive: true };
   const T_AXIS = { title: { text: "t (s, instrument clock)" }, zeroline: false };
   const COLORS = { x: "#1f77b4", y: "#d62728", truth: "#2ca02c", pred: "#9467bd", band: "rgba(148,103,189,0.18)" };
@@ -49,7 +51,11 @@
     if (state.frames.size > 0) {
       const sorted = Array.from(state.frames.keys()).sort((a, b) => a - b);
       const max = (state.summary && state.summary.max_frames) || 5000;
-      while (sorted.length > max) state.frames.delete(sorted.shift());
+      while (sorted.length > max) {
+        const seq = sorted.shift();
+        state.frames.delete(seq);
+        delete probe.frameShown[seq];
+      }
     }
     return fresh;
   }
@@ -345,12 +351,15 @@
   function onFrames(msg) {
     const fresh = upsertFrames(msg.rows);
     if (msg.truth_reset) state.truth = msg.truth; else state.truth = state.truth.concat(msg.truth);
+    // Thinned by half above the server's cap, as the server does.
+    if (state.truth.length > MAX_TRUTH_POINTS) state.truth = state.truth.filter((p, i) => i % 2 === 0);
     const received = Date.now();
     return queue(() => driftPlot().then(() => {
       const now = Date.now();
       for (const row of fresh) {
         probe.frameShown[row.seq] = now;
         if (row.wall_s !== null) probe.latenciesMs.push(now - 1000 * row.wall_s);
+        if (probe.latenciesMs.length > MAX_LATENCIES) probe.latenciesMs.splice(0, probe.latenciesMs.length - MAX_LATENCIES);
       }
       probe.lastFrameReceivedMs = received;
       return Promise.all([errorPlot(), framePlot()]);
