@@ -78,12 +78,18 @@ class _Page:
     def __init__(self, ws: web.WebSocketResponse) -> None:
         self.ws = ws
         self.queue: asyncio.Queue[str] = asyncio.Queue(maxsize=_CLIENT_QUEUE)
-        self.dropped = False
+        self.writer: asyncio.Task[None] | None = None
 
     async def write(self) -> None:
         while True:
             text = await self.queue.get()
             await self.ws.send_str(text)
+
+    async def stop_writing(self) -> None:
+        if self.writer is not None:
+            self.writer.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self.writer
 
 
 class Dashboard:
@@ -383,16 +389,14 @@ class Dashboard:
         page = _Page(ws)
         page.queue.put_nowait(self._snapshot())
         self._pages.add(page)
-        writer = asyncio.create_task(page.write(), name="afmdrift-dashboard-page")
+        page.writer = asyncio.create_task(page.write(), name="afmdrift-dashboard-page")
         try:
             async for msg in ws:
                 if msg.type == WSMsgType.ERROR:
                     break
         finally:
             self._pages.discard(page)
-            writer.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await writer
+            await page.stop_writing()
         return ws
 
     def _snapshot(self) -> str:
@@ -415,6 +419,8 @@ class Dashboard:
 
     @staticmethod
     async def _drop(page: _Page) -> None:
+        # The writer stops first, so the close frame is not interleaved with a message.
+        await page.stop_writing()
         await page.ws.close(code=4000, message=b"too slow")
 
     @property

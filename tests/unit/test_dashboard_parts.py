@@ -324,6 +324,33 @@ async def test_token_and_origin_are_checked(tmp_path: Path) -> None:
 
 
 @pytest.mark.asyncio
+async def test_a_page_that_falls_behind_is_dropped_and_the_others_keep_going(
+    tmp_path: Path,
+) -> None:
+    async with (
+        Dashboard(run_dir=_store(tmp_path / "run", 2), port=0, tick_s=60.0) as dash,
+        aiohttp.ClientSession() as http,
+        http.ws_connect(dash.url + "ws") as slow,
+    ):
+        assert (await slow.receive_json(timeout=5))["type"] == "snapshot"
+        assert dash.pages == 1
+        # More messages than a page's queue holds, with no chance to send any.
+        for k in range(300):
+            dash._broadcast({"type": "test", "k": k})
+        assert dash.pages == 0
+        async with http.ws_connect(dash.url + "ws") as fresh:
+            assert (await fresh.receive_json(timeout=5))["type"] == "snapshot"
+            dash._broadcast({"type": "test", "k": -1})
+            assert (await fresh.receive_json(timeout=5)) == {"type": "test", "k": -1}
+        received = 0
+        while (msg := await slow.receive(timeout=5)).type == aiohttp.WSMsgType.TEXT:
+            received += 1
+        assert msg.type == aiohttp.WSMsgType.CLOSE
+        assert (msg.data, msg.extra) == (4000, "too slow")
+        assert received <= 256
+
+
+@pytest.mark.asyncio
 async def test_page_loads_nothing_from_outside(tmp_path: Path) -> None:
     async with (
         Dashboard(run_dir=_store(tmp_path / "run", 2), port=0) as dash,
