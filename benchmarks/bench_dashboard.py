@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -200,6 +201,7 @@ extended_size = 64
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+        shutil.rmtree(tmp, ignore_errors=True)
     print(
         f"dashboard benchmark: {t_s / 3600:.2f} h of instrument time in {wall_s:.0f} s "
         f"(speed {speed:g}), offsets at {offset_rate_hz:g} Hz, 128x128 px frames every 60 s"
