@@ -16,6 +16,8 @@ $(STAMP): $(BIN)/python pyproject.toml constraints.txt
 
 install: $(STAMP)
 
+# In a terminal the dashboard keeps serving the finished run (its address ends the
+# summary) until Ctrl-C; under CI or a script the demo exits after its summary.
 demo: $(STAMP)
 	$(BIN)/afmdrift demo
 

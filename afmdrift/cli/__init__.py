@@ -30,6 +30,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._replay",
     "afmdrift.cli._watch",
     "afmdrift.cli._diagnose",
+    "afmdrift.cli._dashboard",
     "afmdrift.cli._demo",
 )
 

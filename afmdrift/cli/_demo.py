@@ -9,6 +9,10 @@ each frame as it arrives next to the simulator's true drift and samples the
 published offset stream. The summary names the run directory and gives the
 frames, the drift, the prediction error and the offset error against truth.
 
+The live dashboard (:mod:`afmdrift.dashboard`) follows the service from the
+start, with the simulator's true drift; its address is printed first and ends
+the summary (``--hold`` keeps it serving the finished run until Ctrl-C).
+
 Everything runs in one process and one event loop; nothing leaves 127.0.0.1.
 """
 
@@ -17,6 +21,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +60,20 @@ def register(sub: Any) -> None:
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
     p.add_argument("--run-dir", default=None, help="run directory (default: runs/demo-<UTC time>)")
+    p.add_argument(
+        "--dashboard-port",
+        type=int,
+        default=0,
+        help="port of the live dashboard on 127.0.0.1 (default 0: any free port)",
+    )
+    p.add_argument("--no-dashboard", action="store_true", help="do not start the dashboard")
+    p.add_argument(
+        "--hold",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="after the summary, keep the dashboard serving the finished run until Ctrl-C "
+        "(default: when run in a terminal; never under CI or a script)",
+    )
     p.set_defaults(handler=_demo)
 
 
@@ -105,6 +124,8 @@ def _demo(args: argparse.Namespace) -> int:
         raise InputError(f"--snr must be > 0, got {args.snr}")
     if not 1.0 <= args.speed <= 5000.0:
         raise InputError(f"--speed must be between 1 and 5000, got {args.speed}")
+    if not 0 <= args.dashboard_port <= 65535:
+        raise InputError(f"--dashboard-port must be between 0 and 65535, got {args.dashboard_port}")
     return asyncio.run(_run_demo(args))
 
 
@@ -122,7 +143,7 @@ async def _run_demo(args: argparse.Namespace) -> int:
     from afmdrift.drivers.sim._server import SimulatorServer
     from afmdrift.model import truth_frame_mean
     from afmdrift.records import Frame, ScanDirection
-    from afmdrift.service import DriftService, RunStore
+    from afmdrift.service import DriftService
     from afmdrift.wire import FrameMsg, OffsetMsg
 
     # Detector noise from the SNR: the sample's height spread over one noiseless frame.
@@ -182,6 +203,7 @@ async def _run_demo(args: argparse.Namespace) -> int:
         f"{'meas_y_nm':>10} {'err_nm':>7} {'blocks':>7} {'pred_err_nm':>11}"
     )
     ctx = zmq.asyncio.Context()
+    dashboard = None
     errors: list[float] = []
     rejected = 0
     pred_errors: list[float] = []
@@ -203,6 +225,9 @@ async def _run_demo(args: argparse.Namespace) -> int:
             try:
                 await asyncio.wait_for(service.ready.wait(), 30.0)
                 print(f"simulator on {url}; service publishing on {service.pub_endpoint}")
+                if not args.no_dashboard:
+                    dashboard = await _start_dashboard(args, config, run_dir, service, sim)
+                    print(f"dashboard: {dashboard.url}", flush=True)
                 print(header)
                 sub = Subscriber(service.pub_endpoint, topics=("frame", "offset"), ctx=ctx)
                 try:
@@ -256,8 +281,77 @@ async def _run_demo(args: argparse.Namespace) -> int:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await task
+    except BaseException:
+        if dashboard is not None:
+            await dashboard.close()
+        raise
     finally:
         ctx.term()
+    try:
+        return await _summarise(
+            args,
+            config,
+            run_dir,
+            started=started,
+            frames_seen=frames_seen,
+            errors=errors,
+            rejected=rejected,
+            pred_errors=pred_errors,
+            offset_errors=offset_errors,
+            ref_truth=ref_truth,
+            dashboard=dashboard,
+        )
+    finally:
+        if dashboard is not None:
+            await dashboard.close()
+
+
+async def _start_dashboard(
+    args: argparse.Namespace, config: Any, run_dir: Path, service: Any, sim: Any
+) -> Any:
+    """The live dashboard on the demo's service, with the simulator's true drift."""
+    import numpy as np
+
+    from afmdrift.dashboard import Dashboard, FunctionTruth
+
+    def truth_nm(t_s: Any) -> Any:
+        x, y = sim.truth_at(t_s)
+        return np.stack([np.asarray(x), np.asarray(y)], axis=-1)
+
+    dashboard = Dashboard(
+        run_dir=run_dir,
+        pub_endpoint=service.pub_endpoint,
+        config=config,
+        port=args.dashboard_port,
+        truth=FunctionTruth(truth_nm, label="the demo's simulator (true drift)"),
+        store_poll_s=0.5,
+    )
+    await dashboard.start()
+    return dashboard
+
+
+async def _summarise(
+    args: argparse.Namespace,
+    config: Any,
+    run_dir: Path,
+    *,
+    started: float,
+    frames_seen: int,
+    errors: list[float],
+    rejected: int,
+    pred_errors: list[float],
+    offset_errors: list[float],
+    ref_truth: Any,
+    dashboard: Any,
+) -> int:
+    """Print the summary (ending with the dashboard's address) and, with ``--hold``,
+    keep the dashboard serving until SIGINT/SIGTERM."""
+    import asyncio
+    import signal
+    import time
+
+    from afmdrift.service import RunStore
+
     with RunStore(run_dir) as store:
         csv_path = store.write_measurements_csv()
         records = store.frames()
@@ -290,4 +384,23 @@ async def _run_demo(args: argparse.Namespace) -> int:
             f"({config.service.offset_rate_hz:g} Hz)"
         )
     print(f"  run directory: {run_dir} (run.sqlite, {csv_path.name})")
+    if dashboard is None:
+        return 0
+    hold = args.hold if args.hold is not None else sys.stdin.isatty() and sys.stdout.isatty()
+    if not hold:
+        print(
+            f"  dashboard: {dashboard.url} (stops with the demo; "
+            f"afmdrift dashboard --run-dir {run_dir} shows the run again)"
+        )
+        return 0
+    print(f"  dashboard: {dashboard.url} (serving the finished run; Ctrl-C to stop)", flush=True)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
     return 0

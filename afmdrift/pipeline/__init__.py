@@ -8,14 +8,17 @@ the :class:`FrameRecord` it produces.
 
 from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, summarise_field
 from afmdrift.pipeline._records import (
+    FRAME_COLUMNS,
     MEASUREMENT_COLUMNS,
     FrameRecord,
     ResumeState,
     measurement_row,
     observation_from_record,
+    record_from_row,
 )
 
 __all__ = [
+    "FRAME_COLUMNS",
     "MEASUREMENT_COLUMNS",
     "FrameOutcome",
     "FramePipeline",
@@ -23,5 +26,6 @@ __all__ = [
     "ResumeState",
     "measurement_row",
     "observation_from_record",
+    "record_from_row",
     "summarise_field",
 ]

@@ -8,7 +8,8 @@ reads back from the store to continue.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -18,11 +19,13 @@ from afmdrift.model import Observation
 from afmdrift.records import ScanDirection
 
 __all__ = [
+    "FRAME_COLUMNS",
     "MEASUREMENT_COLUMNS",
     "FrameRecord",
     "ResumeState",
     "measurement_row",
     "observation_from_record",
+    "record_from_row",
 ]
 
 
@@ -152,3 +155,22 @@ def measurement_row(r: FrameRecord) -> list[str]:
     values["t_s"] = r.t_mid_s
     values["pred_error_nm"] = r.pred_error_nm
     return [_fmt(values[c]) for c in MEASUREMENT_COLUMNS]
+
+
+#: Columns of a stored frame row, in :class:`FrameRecord` field order (the run
+#: store's ``frames`` table, docs/service.md).
+FRAME_COLUMNS: tuple[str, ...] = tuple(f.name for f in fields(FrameRecord))
+
+
+def record_from_row(row: Sequence[Any]) -> FrameRecord:
+    """A :class:`FrameRecord` from a stored row in :data:`FRAME_COLUMNS` order
+    (SQL NULL floats become NaN, integers 0/1 booleans)."""
+    values: dict[str, Any] = {}
+    for f, v in zip(fields(FrameRecord), row, strict=True):
+        if f.type == "bool":
+            values[f.name] = bool(v)
+        elif f.type == "float":
+            values[f.name] = math.nan if v is None else float(v)
+        else:
+            values[f.name] = v
+    return FrameRecord(**values)

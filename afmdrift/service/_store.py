@@ -21,7 +21,6 @@ import math
 import os
 import sqlite3
 import time
-from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -31,10 +30,12 @@ import numpy.typing as npt
 
 from afmdrift.errors import AfmdriftError
 from afmdrift.pipeline import (
+    FRAME_COLUMNS,
     MEASUREMENT_COLUMNS,
     FrameRecord,
     ResumeState,
     measurement_row,
+    record_from_row,
 )
 from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
 
@@ -51,7 +52,7 @@ class StoreError(AfmdriftError):
     """The run store cannot be opened or is not a store this version can read."""
 
 
-_FRAME_FIELDS = [f.name for f in fields(FrameRecord)]
+_FRAME_FIELDS = FRAME_COLUMNS
 _SQL_TYPES = {"int": "INTEGER", "float": "REAL", "str": "TEXT", "bool": "INTEGER"}
 
 
@@ -248,14 +249,14 @@ class RunStore:
             f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames WHERE seq > ? ORDER BY seq",
             (since_seq,),
         )
-        return [self._row_to_record(row) for row in cur]
+        return [record_from_row(row) for row in cur]
 
     def last_frames(self, n: int) -> list[FrameRecord]:
         """The last ``n`` frame records, oldest first."""
         cur = self._db.execute(
             f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames ORDER BY seq DESC LIMIT ?", (n,)
         )
-        return [self._row_to_record(row) for row in cur][::-1]
+        return [record_from_row(row) for row in cur][::-1]
 
     def channels(self) -> list[ChannelSample]:
         """Committed channel samples in time order (one sample per distinct time)."""
@@ -442,18 +443,6 @@ class RunStore:
         )
         self._pending_channels.clear()
         self._pending_events.clear()
-
-    @staticmethod
-    def _row_to_record(row: Sequence[Any]) -> FrameRecord:
-        kwargs: dict[str, Any] = {}
-        for f, v in zip(fields(FrameRecord), row, strict=True):
-            if f.type == "bool":
-                kwargs[f.name] = bool(v)
-            elif f.type == "float":
-                kwargs[f.name] = _none_to_nan(f.name, v)
-            else:
-                kwargs[f.name] = v
-        return FrameRecord(**kwargs)
 
     @staticmethod
     def _save_npy(path: Path, image: npt.NDArray[np.floating]) -> None:

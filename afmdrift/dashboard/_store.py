@@ -1,0 +1,189 @@
+"""Read-only access to a run store (``RUN_DIR/run.sqlite``) that a daemon may be writing.
+
+:class:`afmdrift.service.RunStore` opens its database for writing (it creates
+the schema and takes write locks), which a viewer must never do to a live run.
+:class:`RunReader` opens the same file with SQLite's ``mode=ro`` URI, so it
+can neither write nor lock out the daemon; WAL mode lets it read committed
+frames while the daemon appends new ones. Rows become the public
+:class:`afmdrift.pipeline.FrameRecord` through the store's own conversion
+(:func:`afmdrift.pipeline.record_from_row`), so the schema is described in
+one place (``docs/service.md``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import sqlite3
+from pathlib import Path
+from typing import Any
+
+from afmdrift.errors import AfmdriftError
+from afmdrift.pipeline import FRAME_COLUMNS, FrameRecord, record_from_row
+from afmdrift.service import DB_NAME, STORE_SCHEMA_VERSION
+
+__all__ = ["DB_FILE", "DashboardError", "RunReader", "StoreRows"]
+
+#: Database file of a run directory (``docs/service.md``).
+DB_FILE = DB_NAME
+#: Store schema this reader understands (``meta.schema_version``).
+_SCHEMA_VERSION = str(STORE_SCHEMA_VERSION)
+#: Seconds SQLite waits for a writer's checkpoint before giving up on a read.
+_BUSY_TIMEOUT_S = 2.0
+
+_COLUMNS = ", ".join(FRAME_COLUMNS)
+
+
+class DashboardError(AfmdriftError):
+    """The dashboard cannot start: unknown run directory, unusable store, bad option."""
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class StoreRows:
+    """What :meth:`RunReader.read_since` found after the given cursors.
+
+    ``channels`` rows are ``(id, t_s, name, value_or_nan)``; ``events`` rows are
+    ``(id, epoch, t_s, kind, x_nm, y_nm)``; ``model`` is the newest
+    ``(seq, predictor, state)`` when it is newer than the cursor, else ``None``.
+    """
+
+    frames: list[FrameRecord]
+    channels: list[tuple[int, float, str, float]]
+    events: list[tuple[int, int, float, str, float, float]]
+    model: tuple[int, str, dict[str, Any]] | None
+
+
+class RunReader:
+    """Read-only view of ``RUN_DIR/run.sqlite``.
+
+    Parameters
+    ----------
+    run_dir : path-like
+        Run directory written by ``afmdrift run`` or ``afmdrift replay``.
+
+    Raises
+    ------
+    DashboardError
+        The directory or its ``run.sqlite`` does not exist, the file is not a
+        run store, or its schema version is not 1.
+    """
+
+    def __init__(self, run_dir: str | Path) -> None:
+        self.run_dir = Path(run_dir)
+        if not self.run_dir.is_dir():
+            raise DashboardError(f"{self.run_dir}: no such run directory")
+        self.path = self.run_dir / DB_FILE
+        if not self.path.is_file():
+            raise DashboardError(
+                f"{self.run_dir}: not a run directory (no {DB_FILE}; written by afmdrift run "
+                "or afmdrift replay)"
+            )
+        uri = f"{self.path.resolve().as_uri()}?mode=ro"
+        try:
+            self._db = sqlite3.connect(
+                uri, uri=True, timeout=_BUSY_TIMEOUT_S, check_same_thread=False
+            )
+        except sqlite3.Error as err:
+            raise DashboardError(f"{self.path}: cannot open read-only ({err})") from None
+        try:
+            row = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+            self._db.execute(f"SELECT {_COLUMNS} FROM frames LIMIT 0").fetchall()
+        except sqlite3.DatabaseError as err:
+            self._db.close()
+            raise DashboardError(f"{self.path}: not a usable run store ({err})") from None
+        if row is None or str(row[0]) != _SCHEMA_VERSION:
+            self._db.close()
+            found = "none" if row is None else repr(row[0])
+            raise DashboardError(
+                f"{self.path}: store schema version {found} is not supported (this dashboard "
+                f"reads {_SCHEMA_VERSION})"
+            )
+
+    def close(self) -> None:
+        self._db.close()
+
+    def __enter__(self) -> RunReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def meta(self) -> dict[str, str]:
+        """The ``meta`` table as a mapping."""
+        return {str(k): str(v) for k, v in self._db.execute("SELECT key, value FROM meta")}
+
+    def frame(self, seq: int) -> FrameRecord | None:
+        """One frame record, or ``None``."""
+        row = self._db.execute(f"SELECT {_COLUMNS} FROM frames WHERE seq = ?", (seq,)).fetchone()
+        return None if row is None else record_from_row(row)
+
+    def session_reference(self) -> FrameRecord | None:
+        """The session reference frame (drift position 0), or ``None`` before it."""
+        row = self._db.execute(
+            f"SELECT {_COLUMNS} FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
+        ).fetchone()
+        return None if row is None else record_from_row(row)
+
+    def read_since(
+        self,
+        *,
+        frame_seq: int = -1,
+        channel_id: int = 0,
+        event_id: int = 0,
+        model_seq: int = -1,
+        max_frames: int | None = None,
+    ) -> StoreRows:
+        """Rows added after the given cursors, read in one transaction.
+
+        ``max_frames`` keeps only the newest that many frames (the first read
+        of a long run).
+
+        Raises
+        ------
+        DashboardError
+            The database cannot be read (removed, corrupted).
+        """
+        try:
+            self._db.execute("BEGIN")
+            try:
+                if max_frames is None:
+                    cur = self._db.execute(
+                        f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq", (frame_seq,)
+                    )
+                    frames = [record_from_row(r) for r in cur]
+                else:
+                    cur = self._db.execute(
+                        f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq DESC LIMIT ?",
+                        (frame_seq, max_frames),
+                    )
+                    frames = [record_from_row(r) for r in cur][::-1]
+                channels = [
+                    (int(i), float(t), str(n), math.nan if v is None else float(v))
+                    for i, t, n, v in self._db.execute(
+                        "SELECT id, t_s, name, value FROM channels WHERE id > ? ORDER BY id",
+                        (channel_id,),
+                    )
+                ]
+                events = [
+                    (int(i), int(e), float(t), str(k), float(x), float(y))
+                    for i, e, t, k, x, y in self._db.execute(
+                        "SELECT id, epoch, t_s, kind, x_nm, y_nm FROM events WHERE id > ? "
+                        "ORDER BY id",
+                        (event_id,),
+                    )
+                ]
+                model = None
+                row = self._db.execute(
+                    "SELECT seq, predictor, state_json FROM model_state WHERE seq > ? "
+                    "ORDER BY seq DESC LIMIT 1",
+                    (model_seq,),
+                ).fetchone()
+                if row is not None:
+                    state = json.loads(row[2])
+                    model = (int(row[0]), str(row[1]), state if isinstance(state, dict) else {})
+            finally:
+                self._db.execute("COMMIT")
+        except (sqlite3.DatabaseError, json.JSONDecodeError) as err:
+            raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
+        return StoreRows(frames=frames, channels=channels, events=events, model=model)
