@@ -133,83 +133,25 @@ async def _run_demo(args: argparse.Namespace) -> int:
     import asyncio
     import time
 
-    import numpy as np
     import zmq.asyncio
 
     from afmdrift.client import Subscriber
-    from afmdrift.config import load_config
     from afmdrift.drivers import NanoScopeDriver
-    from afmdrift.drivers.sim import SimulatedAFM
     from afmdrift.drivers.sim._server import SimulatorServer
-    from afmdrift.model import truth_frame_mean
-    from afmdrift.records import Frame, ScanDirection
     from afmdrift.service import DriftService
-    from afmdrift.wire import FrameMsg, OffsetMsg
 
-    # Detector noise from the SNR: the sample's height spread over one noiseless frame.
-    probe = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=0.0))
-    first = probe.advance_to(max(FRAME_PERIOD_S, args.size / LINE_RATE_HZ) + 1.0)[0]
-    noise_nm = float(np.std(first.heights_nm)) / args.snr
-    sim = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=noise_nm))
-
-    base = load_config(args.config)
-    stamp = time.strftime("%Y%m%d-%H%M%S", time.gmtime())
-    run_dir = Path(args.run_dir or f"runs/demo-{stamp}")
-    model = base.model
-    if args.predictor is not None:
-        model = model.model_copy(update={"predictor": args.predictor})
-    config = base.model_copy(
-        update={
-            "model": model,
-            "service": base.service.model_copy(
-                update={
-                    "run_dir": str(run_dir),
-                    "pub_endpoint": "tcp://127.0.0.1:*",
-                    "control_endpoint": "tcp://127.0.0.1:*",
-                    "frame_poll_interval_s": 0.05,
-                    "clock_sync_interval_s": 0.1,
-                    "channel_poll_interval_s": 0.5,
-                    "event_poll_interval_s": 0.5,
-                    "heartbeat_interval_s": 0.5,
-                }
-            ),
-        }
-    )
-    rows = args.size
-    scan_s = rows / LINE_RATE_HZ
-
-    def truth(t_mid_s: float) -> Any:
-        """Mean true drift over the scan lines of the frame centred at ``t_mid_s``."""
-        frame = Frame(
-            index=0,
-            heights_nm=np.zeros((rows, 1)),
-            pixel_size_nm=(PIXEL_NM, PIXEL_NM),
-            t_start_s=t_mid_s - scan_s / 2,
-            t_end_s=t_mid_s + scan_s / 2,
-            direction=ScanDirection.UP,
-        )
-        t = np.linspace(frame.t_start_s, frame.t_end_s, 256)
-        x, y = sim.truth_at(t)
-        return truth_frame_mean(frame, t, np.stack([x, y], axis=1))
-
+    sim = _demo_simulator(args)
+    run_dir = Path(args.run_dir or f"runs/demo-{time.strftime('%Y%m%d-%H%M%S', time.gmtime())}")
+    config = _demo_config(args, run_dir)
     print(
         f"afmdrift demo: simulated AFM ({args.size}x{args.size} px at {PIXEL_NM:g} nm/px, gold "
         f"colloids, SNR {args.snr:g}, one frame per {FRAME_PERIOD_S:g} s) served over a "
         f"{'pseudo-terminal' if args.transport == 'pty' else 'loopback TCP'} at {args.speed:g}x; "
         f"drift service with predictor {config.model.predictor!r}; subscriber on ZeroMQ"
     )
-    header = (
-        f"{'frame':>5} {'t_s':>6} {'true_x_nm':>10} {'true_y_nm':>10} {'meas_x_nm':>10} "
-        f"{'meas_y_nm':>10} {'err_nm':>7} {'blocks':>7} {'pred_err_nm':>11}"
-    )
     ctx = zmq.asyncio.Context()
     dashboard = None
-    errors: list[float] = []
-    rejected = 0
-    pred_errors: list[float] = []
-    offset_errors: list[float] = []
-    ref_truth: Any = None
-    frames_seen = 0
+    tally = _Tally(sim=sim, rows=args.size)
     started = time.monotonic()
     budget_s = 60.0 + 3.0 * args.frames * FRAME_PERIOD_S / args.speed
     try:
@@ -228,53 +170,12 @@ async def _run_demo(args: argparse.Namespace) -> int:
                 if not args.no_dashboard:
                     dashboard = await _start_dashboard(args, config, run_dir, service, sim)
                     print(f"dashboard: {dashboard.url}", flush=True)
-                print(header)
+                print(_HEADER)
                 sub = Subscriber(service.pub_endpoint, topics=("frame", "offset"), ctx=ctx)
                 try:
                     async with asyncio.timeout(budget_s):
-                        while frames_seen < args.frames:
-                            msg = await sub.recv()
-                            if isinstance(msg, OffsetMsg):
-                                if msg.valid and ref_truth is not None:
-                                    x, y = sim.truth_at(msg.t_s)
-                                    offset_errors.append(
-                                        math.hypot(
-                                            msg.x_nm - (x - ref_truth[0]),
-                                            msg.y_nm - (y - ref_truth[1]),
-                                        )
-                                    )
-                                continue
-                            if not isinstance(msg, FrameMsg):
-                                continue
-                            frames_seen += 1
-                            if ref_truth is None:
-                                ref_truth = truth(msg.t_s)
-                            true = truth(msg.t_s) - ref_truth
-                            blocks = f"{msg.valid_blocks}/{msg.total_blocks}"
-                            pred = "-" if msg.pred_error_nm is None else f"{msg.pred_error_nm:.3f}"
-                            if msg.reason == "reference":
-                                print(
-                                    f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} "
-                                    f"{true[1]:10.2f} {'reference':>21}"
-                                )
-                                continue
-                            if msg.x_nm is None or msg.y_nm is None:
-                                rejected += 1
-                                print(
-                                    f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} "
-                                    f"{true[1]:10.2f} {'-':>10} {'-':>10} {'-':>7} {blocks:>7}"
-                                    f" {pred:>11}  rejected: {msg.reason}"
-                                )
-                                continue
-                            err = math.hypot(msg.x_nm - true[0], msg.y_nm - true[1])
-                            errors.append(err)
-                            if msg.pred_error_nm is not None:
-                                pred_errors.append(msg.pred_error_nm)
-                            print(
-                                f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} {true[1]:10.2f} "
-                                f"{msg.x_nm:10.2f} {msg.y_nm:10.2f} {err:7.3f} {blocks:>7} "
-                                f"{pred:>11}"
-                            )
+                        while tally.frames_seen < args.frames:
+                            tally.take(await sub.recv())
                 finally:
                     sub.close()
             finally:
@@ -293,17 +194,135 @@ async def _run_demo(args: argparse.Namespace) -> int:
             config,
             run_dir,
             started=started,
-            frames_seen=frames_seen,
-            errors=errors,
-            rejected=rejected,
-            pred_errors=pred_errors,
-            offset_errors=offset_errors,
-            ref_truth=ref_truth,
+            frames_seen=tally.frames_seen,
+            errors=tally.errors,
+            rejected=tally.rejected,
+            pred_errors=tally.pred_errors,
+            offset_errors=tally.offset_errors,
+            ref_truth=tally.ref_truth,
             dashboard=dashboard,
         )
     finally:
         if dashboard is not None:
             await dashboard.close()
+
+
+_HEADER = (
+    f"{'frame':>5} {'t_s':>6} {'true_x_nm':>10} {'true_y_nm':>10} {'meas_x_nm':>10} "
+    f"{'meas_y_nm':>10} {'err_nm':>7} {'blocks':>7} {'pred_err_nm':>11}"
+)
+
+
+def _demo_simulator(args: argparse.Namespace) -> Any:
+    """The demo's simulated AFM, its detector noise set from ``--snr``: the
+    sample's height spread over one noiseless frame, divided by the SNR."""
+    import numpy as np
+
+    from afmdrift.drivers.sim import SimulatedAFM
+
+    probe = SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=0.0))
+    first = probe.advance_to(max(FRAME_PERIOD_S, args.size / LINE_RATE_HZ) + 1.0)[0]
+    noise_nm = float(np.std(first.heights_nm)) / args.snr
+    return SimulatedAFM(drift_scenario(size_px=args.size, seed=args.seed, noise_nm=noise_nm))
+
+
+def _demo_config(args: argparse.Namespace, run_dir: Path) -> Any:
+    """``--config`` (or the default) with the demo's run directory, free loopback
+    ports, fast polling and ``--predictor``."""
+    from afmdrift.config import load_config
+
+    base = load_config(args.config)
+    model = base.model
+    if args.predictor is not None:
+        model = model.model_copy(update={"predictor": args.predictor})
+    service = base.service.model_copy(
+        update={
+            "run_dir": str(run_dir),
+            "pub_endpoint": "tcp://127.0.0.1:*",
+            "control_endpoint": "tcp://127.0.0.1:*",
+            "frame_poll_interval_s": 0.05,
+            "clock_sync_interval_s": 0.1,
+            "channel_poll_interval_s": 0.5,
+            "event_poll_interval_s": 0.5,
+            "heartbeat_interval_s": 0.5,
+        }
+    )
+    return base.model_copy(update={"model": model, "service": service})
+
+
+class _Tally:
+    """What the demo's subscriber saw, against the simulator's truth; prints a
+    line per frame."""
+
+    def __init__(self, *, sim: Any, rows: int) -> None:
+        self.sim = sim
+        self.rows = rows
+        self.errors: list[float] = []
+        self.rejected = 0
+        self.pred_errors: list[float] = []
+        self.offset_errors: list[float] = []
+        self.ref_truth: Any = None
+        self.frames_seen = 0
+
+    def truth(self, t_mid_s: float) -> Any:
+        """Mean true drift over the scan lines of the frame centred at ``t_mid_s``."""
+        import numpy as np
+
+        from afmdrift.model import truth_frame_mean
+        from afmdrift.records import Frame, ScanDirection
+
+        scan_s = self.rows / LINE_RATE_HZ
+        frame = Frame(
+            index=0,
+            heights_nm=np.zeros((self.rows, 1)),
+            pixel_size_nm=(PIXEL_NM, PIXEL_NM),
+            t_start_s=t_mid_s - scan_s / 2,
+            t_end_s=t_mid_s + scan_s / 2,
+            direction=ScanDirection.UP,
+        )
+        t = np.linspace(frame.t_start_s, frame.t_end_s, 256)
+        x, y = self.sim.truth_at(t)
+        return truth_frame_mean(frame, t, np.stack([x, y], axis=1))
+
+    def take(self, msg: Any) -> None:
+        """Score one ``offset`` or ``frame`` message."""
+        from afmdrift.wire import FrameMsg, OffsetMsg
+
+        if isinstance(msg, OffsetMsg):
+            if msg.valid and self.ref_truth is not None:
+                x, y = self.sim.truth_at(msg.t_s)
+                self.offset_errors.append(
+                    math.hypot(
+                        msg.x_nm - (x - self.ref_truth[0]), msg.y_nm - (y - self.ref_truth[1])
+                    )
+                )
+            return
+        if isinstance(msg, FrameMsg):
+            self._frame(msg)
+
+    def _frame(self, msg: Any) -> None:
+        self.frames_seen += 1
+        if self.ref_truth is None:
+            self.ref_truth = self.truth(msg.t_s)
+        true = self.truth(msg.t_s) - self.ref_truth
+        blocks = f"{msg.valid_blocks}/{msg.total_blocks}"
+        pred = "-" if msg.pred_error_nm is None else f"{msg.pred_error_nm:.3f}"
+        where = f"{msg.frame:5d} {msg.t_s:6.0f} {true[0]:10.2f} {true[1]:10.2f}"
+        if msg.reason == "reference":
+            print(f"{where} {'reference':>21}")
+            return
+        if msg.x_nm is None or msg.y_nm is None:
+            self.rejected += 1
+            print(
+                f"{where} {'-':>10} {'-':>10} {'-':>7} {blocks:>7} {pred:>11}  "
+                f"rejected: {msg.reason}"
+            )
+            return
+        err = math.hypot(msg.x_nm - true[0], msg.y_nm - true[1])
+        self.errors.append(err)
+        if msg.pred_error_nm is not None:
+            self.pred_errors.append(msg.pred_error_nm)
+        print(f"{where} {msg.x_nm:10.2f} {msg.y_nm:10.2f} {err:7.3f} {blocks:>7} {pred:>11}")
 
 
 async def _start_dashboard(

@@ -36,6 +36,7 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.dashboard._state import ArrayTruth
 from afmdrift.dashboard._store import DashboardError
 from afmdrift.errors import AfmdriftError
+from afmdrift.session import read_session
 
 __all__ = ["DiagnosisFile", "FrameImages", "frame_view", "load_session"]
 
@@ -51,8 +52,6 @@ def load_session(session_dir: str | Path) -> tuple[Any, ArrayTruth | None]:
     DashboardError
         ``session_dir`` is not a readable session.
     """
-    from afmdrift.session import read_session
-
     try:
         session = read_session(session_dir)
     except AfmdriftError as err:
@@ -183,6 +182,8 @@ def frame_view(
         length per px of motion), and the re-measured ``result``
         (``DriftResult.to_dict()``).
     """
+    # Imported here: the registration engine (FFTW plans, compiled kernels,
+    # about 120 MiB) loads only once a frame is actually re-measured.
     from afmdrift.registration import measure_drift
 
     try:

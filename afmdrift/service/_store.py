@@ -18,7 +18,6 @@ import csv
 import json
 import logging
 import math
-import os
 import sqlite3
 import time
 from dataclasses import fields
@@ -38,6 +37,7 @@ from afmdrift.pipeline import (
     record_from_row,
 )
 from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
+from afmdrift.service._images import load_reference_image, save_image
 
 __all__ = ["DB_NAME", "STORE_SCHEMA_VERSION", "RunStore", "StoreError"]
 
@@ -196,9 +196,9 @@ class RunStore:
         disagree after a crash.
         """
         if self.archive_frames and image is not None:
-            self._save_npy(self.run_dir / "frames" / f"{record.seq:06d}.npy", image)
+            save_image(self.run_dir / "frames" / f"{record.seq:06d}.npy", image)
         if reference is not None:
-            self._save_npy(self._reference_path(record.seq), reference)
+            save_image(self._reference_path(record.seq), reference)
         with self._transaction():
             self._flush_pending()
             values = [_nan_to_none(getattr(record, n)) for n in _FRAME_FIELDS]
@@ -307,7 +307,11 @@ class RunStore:
         predictor, state, curve = self._latest_model_state()
         meta = self.meta()
         reference_seq = _meta_int(meta, "reference_seq")
-        reference = None if reference_seq is None else self._load_reference(reference_seq)
+        reference = (
+            None
+            if reference_seq is None
+            else load_reference_image(self._reference_path(reference_seq))
+        )
         cursor_row = self._db.execute(
             "SELECT MAX(epoch), MAX(log_index) FROM events WHERE epoch = "
             "(SELECT MAX(epoch) FROM events)"
@@ -348,32 +352,6 @@ class RunStore:
                 continue
             return str(predictor), state, curve
         return "", None, None
-
-    def _load_reference(self, seq: int) -> npt.NDArray[np.float32] | None:
-        """The committed reference image, or ``None`` (reported) when it is missing or
-        damaged: the next frame then becomes a new reference."""
-        # Written (and fsynced) before the frame's transaction and deleted only
-        # after a later one committed, so it is on disk unless something else
-        # removed or damaged it.
-        path = self._reference_path(seq)
-        try:
-            image = np.load(path, allow_pickle=False)
-        except FileNotFoundError:
-            log.warning("run store: reference image %s is missing; taking a new one", path)
-            return None
-        except (OSError, ValueError, EOFError) as err:
-            log.warning(
-                "run store: reference image %s is damaged (%s); taking a new one", path, err
-            )
-            return None
-        if image.ndim != 2 or not np.issubdtype(image.dtype, np.floating) or min(image.shape) < 2:
-            log.warning(
-                "run store: reference image %s is not a 2-D float image %s; taking a new one",
-                path,
-                image.shape,
-            )
-            return None
-        return np.asarray(image, dtype=np.float32)
 
     def _session_reference_time(self) -> float | None:
         """Mid-scan time of the session reference frame (where p = 0)."""
@@ -443,23 +421,6 @@ class RunStore:
         )
         self._pending_channels.clear()
         self._pending_events.clear()
-
-    @staticmethod
-    def _save_npy(path: Path, image: npt.NDArray[np.floating]) -> None:
-        """Write atomically and durably: data and directory entry are on disk
-        before the transaction that names the file commits."""
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        with tmp.open("wb") as fh:
-            np.save(fh, np.asarray(image, dtype=np.float32), allow_pickle=False)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
 
 
 class _Transaction:
