@@ -120,10 +120,13 @@ def write_scenario(path: Path, data: dict[str, Any]) -> Path:
 class SimProcess:
     """``afmdrift sim serve`` in a subprocess on 127.0.0.1 (killable with SIGKILL)."""
 
-    def __init__(self, scenario_file: Path, *, speed: float, port: int = 0) -> None:
+    def __init__(
+        self, scenario_file: Path, *, speed: float, port: int = 0, faults: float = 0.0
+    ) -> None:
         self.scenario_file = scenario_file
         self.speed = speed
         self.port = port
+        self.faults = faults
         self.proc: subprocess.Popen[str] | None = None
 
     def start(self) -> str:
@@ -140,6 +143,8 @@ class SimProcess:
                 str(self.scenario_file),
                 "--speed",
                 str(self.speed),
+                "--faults",
+                str(self.faults),
             ],
             cwd=REPO,
             stdout=subprocess.PIPE,

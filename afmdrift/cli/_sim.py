@@ -85,6 +85,14 @@ def _register_serve(ssub: Any) -> None:
         help="Virtual seconds per wall second (1 = real time; 1000 runs 8 h in about 29 s).",
     )
     p.add_argument("--seed", type=int, default=None, help="Override the scenario's seed.")
+    p.add_argument(
+        "--faults",
+        type=float,
+        default=0.0,
+        metavar="RATE",
+        help="Perturb this fraction of replies at random (corrupt, truncate, drop, delay, "
+        "stale, disconnect): a faulty line for soak tests (default 0).",
+    )
     p.set_defaults(handler=_serve)
 
 
@@ -99,7 +107,11 @@ def _serve(args: argparse.Namespace) -> int:
         from afmdrift.errors import ConfigError
 
         raise ConfigError(f"--port {port}: must be in 0..65535")
-    asyncio.run(_serve_until_signal(sim, port=port, speed=args.speed))
+    if not 0.0 <= args.faults <= 1.0:
+        from afmdrift.errors import ConfigError
+
+        raise ConfigError(f"--faults {args.faults}: must be a fraction in [0, 1]")
+    asyncio.run(_serve_until_signal(sim, port=port, speed=args.speed, faults=args.faults))
     return 0
 
 
@@ -112,18 +124,21 @@ def _scenario(name: str | None) -> Any:
     return default if default.is_file() else Scenario()
 
 
-async def _serve_until_signal(sim: Any, *, port: int | None, speed: float) -> None:
+async def _serve_until_signal(
+    sim: Any, *, port: int | None, speed: float, faults: float = 0.0
+) -> None:
     import asyncio
     import signal
 
-    from afmdrift.drivers.sim._server import SimulatorServer
+    from afmdrift.drivers.sim._server import ServerFaults, SimulatorServer
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
     try:
-        async with SimulatorServer(sim, speed=speed) as server:
+        random_faults = ServerFaults(seed=1, random_rate=faults)
+        async with SimulatorServer(sim, speed=speed, faults=random_faults) as server:
             if port is None:
                 print(await server.start_pty(), flush=True)
             else:

@@ -10,6 +10,8 @@ subscriber only.
 from __future__ import annotations
 
 import logging
+import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +44,9 @@ __all__ = [
 ]
 
 log = logging.getLogger(__name__)
+
+#: Seconds between warnings about rejected control messages.
+_WARN_EVERY_S = 10.0
 
 
 class ServiceSocketError(AfmdriftError):
@@ -225,6 +230,8 @@ class ControlSocket:
             {zmq.MAXMSGSIZE: max_request_bytes},
         )
         self.endpoint: str = self._sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._last_warning_s = -math.inf
+        self._suppressed = 0
 
     async def receive(self) -> ControlMessage:
         """The next message, decoded, with the envelope its reply must carry."""
@@ -237,13 +244,29 @@ class ControlSocket:
             envelope, body = (identity,), rest
         if len(body) != 1:
             error = f"control request: expected one frame, got {len(body)}"
-            log.warning("control: rejected message: %s", error)
+            self._rejected(error)
             return ControlMessage(envelope, None, error)
         try:
             return ControlMessage(envelope, decode_control_request(body[0]))
         except WireError as err:
-            log.warning("control: rejected request: %s", err)
+            self._rejected(str(err))
             return ControlMessage(envelope, None, str(err))
+
+    def _rejected(self, error: str) -> None:
+        """Log a rejected message; a flood of them (any local process can send
+        one) gives one warning per ``_WARN_EVERY_S`` with the count, not one each."""
+        now = time.monotonic()
+        self._suppressed += 1
+        if now - self._last_warning_s < _WARN_EVERY_S:
+            return
+        more = (
+            f" (and {self._suppressed - 1} more since the last warning)"
+            if self._suppressed > 1
+            else ""
+        )
+        log.warning("control: rejected a message: %s%s", error, more)
+        self._last_warning_s = now
+        self._suppressed = 0
 
     async def reply(self, message: ControlMessage, reply: ControlReply) -> None:
         """Send ``reply`` back along ``message``'s envelope (never blocks; a peer

@@ -174,10 +174,16 @@ class ServerFaults:
         Seeds the choice of corrupted bytes.
     """
 
-    def __init__(self, *, seed: int = 0) -> None:
+    def __init__(self, *, seed: int = 0, random_rate: float = 0.0) -> None:
+        if not 0.0 <= random_rate <= 1.0:
+            raise ValueError(f"random_rate must be in [0, 1], got {random_rate}")
         self._queue: deque[_Fault] = deque()
         self._rng = np.random.default_rng(seed)
         self.applied: list[tuple[str, str]] = []
+        #: Probability that a reply with no queued fault gets a random one
+        #: (corrupted byte, truncation, drop, 0.3 s delay, stale reply or, on
+        #: TCP, a disconnect): the faulty line of a soak test.
+        self.random_rate = random_rate
 
     def corrupt_next_reply(
         self,
@@ -240,7 +246,23 @@ class ServerFaults:
                     self._queue.remove(fault)
                 self.applied.append((fault.kind, header))
                 return fault
+        if self.random_rate and self._rng.random() < self.random_rate:
+            fault = self._random_fault()
+            self.applied.append((fault.kind, header))
+            return fault
         return None
+
+    def _random_fault(self) -> _Fault:
+        kinds: tuple[FaultKind, ...] = (
+            "corrupt",
+            "truncate",
+            "drop",
+            "delay",
+            "stale",
+            "disconnect",
+        )
+        kind = kinds[int(self._rng.integers(len(kinds)))]
+        return _Fault(kind, None, 1, delay_s=0.3, keep_bytes=int(self._rng.integers(0, 12)))
 
     def corrupt(self, data: bytes, fault: _Fault) -> bytes:
         out = bytearray(data)
