@@ -31,6 +31,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zmq
 import zmq.asyncio
 from aiohttp import WSMsgType, web
@@ -39,7 +40,9 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.dashboard._sources import DiagnosisFile, FrameImages, frame_view
 from afmdrift.dashboard._state import RunState, TruthSource
 from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader
-from afmdrift.errors import AfmdriftError
+from afmdrift.errors import AfmdriftError, InputError
+from afmdrift.model import OffsetCurve
+from afmdrift.service import OffsetLimiter
 from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg, StatusMsg, WireError, decode
 
 __all__ = ["Dashboard", "is_loopback"]
@@ -222,6 +225,8 @@ class Dashboard:
             self._open_store()
         if self._reader is not None:
             await self._poll_store_once(first=True)
+            if self.pub_endpoint is None:
+                await asyncio.to_thread(self._offsets_from_stored_curves)
         sub: zmq.asyncio.Socket | None = None
         if self.pub_endpoint is not None:
             if not _ENDPOINT.match(self.pub_endpoint):
@@ -515,6 +520,46 @@ class Dashboard:
             c["model"] = rows.model[0]
             self.state.set_model_state(rows.model[1], rows.model[2])
         self.state.store_note = f"{reader.path} (read-only)"
+
+    def _offsets_from_stored_curves(self) -> None:
+        """A finished run: d(t) as the tip controller received it, rebuilt from the
+        curves kept in the store, through the run's own safety limiter.
+
+        The offset stream itself is not recorded; each stored curve is
+        evaluated from its publication (the end of its frame) to the next one.
+        Stale or paused stretches are not known afterwards and are not marked.
+        """
+        assert self._reader is not None
+        curves: list[tuple[float, OffsetCurve]] = []
+        for t_pub, doc in self._reader.stored_curves():
+            try:
+                curves.append((t_pub, OffsetCurve.from_dict(doc)))
+            except InputError as err:
+                log.warning(
+                    "%s: a stored offset curve is unusable (%s); skipped", self.run_dir, err
+                )
+        if not curves:
+            return
+        service = self._registration_config.service
+        limiter = OffsetLimiter(
+            max_offset_nm=service.max_offset_nm, max_rate_nm_s=service.max_offset_rate_nm_s
+        )
+        t_first = curves[0][0]
+        t_stop = max(curves[-1][1].t_valid_s[1], curves[-1][0])
+        step = max((t_stop - t_first) / 4000.0, 0.5)
+        start = curves[0][1].at([t_first])[0]
+        limiter.hold(t_first, float(start[0]), float(start[1]))
+        for k, (t0, curve) in enumerate(curves):
+            t1 = curves[k + 1][0] if k + 1 < len(curves) else t_stop
+            ts = np.arange(t0, t1, step)
+            for t, (x, y) in zip(ts, curve.at(ts), strict=True):
+                out = limiter.apply(float(t), float(x), float(y))
+                self.state.offsets.add(float(t), (out.x_nm, out.y_nm), (False, out.clamped))
+        self.state.offset_source = (
+            f"rebuilt from the {len(curves)} offset curves kept in the run store, through "
+            "its safety limits (the stream itself is not recorded; stale or paused "
+            "stretches are not known afterwards)"
+        )
 
     async def _poll_store(self) -> None:
         while True:

@@ -223,6 +223,8 @@ class RunState:
         self.frames_dropped = 0
         self.offsets = Envelope(components=2, flags=2, capacity=offset_capacity)
         self.last_offset: dict[str, Any] | None = None
+        #: Where the offset envelope came from when not from the live stream.
+        self.offset_source: str | None = None
         self.channels: dict[str, Envelope] = {}
         self.events: deque[dict[str, Any]] = deque(maxlen=_EVENT_CAP)
         self.events_total = 0
@@ -486,6 +488,7 @@ class RunState:
                 "by_topic": dict(link.by_topic),
             },
             "status": self.status,
+            "offset_source": self.offset_source,
             "predictor": self.predictor,
             "model": self.model_info,
             "trend": self.error_trend(),

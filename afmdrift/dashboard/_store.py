@@ -125,6 +125,35 @@ class RunReader:
         ).fetchone()
         return None if row is None else record_from_row(row)
 
+    def stored_curves(self) -> list[tuple[float, dict[str, Any]]]:
+        """``(t_end_s, curve)`` of every offset curve kept in the store, oldest first.
+
+        Each curve was published when its frame ended and used until the next
+        one; the store keeps the newest ``service.keep_model_states`` of them.
+        A damaged row is skipped.
+
+        Raises
+        ------
+        DashboardError
+            The database cannot be read.
+        """
+        try:
+            rows = self._db.execute(
+                "SELECT f.t_end_s, m.curve_json FROM model_state m JOIN frames f ON f.seq = m.seq "
+                "WHERE m.curve_json IS NOT NULL ORDER BY m.seq"
+            ).fetchall()
+        except sqlite3.DatabaseError as err:
+            raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
+        out: list[tuple[float, dict[str, Any]]] = []
+        for t_end, text in rows:
+            try:
+                curve = json.loads(text)
+            except (ValueError, RecursionError):
+                continue
+            if isinstance(curve, dict) and t_end is not None:
+                out.append((float(t_end), curve))
+        return out
+
     def read_since(
         self,
         *,

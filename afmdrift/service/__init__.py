@@ -25,6 +25,7 @@ from afmdrift.service._daemon import INSTRUMENT_ERRORS, DriftService
 from afmdrift.service._record import process_and_record
 from afmdrift.service._replay import ReplaySummary, replay_session
 from afmdrift.service._runner import open_instrument, run_until_signalled
+from afmdrift.service._safety import OffsetLimiter
 from afmdrift.service._store import DB_NAME, STORE_SCHEMA_VERSION, RunStore, StoreError
 from afmdrift.service._zmq import ServiceSocketError
 
@@ -35,6 +36,7 @@ __all__ = [
     "STORE_SCHEMA_VERSION",
     "DriftService",
     "FrameRecord",
+    "OffsetLimiter",
     "ReplaySummary",
     "RunStore",
     "ServiceConfig",

@@ -282,10 +282,12 @@ async def test_finished_replay_shows_the_whole_run(tmp_path: Path) -> None:
         )
         assert len(truth_points) == 2
         assert min(truth_points) > 12
-        for plot in ("plot-drift", "plot-error", "plot-frame", "plot-channels"):
+        for plot in PLOTS:
             assert plots[plot]["points"] > 0, (plot, plots)
+        # d(t) of a finished run: rebuilt from the stored curves, said so on the page
         note = await browser.evaluate("document.getElementById('offset-note').textContent")
-        assert note == "no offset samples received"
+        assert "rebuilt from the" in note
+        assert "offset curves kept in the run store" in note
         config_line = await browser.evaluate(
             "document.getElementById('diagnosis-config').textContent"
         )

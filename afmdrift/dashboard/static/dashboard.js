@@ -174,7 +174,8 @@
       }
     }
     const total = env.count.reduce((a, b) => a + b, 0);
-    $("offset-note").textContent = total + " samples in " + shown.t_s.length + " bins of " + fmt(env.width_s, 3) + " s (range and last value per bin)";
+    const source = state.summary && state.summary.offset_source ? "; " + state.summary.offset_source : "";
+    $("offset-note").textContent = total + " samples in " + shown.t_s.length + " bins of " + fmt(env.width_s, 3) + " s (range and last value per bin)" + source;
     return render("plot-offset", data, {
       margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.15 }, xaxis: T_AXIS,
       grid: { rows: 2, columns: 1, pattern: "coupled" },
