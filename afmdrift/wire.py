@@ -193,9 +193,10 @@ class StatusMsg(_Published):
     ``state`` is ``running``, ``paused``, ``stale`` or ``stopping``. ``flags``
     lists active conditions: ``no_model`` (no curve yet), ``low_confidence``
     (last frame did not feed the model), ``stale`` (no frame for more than
-    ``stale_factor`` expected intervals), ``instrument_error`` (the driver is
-    failing and being reconnected), ``clamped`` (the last offset was limited),
-    ``paused``. ``dropped_offset_ticks`` counts offset samples skipped since
+    ``stale_factor`` expected intervals), ``instrument_error`` (an instrument
+    operation failed and has not worked since), ``instrument_silent`` (a request
+    unanswered, no byte arriving, for more than ``instrument_silence_s``),
+    ``clamped`` (the last offset was limited), ``paused``. ``dropped_offset_ticks`` counts offset samples skipped since
     the daemon started because its event loop fell more than 50 ms behind
     the offset schedule (the stream then restarts from now instead of
     bursting). A status inside a control reply is a snapshot: its ``seq`` is

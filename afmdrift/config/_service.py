@@ -121,6 +121,13 @@ class ServiceConfig(BaseModel):
         gt=0,
         description="Instrument seconds between frames; default: learned from the frames.",
     )
+    instrument_silence_s: float = Field(
+        2.0,
+        gt=0,
+        le=600.0,
+        description="Wall seconds an instrument may leave a request unanswered, no byte "
+        "arriving, before offsets are published invalid (flag instrument_silent).",
+    )
     stale_factor: float = Field(
         2.0, ge=1.0, le=100.0, description="No frame for this many expected intervals: stale."
     )

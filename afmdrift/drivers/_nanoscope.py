@@ -103,6 +103,7 @@ class NanoScopeDriver(ConnectOnEnter):
     ) -> None:
         self._factory: Callable[[], Transport] | None = None
         self._opened = False  # the current transport has been opened once
+        self._unanswered_since: float | None = None  # see silent_s()
         if isinstance(transport, str):
             transport = SerialTransport(transport, baudrate=baudrate)
         elif not isinstance(transport, Transport):
@@ -178,21 +179,42 @@ class NanoScopeDriver(ConnectOnEnter):
 
     # ---------------------------------------------------------------- exchange core
 
+    def silent_s(self) -> float:
+        """Seconds the driver has been waiting on the instrument without a byte
+        arriving (0 while nothing is asked or replies flow).
+
+        A call that is answered ends the wait; one that fails leaves it running
+        until a later call is answered, so a dropped line shows up here within
+        seconds, long before the driver's own retries give up.
+        """
+        since = self._unanswered_since
+        if since is None:
+            return 0.0
+        return max(0.0, time.monotonic() - max(since, self.transport.last_rx_s))
+
     async def _call(self, fn: Callable[[], T], *, idempotent: bool = True) -> T:
         async with self._lock:
-            if not self.transport.is_open:
-                await self._open_with_backoff()
-            try:
-                return await asyncio.to_thread(self._guarded, fn)
-            except InstrumentDisconnected as err:
-                log.warning("%s: connection lost (%s); reconnecting", self.transport.name, err)
-                await self._open_with_backoff()
-                if not idempotent:
-                    raise
-            except asyncio.CancelledError:
-                self._dirty = True
-                raise
+            if self._unanswered_since is None:
+                self._unanswered_since = time.monotonic()
+            result = await self._call_locked(fn, idempotent=idempotent)
+            self._unanswered_since = None
+            return result
+
+    async def _call_locked(self, fn: Callable[[], T], *, idempotent: bool) -> T:
+        """One exchange (the lock held), reconnecting once when the line is lost."""
+        if not self.transport.is_open:
+            await self._open_with_backoff()
+        try:
             return await asyncio.to_thread(self._guarded, fn)
+        except InstrumentDisconnected as err:
+            log.warning("%s: connection lost (%s); reconnecting", self.transport.name, err)
+            await self._open_with_backoff()
+            if not idempotent:
+                raise
+        except asyncio.CancelledError:
+            self._dirty = True
+            raise
+        return await asyncio.to_thread(self._guarded, fn)
 
     def _guarded(self, fn: Callable[[], T]) -> T:
         with self._io_lock:

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import abc
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Iterable
@@ -61,6 +62,8 @@ class Transport(abc.ABC):
         self.max_line = max_line
         self._buffer = bytearray()
         self._open = False
+        #: ``time.monotonic()`` when bytes last arrived (``-inf`` before any).
+        self.last_rx_s = -math.inf
 
     # ---------------------------------------------------------------- raw hooks
 
@@ -129,6 +132,8 @@ class Transport(abc.ABC):
         except InstrumentDisconnected:
             self._open = False
             raise
+        if chunk:
+            self.last_rx_s = time.monotonic()
         self._buffer += chunk
 
     def read_line(self, timeout_s: float) -> bytes:

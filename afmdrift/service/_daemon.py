@@ -107,7 +107,11 @@ class DriftService:
         )
         self.acquisition = Acquisition(self.link, self.svc)
         self.publishing = Publishing(
-            self.svc, clock=self.link.clock, flags=self.flags, epoch=lambda: self.link.epoch
+            self.svc,
+            clock=self.link.clock,
+            flags=self.flags,
+            epoch=lambda: self.link.epoch,
+            silent_s=self.link.silent_s,
         )
         self.controller = Controller(
             config=config,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
@@ -175,6 +176,14 @@ class InstrumentLink:
 
     def shift(self, t_s: float) -> float:
         return t_s + self.t_offset_s
+
+    def silent_s(self) -> float:
+        """Seconds the instrument has left a request unanswered, with no byte
+        arriving (0 for instruments that cannot tell, and while it answers)."""
+        if not self.connected.is_set():
+            return math.inf if self._last_seen_s is not None else 0.0
+        probe = getattr(self.instrument, "silent_s", None)
+        return float(probe()) if callable(probe) else 0.0
 
     def see_frame_end(self, t_end_s: float) -> None:
         """A frame that ended at ``t_end_s`` (service axis) was processed."""

@@ -43,6 +43,10 @@ class Publishing:
         The service's status flags, shared with the instrument link.
     epoch : callable
         The instrument link's current epoch (carried by every message).
+    silent_s : callable
+        How long the instrument has left a request unanswered; past
+        ``config.instrument_silence_s`` offsets are invalid (flag
+        ``instrument_silent``).
 
     Attributes
     ----------
@@ -59,11 +63,13 @@ class Publishing:
         clock: InstrumentClock,
         flags: set[str],
         epoch: Callable[[], int] = lambda: 0,
+        silent_s: Callable[[], float] = lambda: 0.0,
     ) -> None:
         self.config = config
         self.clock = clock
         self.flags = flags
         self.epoch = epoch
+        self.silent_s = silent_s
         #: New at every start: a subscriber sees the sequence numbers restart with it.
         self.run_id = secrets.token_hex(8)
         self.last_model: ModelMsg | None = None
@@ -225,7 +231,9 @@ class Publishing:
         _set_flag(self.flags, "clamped", out.clamped)
         stale = self.stale(t_s)
         _set_flag(self.flags, "stale", stale)
-        valid = not (stale or self.paused or "instrument_error" in self.flags)
+        silent = self.silent_s() > self.config.instrument_silence_s
+        _set_flag(self.flags, "instrument_silent", silent)
+        valid = not (stale or silent or self.paused or "instrument_error" in self.flags)
         return OffsetMsg(
             seq=seq,
             t_s=t_s,

@@ -12,6 +12,7 @@ import signal
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -29,6 +30,7 @@ from service_sim import (
 )
 
 from afmdrift.client import Subscriber
+from afmdrift.drivers import NanoScopeDriver
 from afmdrift.service import RunStore
 from afmdrift.wire import OffsetMsg
 
@@ -309,3 +311,54 @@ async def test_nan_frames_from_the_instrument_are_recorded_and_skipped(tmp_path:
         assert not records[k].fed_model
         assert records[k].reason.startswith("registration failed")
     assert all(records[k].fed_model for k in (1, 2, 4, 6, 7))
+
+
+async def _until(condition: Callable[[], bool], *, poll_s: float = 0.01) -> None:
+    """Return once ``condition()`` holds (bound it with a timeout)."""
+    for _ in itertools.count():
+        if condition():
+            return
+        await asyncio.sleep(poll_s)
+
+
+@pytest.mark.asyncio
+async def test_offsets_turn_invalid_within_the_silence_limit_when_the_line_goes_dead(
+    tmp_path: Path,
+) -> None:
+    """Regression: after the connection dropped, offsets stayed valid for about
+    8 s (until the driver's own timeouts and retries gave up). Now they are
+    invalid within service.instrument_silence_s (2 s) of the first unanswered
+    request, whatever the driver's timeouts, and valid again once the
+    instrument answers."""
+    ctx = zmq.asyncio.Context()
+    run = tmp_path / "run"
+    cfg = service_config(run, instrument_silence_s=2.0)
+    try:
+        async with sim_server(small_scenario(), speed=20.0) as (server, url):
+            # A driver slower to give up than the silence limit: only the
+            # silence can make the offsets invalid in time.
+            instrument = NanoScopeDriver(
+                url, timeout_s=6.0, frame_timeout_s=6.0, reconnect_attempts=2
+            )
+            async with running_service(cfg, instrument, ctx) as service:
+
+                def valid() -> bool:
+                    return service.last_offset is not None and service.last_offset.valid
+
+                async with asyncio.timeout(30):
+                    await service.wait_for_frames(3)
+                    await _until(valid)
+                loop = asyncio.get_running_loop()
+                server.faults.drop_next_reply(count=1_000_000)  # the line goes dead
+                dead_at = loop.time()
+                async with asyncio.timeout(10):
+                    await _until(lambda: not valid())
+                invalid_after_s = loop.time() - dead_at
+                assert "instrument_silent" in service.status_msg().flags
+                server.faults.clear()  # the instrument answers again
+                async with asyncio.timeout(30):
+                    await _until(valid)
+    finally:
+        ctx.term()
+    # the clock is read every 0.1 s here: the first unanswered request comes at once
+    assert invalid_after_s <= 2.5, invalid_after_s
