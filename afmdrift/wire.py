@@ -196,8 +196,9 @@ class StatusMsg(_Published):
     ``stale_factor`` expected intervals), ``instrument_error`` (an instrument
     operation failed and has not worked since), ``instrument_silent`` (a request
     unanswered, no byte arriving, for more than ``instrument_silence_s``),
-    ``clamped`` (the last offset was limited), ``paused``. ``dropped_offset_ticks`` counts offset samples skipped since
-    the daemon started because its event loop fell more than 50 ms behind
+    ``clamped`` (the last offset was limited), ``paused``.
+    ``dropped_offset_ticks`` counts offset samples skipped since the daemon
+    started because its event loop fell more than 50 ms behind
     the offset schedule (the stream then restarts from now instead of
     bursting). A status inside a control reply is a snapshot: its ``seq`` is
     that of the last published heartbeat, so replies never take numbers from
