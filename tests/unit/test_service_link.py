@@ -17,7 +17,7 @@ import pytest
 from afmdrift.config import ServiceConfig
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo
 from afmdrift.service._acquire import Acquisition
-from afmdrift.service._link import InstrumentLink
+from afmdrift.service._link import InstrumentLink, every
 
 
 class ScriptedInstrument:
@@ -201,3 +201,24 @@ async def test_after_a_restart_the_service_clock_goes_on_without_freezing() -> N
     later = link.clock.at(time.time())
     assert later is not None
     assert later > t_new  # and keeps moving: no freeze
+
+
+@pytest.mark.asyncio
+async def test_a_late_schedule_counts_the_ticks_it_leaves_out() -> None:
+    """Regression: ticks dropped after a lag over 50 ms left no trace; status now
+    counts them (dropped_offset_ticks)."""
+    skipped: list[int] = []
+    ticks = 0
+
+    async def body() -> None:
+        nonlocal ticks
+        ticks += 1
+        if ticks == 3:
+            time.sleep(0.3)  # noqa: ASYNC251 (the event loop blocked: 30 ticks of 10 ms go by)
+
+    task = asyncio.create_task(every(0.01, body, catch_up_s=0.05, skipped=skipped.append))
+    await asyncio.sleep(0.5)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert len(skipped) == 1
+    assert 25 <= skipped[0] <= 35
