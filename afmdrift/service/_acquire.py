@@ -130,10 +130,11 @@ class Acquisition:
         the old one was read to (a clock step), else read the new log from 0."""
         assert self._log_to_check is not None
         cursor, last = self._log_to_check
-        self._log_to_check = None
         if cursor == 0 or last is None:
+            self._log_to_check = None
             return
-        entries = await self.link.events(cursor - 1)
+        entries = await self.link.events(cursor - 1)  # a failure: checked on the next poll
+        self._log_to_check = None
         if entries:
             e = entries[0]
             raw_t_s = last[3]
