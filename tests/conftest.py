@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import zmq.asyncio
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
 REAL_DATA_DIR = REPO_ROOT.parent / "shared" / "data" / "real"
@@ -32,6 +33,14 @@ def real_file(real_data_dir: Path):  # type: ignore[no-untyped-def]
         return p
 
     return _get
+
+
+@pytest.fixture
+def ctx() -> Iterator[zmq.asyncio.Context]:
+    """A ZeroMQ context of the test's own, terminated after it."""
+    context = zmq.asyncio.Context()
+    yield context
+    context.term()
 
 
 @pytest.fixture(autouse=True)

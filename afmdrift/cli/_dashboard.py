@@ -62,8 +62,8 @@ def _dashboard(args: argparse.Namespace) -> int:
     import secrets
     from pathlib import Path
 
-    from afmdrift.config import load_config
-    from afmdrift.dashboard import DashboardError, is_loopback
+    from afmdrift.config import host_is_loopback, load_config
+    from afmdrift.dashboard import DashboardError
 
     if args.max_frames < 10:
         raise DashboardError(f"--max-frames must be at least 10, got {args.max_frames}")
@@ -89,7 +89,7 @@ def _dashboard(args: argparse.Namespace) -> int:
             raise DashboardError(
                 f"--token-file {args.token_file}: token shorter than 16 characters"
             )
-    elif not is_loopback(args.host):
+    elif not host_is_loopback(args.host):
         token = secrets.token_urlsafe(24)
     return asyncio.run(
         _serve(

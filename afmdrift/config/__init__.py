@@ -23,7 +23,12 @@ from afmdrift._bounded import read_text
 from afmdrift.config._driver import REPLAY_PREFIX, DriverConfig
 from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.config._registration import RegistrationConfig
-from afmdrift.config._service import ServiceConfig, check_endpoint, endpoint_is_local
+from afmdrift.config._service import (
+    ServiceConfig,
+    check_endpoint,
+    endpoint_is_local,
+    host_is_loopback,
+)
 from afmdrift.errors import ConfigError
 
 __all__ = [
@@ -41,6 +46,7 @@ __all__ = [
     "check_endpoint",
     "describe_validation_error",
     "endpoint_is_local",
+    "host_is_loopback",
     "load_config",
     "parse_config",
     "read_toml",

@@ -13,7 +13,7 @@ from typing import Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-__all__ = ["ServiceConfig", "check_endpoint", "endpoint_is_local"]
+__all__ = ["ServiceConfig", "check_endpoint", "endpoint_is_local", "host_is_loopback"]
 
 
 def check_endpoint(endpoint: str) -> str:
@@ -47,7 +47,11 @@ def endpoint_is_local(endpoint: str) -> bool:
         return True
     if not endpoint.startswith("tcp://"):
         return False
-    host = endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]")
+    return host_is_loopback(endpoint[len("tcp://") :].rsplit(":", 1)[0].strip("[]"))
+
+
+def host_is_loopback(host: str) -> bool:
+    """True for ``localhost`` and loopback addresses (127.0.0.0/8, ::1)."""
     if host == "localhost":
         return True
     try:
@@ -70,7 +74,7 @@ class ServiceConfig(BaseModel):
         "tcp://127.0.0.1:5560", description="ZeroMQ PUB bind endpoint (offset/model/frame/status)."
     )
     control_endpoint: str = Field(
-        "tcp://127.0.0.1:5561", description="ZeroMQ REP bind endpoint of the control socket."
+        "tcp://127.0.0.1:5561", description="ZeroMQ ROUTER bind endpoint of the control socket."
     )
     curve_secret_key_file: str | None = Field(
         None, description="Server certificate with secret key (zmq.auth.create_certificates)."

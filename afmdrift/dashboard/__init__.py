@@ -18,7 +18,7 @@ Public API
     Unusable input (run directory, store, endpoint, address, token).
 """
 
-from afmdrift.dashboard._app import Dashboard, is_loopback
+from afmdrift.dashboard._app import Dashboard
 from afmdrift.dashboard._envelope import Envelope
 from afmdrift.dashboard._sources import load_session
 from afmdrift.dashboard._state import ArrayTruth, FunctionTruth, RunState, TruthSource
@@ -33,6 +33,5 @@ __all__ = [
     "RunReader",
     "RunState",
     "TruthSource",
-    "is_loopback",
     "load_session",
 ]

@@ -20,11 +20,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import hmac
-import ipaddress
 import json
 import logging
 import math
-import re
 import socket
 import time
 from importlib import resources
@@ -36,7 +34,7 @@ import zmq
 import zmq.asyncio
 from aiohttp import WSMsgType, web
 
-from afmdrift.config import AfmdriftConfig
+from afmdrift.config import AfmdriftConfig, check_endpoint, host_is_loopback
 from afmdrift.dashboard._sources import DiagnosisFile, FrameImages, frame_view
 from afmdrift.dashboard._state import RunState, TruthSource
 from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader
@@ -45,7 +43,7 @@ from afmdrift.model import OffsetCurve
 from afmdrift.service import OffsetLimiter
 from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg, StatusMsg, WireError, decode
 
-__all__ = ["Dashboard", "is_loopback"]
+__all__ = ["Dashboard"]
 
 log = logging.getLogger(__name__)
 
@@ -58,17 +56,6 @@ _TOKEN_COOKIE = "afmdrift_dashboard_token"
 _DRAIN_MAX = 2000
 #: Shortest interval between two reads of the SUB socket, s.
 _BATCH_S = 0.01
-_ENDPOINT = re.compile(r"^(tcp|ipc|inproc)://\S+$")
-
-
-def is_loopback(host: str) -> bool:
-    """True for 127.0.0.0/8, ::1 and ``localhost``."""
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def _dumps(doc: Any) -> str:
@@ -152,7 +139,7 @@ class Dashboard:
     ) -> None:
         if run_dir is None and pub_endpoint is None:
             raise DashboardError("give a run directory, a PUB endpoint, or both")
-        if not is_loopback(host) and not token:
+        if not host_is_loopback(host) and not token:
             raise DashboardError(
                 f"serving on {host} (not a loopback address) needs an access token"
             )
@@ -229,10 +216,10 @@ class Dashboard:
                 await asyncio.to_thread(self._offsets_from_stored_curves)
         sub: zmq.asyncio.Socket | None = None
         if self.pub_endpoint is not None:
-            if not _ENDPOINT.match(self.pub_endpoint):
-                raise DashboardError(
-                    f"--pub {self.pub_endpoint}: not a ZeroMQ endpoint (e.g. tcp://127.0.0.1:5560)"
-                )
+            try:
+                check_endpoint(self.pub_endpoint)
+            except ValueError as err:
+                raise DashboardError(f"--pub {err} (e.g. tcp://127.0.0.1:5560)") from None
             if self._ctx is None:
                 self._ctx = zmq.asyncio.Context()
             sub = self._sub = self._ctx.socket(zmq.SUB)

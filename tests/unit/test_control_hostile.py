@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import json
 import os
-import socket
 import sys
 import threading
 from collections.abc import Iterator
@@ -22,24 +21,11 @@ import zmq
 import zmq.asyncio
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from service_sim import driver, running_service, service_config
+from service_sim import closed_port, driver, running_service, service_config
 
 from afmdrift.client import ClientError, Subscriber, control
 from afmdrift.service import DriftService
 from afmdrift.wire import OffsetMsg, decode_control_reply
-
-
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def ctx() -> Iterator[zmq.asyncio.Context]:
-    context = zmq.asyncio.Context()
-    yield context
-    context.term()
 
 
 async def _raw(ctx: zmq.asyncio.Context, endpoint: str, frames: list[bytes], kind: int) -> bytes:
@@ -78,7 +64,7 @@ async def test_malformed_messages_get_error_replies_and_kill_nothing(
     digits (ValueError), a two-part REQ message and a DEALER peer without the
     empty delimiter (ZMQError on reply) each ended the whole daemon."""
     cfg = service_config(tmp_path / "run")
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         ep = svc.control_endpoint
         deep = b"[" * 30_000 + b"]" * 30_000  # 60 kB: under the size limit
         answer = decode_control_reply(await _raw(ctx, ep, [deep], zmq.REQ))
@@ -106,7 +92,7 @@ async def test_oversized_request_is_dropped_before_it_takes_memory(
     """Regression: a 100 MB request grew the daemon by 357 MB. Requests over
     control_max_request_bytes are dropped by ZeroMQ (the peer is disconnected)."""
     cfg = service_config(tmp_path / "run", control_max_request_bytes=4096)
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         sock = ctx.socket(zmq.DEALER)
         sock.setsockopt(zmq.LINGER, 0)
         try:
@@ -124,7 +110,7 @@ async def test_state_changing_commands_need_the_token(
 ) -> None:
     """Regression: any local user could pause the daemon or swap its model."""
     cfg = service_config(tmp_path / "run")
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         token_file = svc.control_token_path
         assert token_file == tmp_path / "run" / "control.token"
         assert token_file.stat().st_mode & 0o777 == 0o600
@@ -157,7 +143,7 @@ async def test_reload_model_reads_only_regular_files_in_allowed_directories(
     latin = allowed / "latin.toml"
     latin.write_bytes(b'[model]\npredictor = "caf\xe9"\n')
     cfg = service_config(tmp_path / "run", reload_config_dir=str(allowed))
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         tok = svc.control_token_path
 
         async def reload(path: str) -> str:
@@ -184,7 +170,7 @@ async def test_reload_model_with_a_path_that_is_no_file_name(
     name) raised UnicodeEncodeError and ended the daemon; it is refused when the
     request is decoded, in one line."""
     cfg = service_config(tmp_path / "run", reload_config_dir=str(tmp_path))
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         token = svc.control_token_path.read_text(encoding="ascii")
         request = json.dumps(
             {"v": 1, "cmd": "reload_model", "config_path": "\udcff.toml", "token": token}
@@ -225,7 +211,7 @@ async def test_reload_model_with_a_plugin_that_fails_at_import(
         encoding="utf-8",
     )
     cfg = service_config(tmp_path / "run", reload_config_dir=str(tmp_path))
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         with pytest.raises(ClientError, match=expect):
             await control(
                 svc.control_endpoint,
@@ -245,7 +231,7 @@ async def test_model_command_and_status_sequence_numbers(
     """The ``model`` command answers without waiting for a frame; control replies
     take no numbers from the status topic (regression: they made false gaps)."""
     cfg = service_config(tmp_path / "run")
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         reply = await control(svc.control_endpoint, "model", ctx=ctx)
         assert reply.ok
         assert reply.model is None  # no model before the first frame
@@ -304,7 +290,7 @@ class _DaemonThread:
         ctx = zmq.asyncio.Context()
         try:
             cfg = service_config(self.run_dir)
-            inst = driver(f"socket://127.0.0.1:{_closed_port()}")
+            inst = driver(f"socket://127.0.0.1:{closed_port()}")
             async with running_service(cfg, inst, ctx) as svc:
                 self.endpoint = svc.control_endpoint
                 self._ready.set()

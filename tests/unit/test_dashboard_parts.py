@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from afmdrift.cli import main
+from afmdrift.config import host_is_loopback as is_loopback
 from afmdrift.dashboard import (
     ArrayTruth,
     Dashboard,
@@ -20,9 +21,9 @@ from afmdrift.dashboard import (
     Envelope,
     RunReader,
     RunState,
-    is_loopback,
 )
-from afmdrift.service import FrameRecord, RunStore
+from afmdrift.pipeline import FrameRecord
+from afmdrift.service import RunStore
 from afmdrift.wire import FrameMsg, OffsetMsg
 
 pytestmark = pytest.mark.timeout(60)
@@ -407,5 +408,5 @@ def test_cli_silent_endpoint_is_one_line(capsys: pytest.CaptureFixture[str]) -> 
 def test_cli_bad_endpoint_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["dashboard", "--pub", "nonsense", "--port", "0"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("afmdrift: error: --pub nonsense: ")
+    assert err.startswith("afmdrift: error: --pub 'nonsense': use tcp://HOST:PORT")
     assert "\n" not in err

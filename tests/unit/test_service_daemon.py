@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import io
-import socket
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 import zmq
 import zmq.asyncio
 import zmq.auth
-from service_sim import driver, running_service, service_config
+from service_sim import closed_port, driver, running_service, service_config
 
 from afmdrift.client import ClientError, Subscriber, control
 from afmdrift.client._watch import watch
@@ -21,19 +19,6 @@ from afmdrift.config import parse_config
 from afmdrift.service import DriftService
 from afmdrift.service._zmq import ServiceSocketError, load_curve_keys
 from afmdrift.wire import OffsetMsg, StatusMsg
-
-
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def ctx() -> Iterator[zmq.asyncio.Context]:
-    context = zmq.asyncio.Context()
-    yield context
-    context.term()
 
 
 async def _next(sub: Subscriber, kind: type, *, timeout_s: float = 5.0):  # type: ignore[no-untyped-def]
@@ -51,7 +36,7 @@ async def test_unreachable_instrument_gives_invalid_offsets_and_instrument_error
     """Regression guard: without an instrument the daemon keeps running and says so;
     it never publishes a 'valid' offset."""
     cfg = service_config(tmp_path / "run")
-    instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
+    instrument = driver(f"socket://127.0.0.1:{closed_port()}")
     async with running_service(cfg, instrument, ctx) as service:
         sub = Subscriber(service.pub_endpoint, ctx=ctx)
         try:
@@ -72,7 +57,7 @@ async def test_control_socket_pause_resume_and_bad_request(
     tmp_path: Path, ctx: zmq.asyncio.Context
 ) -> None:
     cfg = service_config(tmp_path / "run")
-    instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
+    instrument = driver(f"socket://127.0.0.1:{closed_port()}")
     async with running_service(cfg, instrument, ctx) as service:
         token = service.control_token_path
         reply = await control(service.control_endpoint, "pause", token_file=token, ctx=ctx)
@@ -108,7 +93,7 @@ async def test_reload_model_reads_the_named_file(tmp_path: Path, ctx: zmq.asynci
     new.write_text('[model]\npredictor = "last_value"\n', encoding="utf-8")
     bad = tmp_path / "bad.toml"
     bad.write_text('[model]\npredictor = "crystal_ball"\n', encoding="utf-8")
-    instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
+    instrument = driver(f"socket://127.0.0.1:{closed_port()}")
     async with running_service(cfg, instrument, ctx) as service:
         token = service.control_token_path
         await control(
@@ -188,7 +173,7 @@ def test_curve_keys_load_from_certificates(tmp_path: Path) -> None:
 @pytest.mark.asyncio
 async def test_watch_prints_offsets_and_state(tmp_path: Path, ctx: zmq.asyncio.Context) -> None:
     cfg = service_config(tmp_path / "run")
-    instrument = driver(f"socket://127.0.0.1:{_closed_port()}")
+    instrument = driver(f"socket://127.0.0.1:{closed_port()}")
     out = io.StringIO()
     async with running_service(cfg, instrument, ctx) as service:
         await watch(service.pub_endpoint, interval_s=0.2, duration_s=1.0, out=out, ctx=ctx)

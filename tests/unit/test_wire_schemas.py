@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import asyncio
 import json
-import socket
-from collections.abc import Iterator
 from pathlib import Path
 
 import jsonschema
 import pytest
 import zmq
 import zmq.asyncio
-from service_sim import driver, running_service, service_config
+from service_sim import closed_port, driver, running_service, service_config
 
 from afmdrift.wire import SCHEMA_MODELS, json_schemas
 
@@ -38,25 +36,12 @@ def test_schema_files_are_generated_from_the_models() -> None:
         assert on_disk == json.loads(json.dumps(schema)), f"docs/schemas/{name} is out of date"
 
 
-def _closed_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@pytest.fixture
-def ctx() -> Iterator[zmq.asyncio.Context]:
-    context = zmq.asyncio.Context()
-    yield context
-    context.term()
-
-
 @pytest.mark.asyncio
 async def test_real_offset_status_and_control_messages_satisfy_the_schemas(
     tmp_path: Path, ctx: zmq.asyncio.Context
 ) -> None:
     cfg = service_config(tmp_path / "run")
-    async with running_service(cfg, driver(f"socket://127.0.0.1:{_closed_port()}"), ctx) as svc:
+    async with running_service(cfg, driver(f"socket://127.0.0.1:{closed_port()}"), ctx) as svc:
         sub = ctx.socket(zmq.SUB)
         sub.setsockopt(zmq.LINGER, 0)
         sub.setsockopt(zmq.SUBSCRIBE, b"")
