@@ -11,7 +11,10 @@ Parts, each with one job:
     measures, predicts and rebuilds d(t) for each frame, in the worker thread
     (:func:`~afmdrift.service._record.process_and_record` commits it);
 :class:`~afmdrift.service._publish.Publishing`
-    the wire messages, the offset limiter, the flags and the status.
+    the wire messages, the offset limiter, the flags and the status;
+:class:`~afmdrift.service._control.Controller`
+    answers the control socket (every message one reply; a token for the
+    commands that change state).
 
 :class:`DriftService` owns the sockets, the run store and the worker thread,
 resumes from the store, and runs the loops (one :class:`asyncio.TaskGroup`;
