@@ -282,7 +282,6 @@ class FramePipeline:
         seq: int,
         epoch: int = 0,
         detected_wall_s: float | None = None,
-        paused: bool = False,
         t_now_s: float | None = None,
         hold: str | None = None,
     ) -> FrameOutcome:
@@ -295,18 +294,15 @@ class FramePipeline:
         (default: the end of the frame). ``hold`` is a reason why the frame is
         measured and recorded but must not feed the model (for example: the
         event log could not be read up to it, so commanded moves may be
-        missing from its drift position); ``paused`` is the same with the
-        reason ``"paused"``.
+        missing from its drift position; or ``"paused"`` by the operator).
         """
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
         step, reason = self._register(frame, seq)
-        held = paused or hold is not None
+        held = hold is not None
         pos = self._position(frame, step, reason, pred, held)
-        fed = self._feed_model(
-            frame, pos, seq=seq, held=(hold or "paused") if held else None, t_now_s=t_now_s
-        )
+        fed = self._feed_model(frame, pos, seq=seq, held=hold, t_now_s=t_now_s)
         record = _frame_record(
             frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
         )
@@ -352,7 +348,7 @@ class FramePipeline:
         step: TrackStep | None,
         reason: str,
         pred: tuple[npt.NDArray[np.float64], float],
-        paused: bool,
+        held: bool,
     ) -> _Position:
         """Image position m and drift position p = m + O(t) − O(t_ref) of the frame."""
         t = frame.t_mid_s
@@ -363,21 +359,21 @@ class FramePipeline:
         offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
         pos = _Position(offset=offset, reason=reason)
         if not reason and step is None:
-            self._place_reference(frame, pos, pred[0], paused)
+            self._place_reference(frame, pos, pred[0], held)
         elif step is not None:
-            self._place_measured(frame, step, pos, paused)
+            self._place_measured(frame, step, pos, held)
         pos.p = pos.m + offset
         return pos
 
     def _place_reference(
-        self, frame: Frame, pos: _Position, pred: npt.NDArray[np.float64], paused: bool
+        self, frame: Frame, pos: _Position, pred: npt.NDArray[np.float64], held: bool
     ) -> None:
         """The frame is the new reference: its position is known (p = 0 for the
         session reference) or estimated (prediction, else the last position)."""
         if self._last_p_nm is None and self.n_fed == 0:
             p_est = np.zeros(2)
             pos.reason = "reference"
-            pos.fed = not paused
+            pos.fed = not held
             pos.sigma = 0.0
         else:
             if np.all(np.isfinite(pred)):
@@ -391,7 +387,7 @@ class FramePipeline:
         self._base_nm = pos.m.copy()
         pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
 
-    def _place_measured(self, frame: Frame, step: TrackStep, pos: _Position, paused: bool) -> None:
+    def _place_measured(self, frame: Frame, step: TrackStep, pos: _Position, held: bool) -> None:
         """A measured frame: increment since the previous accepted frame, and the
         measurement against the reference (keyframe), which the position rests on."""
         inc, meas = step.increment, step.measurement
@@ -416,7 +412,7 @@ class FramePipeline:
                 f"low confidence: {pos.valid_blocks} valid blocks < "
                 f"service.min_valid_blocks={min_blocks}"
             )
-        pos.fed = not low and not paused and bool(np.all(np.isfinite(pos.m)))
+        pos.fed = not low and not held and bool(np.all(np.isfinite(pos.m)))
 
     def _feed_model(
         self,

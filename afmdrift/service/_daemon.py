@@ -336,9 +336,8 @@ class DriftService:
                 seq=seq,
                 epoch=epoch,
                 detected_wall_s=batch.detected_wall_s,
-                paused=paused,
                 t_now_s=t_now,
-                hold=batch.hold,
+                hold=batch.hold or ("paused" if paused else None),
             )
         )
         self.frames_processed += 1

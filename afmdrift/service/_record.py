@@ -21,7 +21,6 @@ def process_and_record(
     seq: int,
     epoch: int = 0,
     detected_wall_s: float | None = None,
-    paused: bool = False,
     t_now_s: float | None = None,
     hold: str | None = None,
 ) -> FrameOutcome:
@@ -39,7 +38,6 @@ def process_and_record(
         seq=seq,
         epoch=epoch,
         detected_wall_s=detected_wall_s,
-        paused=paused,
         t_now_s=t_now_s,
         hold=hold,
     )
