@@ -33,6 +33,7 @@ __all__ = [
     "InstrumentInfo",
     "LoggedEvent",
     "ScanDirection",
+    "row_times_s",
 ]
 
 
@@ -95,11 +96,19 @@ class Frame:
 
     def row_times_s(self) -> npt.NDArray[np.float64]:
         """Mid-line time of each row ``r`` (indexed as stored), shape (rows,)."""
-        rows = self.shape[0]
-        order = np.arange(rows, dtype=np.float64)
-        if self.direction is ScanDirection.DOWN:
-            order = order[::-1]
-        return self.t_start_s + (order + 0.5) * self.line_time_s
+        return row_times_s(self.t_start_s, self.t_end_s, self.shape[0], self.direction)
+
+
+def row_times_s(
+    t_start_s: float, t_end_s: float, rows: int, direction: ScanDirection
+) -> npt.NDArray[np.float64]:
+    """Mid-line time of each row of a frame scanned from ``t_start_s`` to
+    ``t_end_s`` (indexed as stored: an ``up`` frame's row 0 first, a ``down``
+    frame's last), shape (rows,)."""
+    order = np.arange(rows, dtype=np.float64)
+    if direction is ScanDirection.DOWN:
+        order = order[::-1]
+    return t_start_s + (order + 0.5) * (t_end_s - t_start_s) / rows
 
 
 @dataclass(frozen=True, slots=True)

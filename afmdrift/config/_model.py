@@ -104,6 +104,16 @@ class ModelConfig(BaseModel):
         description="Hermite: hand over to the new prediction within this fraction of a frame "
         "period after publication (0: at the next frame time).",
     )
+    trajectory_q: float = Field(
+        1e-4,
+        gt=0,
+        le=1e3,
+        description="Drift trajectory: velocity diffusion q of the integrated random-walk "
+        "prior, nm^2/s^3 (larger follows faster changes of the drift speed within a frame).",
+    )
+    trajectory_window: int = Field(
+        16, ge=2, le=64, description="Drift trajectory: frames solved jointly in causal mode."
+    )
     nn: NNConfig = Field(default_factory=NNConfig)
     kalman: KalmanConfig = Field(default_factory=KalmanConfig)
     physics: PhysicsConfig = Field(default_factory=PhysicsConfig)

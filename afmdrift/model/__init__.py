@@ -39,6 +39,7 @@ from afmdrift.model._reconstruct import (
     sinc_reconstruct,
 )
 from afmdrift.model._registry import PREDICTOR_NAMES, make_predictor
+from afmdrift.model._trajectory import BandConstraint, DriftTrajectory, FrameTrajectory
 
 if TYPE_CHECKING:
     from afmdrift.model._nn import NNPredictor, NNSeriesModel
@@ -47,9 +48,12 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "LIBRARY",
     "PREDICTOR_NAMES",
+    "BandConstraint",
     "ConstantVelocityPredictor",
+    "DriftTrajectory",
     "EffectTerm",
     "FeedBatch",
+    "FrameTrajectory",
     "History",
     "HistoryFeed",
     "KalmanCAPredictor",

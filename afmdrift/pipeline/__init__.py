@@ -6,7 +6,8 @@ stages are listed in :meth:`FramePipeline.process`), and the run store keeps
 the :class:`FrameRecord` it produces.
 """
 
-from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, summarise_field
+from afmdrift.pipeline._frame import FrameOutcome, FramePipeline
+from afmdrift.pipeline._positions import DriftPositions, FramePosition, summarise_field
 from afmdrift.pipeline._records import (
     FRAME_COLUMNS,
     MEASUREMENT_COLUMNS,
@@ -20,8 +21,10 @@ from afmdrift.pipeline._records import (
 __all__ = [
     "FRAME_COLUMNS",
     "MEASUREMENT_COLUMNS",
+    "DriftPositions",
     "FrameOutcome",
     "FramePipeline",
+    "FramePosition",
     "FrameRecord",
     "ResumeState",
     "measurement_row",

@@ -29,8 +29,8 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -40,19 +40,26 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
 from afmdrift.model import (
     FeedBatch,
+    FrameTrajectory,
     History,
     HistoryFeed,
     Observation,
     OffsetCurve,
     Predictor,
-    commanded_offset_nm,
     make_predictor,
     reconstruct_offset,
 )
+from afmdrift.pipeline._positions import (
+    DriftPositions,
+    FramePosition,
+    TrackerFactory,
+    summarise_field,
+)
 from afmdrift.pipeline._records import FrameRecord, ResumeState, observation_from_record
 from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
-from afmdrift.registration import DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
+
+FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["FrameOutcome", "FramePipeline", "summarise_field"]
 
@@ -74,35 +81,14 @@ class FrameOutcome:
     low_confidence: bool
     #: Channels and events that reached the model's history with this frame.
     history: FeedBatch
-
-
-@dataclass(slots=True)
-class _Position:
-    """Where a frame sits: image position m, drift position p, and the measurement."""
-
-    offset: npt.NDArray[np.float64]
-    reason: str
-    m: npt.NDArray[np.float64] = field(default_factory=lambda: np.full(2, np.nan))
-    p: npt.NDArray[np.float64] = field(default_factory=lambda: np.full(2, np.nan))
-    dx: float = math.nan
-    dy: float = math.nan
-    sigma: float = math.nan
-    valid_blocks: int = 0
-    total_blocks: int = 0
-    keyframe_index: int = 0
-    reanchored: bool = False
-    field: FieldSummary | None = None
-    reference_image: npt.NDArray[np.float32] | None = None
-    fed: bool = False
+    #: The frame's drift trajectory samples (causal), if it has any.
+    trajectory: FrameTrajectory | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class _Fed:
     fed: bool
     reason: str
-
-
-TrackerFactory = Callable[[tuple[float, float]], DriftTracker]
 
 
 class FramePipeline:
@@ -131,17 +117,11 @@ class FramePipeline:
         predictor: Predictor | None = None,
     ) -> None:
         self.config = config
-        self._tracker_factory = tracker_factory or self._default_tracker_factory
+        self.positions = DriftPositions(config=config, tracker_factory=tracker_factory)
         self.predictor = predictor if predictor is not None else self._make_predictor(config)
         self.feed = HistoryFeed()
         self.observations: deque[Observation] = deque(maxlen=config.service.training_window)
         self.n_fed = 0
-        self._tracker: DriftTracker | None = None
-        self._tracker_key: tuple[tuple[int, int], tuple[float, float]] | None = None
-        self._base_nm = np.zeros(2)  # image position m of the tracker's reference
-        self._t_ref_s: float | None = None  # session reference time (p = 0)
-        self._last_p_nm: npt.NDArray[np.float64] | None = None
-        self._reset_requested = False
         self.curve: OffsetCurve | None = None
 
     @property
@@ -152,12 +132,9 @@ class FramePipeline:
     @property
     def t_ref_s(self) -> float | None:
         """Mid-scan time of the session reference frame (p = 0), once known."""
-        return self._t_ref_s
+        return self.positions.t_ref_s
 
     # ------------------------------------------------------------------ factories
-
-    def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
-        return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
 
     @staticmethod
     def _make_predictor(config: AfmdriftConfig) -> Predictor:
@@ -175,7 +152,7 @@ class FramePipeline:
 
     def request_reset(self) -> None:
         """Make the next frame the registration reference (p stays continuous)."""
-        self._reset_requested = True
+        self.positions.request_reset()
 
     def reload_model(self, predictor: Predictor) -> int:
         """Replace the predictor and refit it on the kept observations; return their count."""
@@ -217,12 +194,16 @@ class FramePipeline:
                 self.predictor.name,
                 self.n_fed,
             )
-        self._t_ref_s = state.t_ref_s
         last = state.last
-        if math.isfinite(last.x_nm) and math.isfinite(last.y_nm):
-            self._last_p_nm = np.array([last.x_nm, last.y_nm])
-        if state.reference is not None:
-            self._resume_reference(state)
+        self.positions.resume(
+            t_ref_s=state.t_ref_s,
+            last_p_nm=np.array([last.x_nm, last.y_nm])
+            if math.isfinite(last.x_nm) and math.isfinite(last.y_nm)
+            else None,
+            reference=state.reference,
+            reference_record=state.reference_record,
+            reference_m_nm=(state.reference_x_nm, state.reference_y_nm),
+        )
         if self.n_fed:
             curve = self._stored_curve(state)
             self.curve = curve if curve is not None else self._build_curve(last.t_end_s)
@@ -247,21 +228,6 @@ class FramePipeline:
             self.predictor = self._make_predictor(self.config)  # not half-loaded
             return False
         return True
-
-    def _resume_reference(self, state: ResumeState) -> None:
-        """Re-prime the tracker with the stored reference (a bad one: the next frame)."""
-        assert state.reference is not None
-        ref, last = state.reference, state.last
-        pixel = (last.pixel_x_nm, last.pixel_y_nm)
-        tracker = self._tracker_factory(pixel)
-        try:
-            tracker.update(ref)
-        except InputError as err:
-            log.warning("stored reference image unusable (%s); the next frame replaces it", err)
-            return
-        self._tracker = tracker
-        self._tracker_key = ((ref.shape[0], ref.shape[1]), pixel)
-        self._base_nm = np.array([state.reference_x_nm, state.reference_y_nm])
 
     @staticmethod
     def _stored_curve(state: ResumeState) -> OffsetCurve | None:
@@ -299,9 +265,11 @@ class FramePipeline:
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
-        step, reason = self._register(frame, seq)
         held = hold is not None
-        pos = self._position(frame, step, reason, pred, held)
+        pos = self.positions.locate(
+            frame, seq=seq, events=self.history.events, prediction_nm=pred[0],
+            n_fed=self.n_fed, held=held,
+        )  # fmt: skip
         fed = self._feed_model(frame, pos, seq=seq, held=hold, t_now_s=t_now_s)
         record = _frame_record(
             frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
@@ -317,107 +285,13 @@ class FramePipeline:
             image=frame.heights_nm,
             low_confidence=not fed.fed and not held and fed.reason not in ("reference",),
             history=batch,
+            trajectory=pos.trajectory,
         )
-
-    def _register(self, frame: Frame, seq: int) -> tuple[TrackStep | None, str]:
-        """Registration against the tracker's reference: ``(step, reason)``.
-
-        A new tracker (a new reference) is made for the first frame, after
-        :meth:`request_reset`, and when the frame's shape or pixel size changed.
-        """
-        key = (frame.shape, frame.pixel_size_nm)
-        new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
-        tracker = self._tracker
-        if tracker is None or new_reference:
-            tracker = self._tracker_factory(frame.pixel_size_nm)
-        try:
-            step = tracker.update(frame.heights_nm)
-        except InputError as err:
-            # The frame was refused before it touched anything: the current
-            # reference (if any) stays, and a pending reset stays pending.
-            reason = f"registration failed: {err}"
-            log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)
-            return None, reason
-        if new_reference:
-            self._tracker, self._tracker_key, self._reset_requested = tracker, key, False
-        return step, ""
-
-    def _position(
-        self,
-        frame: Frame,
-        step: TrackStep | None,
-        reason: str,
-        pred: tuple[npt.NDArray[np.float64], float],
-        held: bool,
-    ) -> _Position:
-        """Image position m and drift position p = m + O(t) − O(t_ref) of the frame."""
-        t = frame.t_mid_s
-        if self._t_ref_s is None and not reason:
-            self._t_ref_s = t
-        t_ref = self._t_ref_s if self._t_ref_s is not None else t
-        events = self.history.events
-        offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
-        pos = _Position(offset=offset, reason=reason)
-        if not reason and step is None:
-            self._place_reference(frame, pos, pred[0], held)
-        elif step is not None:
-            self._place_measured(frame, step, pos, held)
-        pos.p = pos.m + offset
-        return pos
-
-    def _place_reference(
-        self, frame: Frame, pos: _Position, pred: npt.NDArray[np.float64], held: bool
-    ) -> None:
-        """The frame is the new reference: its position is known (p = 0 for the
-        session reference) or estimated (prediction, else the last position)."""
-        if self._last_p_nm is None and self.n_fed == 0:
-            p_est = np.zeros(2)
-            pos.reason = "reference"
-            pos.fed = not held
-            pos.sigma = 0.0
-        else:
-            if np.all(np.isfinite(pred)):
-                p_est = pred
-            elif self._last_p_nm is not None:
-                p_est = self._last_p_nm
-            else:
-                p_est = np.zeros(2)
-            pos.reason = "new reference (position estimated)"
-        pos.m = p_est - pos.offset
-        self._base_nm = pos.m.copy()
-        pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
-
-    def _place_measured(self, frame: Frame, step: TrackStep, pos: _Position, held: bool) -> None:
-        """A measured frame: increment since the previous accepted frame, and the
-        measurement against the reference (keyframe), which the position rests on."""
-        inc, meas = step.increment, step.measurement
-        accepted = bool(step.accepted)
-        pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
-        pos.sigma = float(meas.sigma_nm)
-        pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
-        pos.keyframe_index = int(step.keyframe_index)
-        pos.reanchored = bool(step.reanchored)
-        pos.field = summarise_field(inc, frame.pixel_size_nm)
-        if accepted:
-            pos.m = self._base_nm + np.asarray(step.position_nm, dtype=np.float64).reshape(2)
-            if pos.reanchored or self.config.registration.reference == "consecutive":
-                pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
-        else:
-            pos.dx = pos.dy = math.nan
-            pos.reason = f"measurement rejected: {meas.reason or 'invalid'}"
-        min_blocks = self.config.service.min_valid_blocks
-        low = (not accepted) or pos.valid_blocks < min_blocks
-        if low and not pos.reason:
-            pos.reason = (
-                f"low confidence: {pos.valid_blocks} valid blocks < "
-                f"service.min_valid_blocks={min_blocks}"
-            )
-        pos.fed = not low and not held and bool(np.all(np.isfinite(pos.m)))
 
     def _feed_model(
         self,
         frame: Frame,
-        pos: _Position,
+        pos: FramePosition,
         *,
         seq: int,
         held: str | None,
@@ -430,12 +304,11 @@ class FramePipeline:
             reason = held
         fed = pos.fed
         if fed:
-            t = frame.t_mid_s
-            sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
+            t, xy, sigma = _observed(frame, pos)
             obs = Observation(
                 t_s=t,
-                x_nm=float(pos.p[0]),
-                y_nm=float(pos.p[1]),
+                x_nm=float(xy[0]),
+                y_nm=float(xy[1]),
                 sigma_nm=sigma,
                 direction=frame.direction,
                 frame=seq,
@@ -450,8 +323,6 @@ class FramePipeline:
                 self.n_fed += 1
                 t_pub = frame.t_end_s if t_now_s is None else max(t_now_s, frame.t_end_s)
                 self.curve = self._build_curve(t_pub)
-        if np.all(np.isfinite(pos.p)):
-            self._last_p_nm = pos.p
         return _Fed(fed=fed, reason=reason)
 
     # ------------------------------------------------------------------ model
@@ -486,38 +357,23 @@ class FramePipeline:
             return self.curve
 
 
-def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummary | None:
-    """Mean, spread and confidence of a DriftResult's valid block vectors (nm)."""
-    fld = getattr(inc, "field", None)
-    if fld is None:
-        return None
-    vectors = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2) * np.asarray(
-        pixel_size_nm, dtype=np.float64
-    )
-    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
-    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)
-    good = vectors[valid]
-
-    def stat(values: npt.NDArray[np.float64], fn: Callable[[Any], Any]) -> float | None:
-        if values.size == 0:
-            return None
-        v = float(fn(values))
-        return v if math.isfinite(v) else None
-
-    return FieldSummary(
-        total_blocks=int(valid.size),
-        valid_blocks=int(valid.sum()),
-        mean_dx_nm=stat(good[:, 0], np.mean),
-        mean_dy_nm=stat(good[:, 1], np.mean),
-        std_dx_nm=stat(good[:, 0], np.std),
-        std_dy_nm=stat(good[:, 1], np.std),
-        median_confidence=stat(conf[valid], np.median),
-    )
+def _observed(frame: Frame, pos: FramePosition) -> tuple[float, FloatArray, float]:
+    """What the frame tells the model: the latest sample of its drift
+    trajectory (the end of the scan, so the horizon to the next frame is
+    shortest), or its mid-scan position where it has no trajectory."""
+    traj = pos.trajectory
+    if traj is not None and traj.t_s.size:
+        k = int(np.argmax(traj.t_s))
+        if np.all(np.isfinite(traj.xy_nm[k])):
+            sig = float(np.hypot(*traj.sigma_nm[k]) / math.sqrt(2.0))
+            return float(traj.t_s[k]), np.asarray(traj.xy_nm[k], dtype=np.float64), sig
+    sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
+    return frame.t_mid_s, pos.p, sigma
 
 
 def _frame_record(
     frame: Frame,
-    pos: _Position,
+    pos: FramePosition,
     pred: tuple[npt.NDArray[np.float64], float],
     *,
     seq: int,

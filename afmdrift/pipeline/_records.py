@@ -121,6 +121,8 @@ class ResumeState:
     curve: dict[str, Any] | None
     reference: npt.NDArray[np.float32] | None
     reference_seq: int | None
+    #: The stored reference's own frame record (its timing and drift position).
+    reference_record: FrameRecord | None
     reference_x_nm: float
     reference_y_nm: float
     event_cursor: int

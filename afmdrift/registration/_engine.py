@@ -425,6 +425,11 @@ class BlockEngine:
         _kernels.window_blocks(grad, top[sl], left[sl], self.window, fft.real)
         fft.forward()
 
+    @property
+    def centres_px(self) -> F64:
+        """Block centres ``(x, y)`` of the reference grid, px, shape (n, 2)."""
+        return self._centres
+
     def grid_positions(self) -> tuple[IArr, IArr]:
         """Window corners ``(top, left)`` of the layout (reference positions)."""
         return self.layout.top, self.layout.left

@@ -19,6 +19,7 @@ from afmdrift.registration._engine import BlockEngine, BlockMeasurement, Referen
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
 from afmdrift.registration._result import BlockField, DriftResult
+from afmdrift.registration._trend import select_by_trend
 
 __all__ = [
     "MIN_IMAGE_PX",
@@ -166,12 +167,43 @@ def combine(
     # (x, y) of the valid blocks: one compiled call.
     valid = np.empty_like(measured)
     stats = np.empty(4)
-    available, n_valid = _kernels.select_blocks(
-        vec, measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks,
-        cfg.outlier_rule == "mad", cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, cfg.epsilon_px,
-        valid, stats,
-    )  # fmt: skip
-    mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
+    if cfg.outlier_rule == "mad":
+        # Blocks are judged by their residual from a smooth trend over the
+        # block rows, which are scanned at different times (._trend).
+        usable = np.empty_like(measured)
+        available = int(
+            _kernels.usable_blocks(
+                measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks, usable
+            )
+        )
+        n_valid = int(
+            _kernels.reject_mad(vec, usable, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, valid)
+        )
+        _kernels.masked_mean_std(vec, valid, stats)
+        mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
+        need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
+        trend_valid = np.empty_like(measured)
+        n_trend, tx, ty = select_by_trend(
+            vec, meas.centres_px[:, 1], usable, threshold=cfg.mad_threshold,
+            floor_px=MAD_FLOOR_PX, max_iter=MAX_ITER, out=trend_valid,
+        )  # fmt: skip
+        one_mean_ok = n_valid >= need and max(spread_x, spread_y) <= cfg.max_block_spread_px
+        if n_trend >= need and (
+            not one_mean_ok or n_trend >= n_valid + max(2, math.ceil(0.1 * n_valid))
+        ):
+            # The drift changed while the frame was scanned: the trend over
+            # the rows explains clearly more blocks than one mean does.
+            valid[:] = trend_valid
+            n_valid, spread_x, spread_y = n_trend, tx, ty
+            _kernels.masked_mean_std(vec, valid, stats)
+            mean_x, mean_y = float(stats[0]), float(stats[1])
+    else:
+        available, n_valid = _kernels.select_blocks(
+            vec, measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks,
+            False, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, cfg.epsilon_px,
+            valid, stats,
+        )  # fmt: skip
+        mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
     total = int(vec.shape[0])
     field = BlockField(
         centres_px=meas.centres_px.astype(dtype),
@@ -189,9 +221,10 @@ def combine(
             f"only {n_valid} of {total} blocks valid (need {need}: {available} in the "
             f"overlap, {int(measured.sum())} with a usable peak)"
         )
-    elif max(spread_x, spread_y) > cfg.max_block_spread_px:
+    elif not max(spread_x, spread_y) <= cfg.max_block_spread_px:
         reason = (
-            f"the {n_valid} valid blocks disagree: spread ({spread_x:.2f}, "
+            f"the {n_valid} valid blocks disagree: residual spread about their trend over "
+            f"the rows ({spread_x:.2f}, "
             f"{spread_y:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
         )
     if reason is not None:

@@ -54,6 +54,7 @@ from afmdrift.registration._measure import (
     check_frame,
     check_image,
     check_pixel_size,
+    check_prior,
     combine,
     measure_blocks,
     result_dtype,
@@ -157,11 +158,20 @@ class DriftTracker:
         return self._count
 
     @property
+    def block_rows_px(self) -> npt.NDArray[np.float64]:
+        """Distinct rows of the block centres, px (empty before the first frame)."""
+        if self._engine is None:
+            return np.zeros(0)
+        return np.unique(np.asarray(self._engine.centres_px[:, 1], dtype=np.float64))
+
+    @property
     def position_px(self) -> tuple[float, float]:
         """Cumulative drift ``(x, y)`` of the last accepted frame, px."""
         return self._ref_pos[0] + self._rel[0], self._ref_pos[1] + self._rel[1]
 
-    def update(self, image: npt.ArrayLike | Frame) -> TrackStep | None:
+    def update(
+        self, image: npt.ArrayLike | Frame, *, moved_px: tuple[float, float] = (0.0, 0.0)
+    ) -> TrackStep | None:
         """Register a new frame.
 
         Parameters
@@ -169,6 +179,12 @@ class DriftTracker:
         image : array_like, shape (rows, cols), or Frame
             Height image in nm. A :class:`~afmdrift.drivers.Frame` is checked
             for the tracker's pixel size.
+        moved_px : (float, float), optional
+            Known motion of the image content ``(dx, dy)`` since the last
+            accepted frame that is not drift, px: a commanded offset move of
+            +Δ moves content by −Δ. It is added to the expected position where
+            the block windows are placed (so a move of many pixels does not
+            leave the search range) and kept out of the drift velocity.
 
         Returns
         -------
@@ -212,7 +228,9 @@ class DriftTracker:
             self._last_index = self._count
             self._count += 1
             return None
-        return self._step(engine, self._ref, grad, heights)
+        moved = check_prior(moved_px)
+        assert moved is not None
+        return self._step(engine, self._ref, grad, heights, moved)
 
     # -- internals ---------------------------------------------------------------
 
@@ -245,19 +263,24 @@ class DriftTracker:
         ref: ReferenceSpectra,
         grad: npt.NDArray[np.float32],
         heights: npt.NDArray[np.floating],
+        moved: tuple[float, float],
     ) -> TrackStep:
         cfg = self.config
         dtype = result_dtype(heights)
         index = self._count
         gap = index - self._last_index
-        prior = (self._rel[0] + self._velocity[0] * gap, self._rel[1] + self._velocity[1] * gap)
+        prior = (
+            self._rel[0] + self._velocity[0] * gap + moved[0],
+            self._rel[1] + self._velocity[1] * gap + moved[1],
+        )
+        motion_known = self._motion_known or moved != (0.0, 0.0)
         search: float | None = None
         coarse: CoarseShift | None = None
         # The frame's gradient image and checks come with the first block
         # pass (see BlockEngine.measure), except where the coarse alignment
         # needs the frame checked first.
         new: npt.NDArray[np.floating] | None = heights
-        if cfg.coarse and not self._motion_known and self._ref_heights is not None:
+        if cfg.coarse and not motion_known and self._ref_heights is not None:
             # No accepted frame yet, so no expected motion: start from the
             # coarse alignment, as measure_drift does.
             self._check(heights, grad, engine.prepare(heights, out=grad)[1])
@@ -295,7 +318,7 @@ class DriftTracker:
         increment = self._increment(meas)
         reanchor = False
         if meas.valid:
-            reanchor = self._accept(engine, ref, grad, meas, index, gap, top, left)
+            reanchor = self._accept(engine, ref, grad, meas, index, gap, top, left, moved)
             self._motion_known = True
             if reanchor:
                 # Kept (as float32) for the coarse retry of later frames.
@@ -323,12 +346,16 @@ class DriftTracker:
         gap: int,
         top: npt.NDArray[np.intp],
         left: npt.NDArray[np.intp],
+        moved: tuple[float, float],
     ) -> bool:
         """Move the tracker on to a validly measured frame; True if it became
         the new reference."""
         cfg = self.config
         rel = (meas.dx_px, meas.dy_px)
-        self._velocity = ((rel[0] - self._rel[0]) / gap, (rel[1] - self._rel[1]) / gap)
+        self._velocity = (
+            (rel[0] - self._rel[0] - moved[0]) / gap,
+            (rel[1] - self._rel[1] - moved[1]) / gap,
+        )
         self._rel = rel
         self._rel_sigma_nm = (meas.sigma_x_nm, meas.sigma_y_nm)
         self._last_index = index

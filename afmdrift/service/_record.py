@@ -52,5 +52,6 @@ def process_and_record(
         curve=outcome.curve_dict if outcome.predictor_state is not None else None,
         image=outcome.image,
         reference=outcome.reference,
+        trajectory=outcome.trajectory,
     )
     return outcome

@@ -5,7 +5,9 @@
 each new frame; the session's channels and events are known from the start,
 and each reaches the model with the first frame that ends after it was logged
 (:class:`~afmdrift.model.HistoryFeed`). It writes the run store and
-``RUN_DIR/measurements.csv`` (columns in docs/service.md).
+``RUN_DIR/measurements.csv``, ``RUN_DIR/trajectory.csv`` (the causal drift
+trajectory, as the daemon writes it) and ``RUN_DIR/trajectory_smoothed.csv``
+(the same samples from the whole session at once); columns in docs/service.md.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
 from afmdrift.pipeline import FramePipeline
 from afmdrift.service._record import process_and_record
-from afmdrift.service._store import RunStore
+from afmdrift.service._store import RunStore, trajectory_rows, write_trajectory_csv
 from afmdrift.session import Session, read_session
 
 __all__ = ["ReplaySummary", "replay_session"]
@@ -83,6 +85,11 @@ def replay_session(
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)
         csv_path = store.write_measurements_csv(out / "measurements.csv")
+        smoothed = pipeline.positions.trajectory.smoothed()
+        write_trajectory_csv(
+            out / "trajectory_smoothed.csv",
+            [row for key, traj in smoothed.items() for row in trajectory_rows(key, traj)],
+        )
         n = store.frame_count()
     finally:
         store.close()

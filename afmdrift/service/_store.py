@@ -20,6 +20,7 @@ import logging
 import math
 import sqlite3
 import time
+from collections.abc import Iterable
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.errors import AfmdriftError
+from afmdrift.model import FrameTrajectory
 from afmdrift.pipeline import (
     FRAME_COLUMNS,
     MEASUREMENT_COLUMNS,
@@ -39,7 +41,15 @@ from afmdrift.pipeline import (
 from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
 from afmdrift.service._images import load_reference_image, save_image
 
-__all__ = ["DB_NAME", "STORE_SCHEMA_VERSION", "RunStore", "StoreError"]
+__all__ = [
+    "DB_NAME",
+    "STORE_SCHEMA_VERSION",
+    "TRAJECTORY_COLUMNS",
+    "RunStore",
+    "StoreError",
+    "trajectory_rows",
+    "write_trajectory_csv",
+]
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +85,43 @@ def _schema() -> list[str]:
         "REFERENCES frames(seq), predictor TEXT NOT NULL, state_json TEXT NOT NULL, "
         "curve_json TEXT)",
         "CREATE INDEX IF NOT EXISTS channels_t ON channels (t_s)",
+        "CREATE TABLE IF NOT EXISTS trajectory (seq INTEGER NOT NULL REFERENCES frames(seq), "
+        "t_s REAL NOT NULL, x_nm REAL, y_nm REAL, sigma_x_nm REAL, sigma_y_nm REAL)",
     ]
+
+
+#: Columns of ``trajectory.csv`` (docs/service.md).
+TRAJECTORY_COLUMNS = ("t_s", "x_nm", "y_nm", "sigma_x_nm", "sigma_y_nm", "frame")
+
+
+def trajectory_rows(seq: int, trajectory: FrameTrajectory) -> list[tuple[float, ...]]:
+    """``trajectory.csv`` rows of one frame's samples (columns :data:`TRAJECTORY_COLUMNS`)."""
+    return [
+        (
+            float(trajectory.t_s[k]),
+            float(trajectory.xy_nm[k, 0]),
+            float(trajectory.xy_nm[k, 1]),
+            float(trajectory.sigma_nm[k, 0]),
+            float(trajectory.sigma_nm[k, 1]),
+            seq,
+        )
+        for k in range(trajectory.t_s.size)
+    ]
+
+
+def write_trajectory_csv(
+    path: str | Path, rows: Iterable[tuple[float, ...]], *, append: bool = False
+) -> Path:
+    """Write (or append) ``trajectory.csv`` rows; a new file gets the header."""
+    out = Path(path)
+    new = not append or not out.exists()
+    with out.open("w" if not append else "a", newline="", encoding="utf-8") as fh:
+        w = csv.writer(fh)
+        if new:
+            w.writerow(TRAJECTORY_COLUMNS)
+        for r in rows:
+            w.writerow([repr(v) if isinstance(v, float) else v for v in r])
+    return out
 
 
 def _nan_to_none(v: Any) -> Any:
@@ -187,6 +233,7 @@ class RunStore:
         curve: dict[str, Any] | None,
         image: npt.NDArray[np.floating] | None = None,
         reference: npt.NDArray[np.floating] | None = None,
+        trajectory: FrameTrajectory | None = None,
     ) -> None:
         """Commit one frame atomically with everything queued since the last one.
 
@@ -224,10 +271,20 @@ class RunStore:
                         "(SELECT seq FROM model_state ORDER BY seq DESC LIMIT ?)",
                         (self.keep_model_states,),
                     )
+            samples = [] if trajectory is None else trajectory_rows(record.seq, trajectory)
+            self._db.executemany(
+                "INSERT INTO trajectory (t_s, x_nm, y_nm, sigma_x_nm, sigma_y_nm, seq) "
+                "VALUES (?, ?, ?, ?, ?, ?)",
+                [tuple(_nan_to_none(v) for v in r) for r in samples],
+            )
             if reference is not None:
                 self._meta_set("reference_seq", str(record.seq))
                 self._meta_set("reference_x_nm", repr(record.image_x_nm))
                 self._meta_set("reference_y_nm", repr(record.image_y_nm))
+        if samples:
+            # The committed samples, also as a file a user can open while the
+            # run goes on (the table stays the record).
+            write_trajectory_csv(self.run_dir / "trajectory.csv", samples, append=True)
         if reference is not None:
             # Only now is the new reference committed; older images can go.
             for old in self.run_dir.glob("reference-*.npy"):
@@ -324,12 +381,21 @@ class RunStore:
             curve=curve,
             reference=reference,
             reference_seq=reference_seq if reference is not None else None,
+            reference_record=None if reference is None else self._frame_record(reference_seq),
             reference_x_nm=float(meta.get("reference_x_nm", "nan")),
             reference_y_nm=float(meta.get("reference_y_nm", "nan")),
             event_cursor=event_cursor,
             epoch=last[0].epoch,
             t_ref_s=self._session_reference_time(),
         )
+
+    def _frame_record(self, seq: int | None) -> FrameRecord | None:
+        if seq is None:
+            return None
+        row = self._db.execute(
+            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames WHERE seq = ?", (seq,)
+        ).fetchone()
+        return None if row is None else record_from_row(row)
 
     def _latest_model_state(self) -> tuple[str, dict[str, Any] | None, dict[str, Any] | None]:
         """``(predictor, state, curve)`` of the newest readable model-state row.

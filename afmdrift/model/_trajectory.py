@@ -1,0 +1,397 @@
+"""The drift trajectory p(t), from block rows placed at their scan times.
+
+A frame's rows are scanned one after another (a 512-line frame at 4 Hz takes
+128 s), so each block row of a registration is its own sample of the drift:
+the block vectors of block row j measure
+
+    v_j = p(t_cur,j) − p(t_ref,j) + (s_cur − s_ref)·b/2 − (O(t_cur,j) − O(t_ref,j))
+
+where t_cur,j is the scan time of the row's content in the current frame,
+t_ref,j its scan time in the reference frame (the keyframe it was measured
+against), O the commanded offset (``afmdrift.model._positions``), b the
+scan-direction bias and s = +1 for an up frame, −1 for a down frame. A
+512² frame with 64 px blocks gives 8 such samples, not one.
+
+Estimator
+---------
+p(t) is represented by its values at *knots*: the block-row scan times of
+every accepted frame (linear in between, and within a frame linear beyond
+its first and last knot). It is the penalised least-squares (MAP) estimate
+under
+
+* the block-row constraints above, each with the standard uncertainty of its
+  row mean (the frame's residual block spread, :mod:`afmdrift.registration._trend`,
+  divided by the root of the row's effective block count);
+* an integrated random-walk prior on p: consecutive knots' second divided
+  differences ``(p_c − p_b)/h₂ − (p_b − p_a)/h₁`` are N(0, q·(h₁ + h₂)/2),
+  the discrete form of the prior whose MAP estimate is a cubic smoothing
+  spline (Wahba, J. R. Stat. Soc. B 40, 364 (1978); the same model as a
+  constant-velocity Kalman filter with RTS smoothing). ``q`` (nm²/s³, the
+  velocity diffusion) is ``ModelConfig.trajectory_q``;
+* the scan-direction bias b as one extra unknown (prior N(0, (10 nm)²)):
+  it jumps between up and down frames, which the smooth curve cannot, so it
+  does not bend p; positions are reported *with* the frame's bias relative to
+  the session reference, as the registration sees them, so the ``scan_direction``
+  model term keeps seeing it;
+* the gauge p(t_ref) = 0 at the session reference's mid-scan time.
+
+The constraints link frames as far apart as a keyframe and its later frames,
+so this also ties the chain of frames together ("frame-to-frame links").
+
+Two modes
+---------
+causal (the daemon, and everything that reports what the daemon can do)
+    Each new frame is solved jointly with the knots of the last
+    ``window`` frames; older knots are fixed at their estimates (with their
+    uncertainty carried into the new knots' σ). It uses only what has arrived.
+smoothed (``afmdrift correct``, the smoothed trajectory of ``afmdrift replay``)
+    All knots of the session solved at once (sparse normal equations).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = ["BandConstraint", "DriftTrajectory", "FrameTrajectory"]
+
+FloatArray = npt.NDArray[np.float64]
+
+#: Prior standard deviation of the scan-direction bias b, nm.
+BIAS_PRIOR_NM = 10.0
+#: Standard deviation of the gauge constraint p(t_ref) = 0, nm.
+GAUGE_SIGMA_NM = 1e-6
+#: Standard deviation of the weak prior p = 0 on every free knot, nm.
+FREE_KNOT_SIGMA_NM = 1e6
+#: Smallest standard uncertainty of a block-row mean, nm.
+MIN_SIGMA_NM = 1e-3
+
+
+@dataclass(frozen=True, slots=True)
+class BandConstraint:
+    """One block row's measurement against its reference frame.
+
+    ``value_nm`` is the row's mean block vector plus the commanded offset
+    change ``O(t_s) − O(t_ref_s)``, i.e. p(t_s) − p(t_ref_s) + bias terms.
+    """
+
+    ref_key: int
+    t_s: float
+    t_ref_s: float
+    value_nm: tuple[float, float]
+    sigma_nm: float
+
+
+@dataclass(slots=True)
+class _Frame:
+    key: int
+    t_s: FloatArray  # knot times, increasing
+    sign: int  # +1 up, -1 down
+    t_mid_s: float
+    constraints: list[BandConstraint]
+    p: FloatArray = field(default_factory=lambda: np.zeros((0, 2)))  # bias-free p at knots
+    sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
+    fixed: bool = False
+    anchor: bool = False  # known, not measured: never re-solved
+
+
+@dataclass(frozen=True, slots=True)
+class FrameTrajectory:
+    """A frame's drift samples, as the registration sees them (bias included).
+
+    ``t_s`` (k,) knot times, ``xy_nm`` (k, 2), ``sigma_nm`` (k, 2); ``mid_nm``
+    and ``mid_sigma_nm`` the same at the frame's mid-scan time.
+    """
+
+    key: int
+    t_s: FloatArray
+    xy_nm: FloatArray
+    sigma_nm: FloatArray
+    mid_nm: FloatArray
+    mid_sigma_nm: float
+
+
+def _weights(t: float, knots: FloatArray) -> tuple[int, int, float, float]:
+    """Indices and weights of the linear interpolation (or extrapolation) of
+    a frame's knots at ``t``."""
+    n = knots.size
+    if n == 1:
+        return 0, 0, 1.0, 0.0
+    k = int(np.clip(np.searchsorted(knots, t) - 1, 0, n - 2))
+    h = knots[k + 1] - knots[k]
+    w = (t - knots[k]) / h if h > 0 else 0.0
+    return k, k + 1, 1.0 - float(w), float(w)
+
+
+class DriftTrajectory:
+    """Causal and smoothed estimates of p(t) from block-row constraints.
+
+    Parameters
+    ----------
+    q_nm2_s3 : float
+        Velocity diffusion of the integrated random-walk prior, nm²/s³.
+    window : int
+        Frames solved jointly in causal mode (the newest ones).
+    """
+
+    def __init__(self, *, q_nm2_s3: float, window: int = 16) -> None:
+        if not (math.isfinite(q_nm2_s3) and q_nm2_s3 > 0):
+            raise ValueError(f"q_nm2_s3 must be finite and > 0, got {q_nm2_s3!r}")
+        if window < 2:
+            raise ValueError(f"window must be >= 2 frames, got {window!r}")
+        self.q = float(q_nm2_s3)
+        self.window = int(window)
+        self.frames: dict[int, _Frame] = {}
+        self.order: list[int] = []  # keys by time
+        self.origin: tuple[int, float] | None = None  # (key, t) where p = 0
+        self.bias = np.zeros(2)
+        self.bias_var = BIAS_PRIOR_NM**2
+
+    def __len__(self) -> int:
+        return len(self.order)
+
+    def add_frame(
+        self,
+        key: int,
+        knot_times_s: npt.ArrayLike,
+        *,
+        sign: int,
+        t_mid_s: float,
+        constraints: list[BandConstraint],
+    ) -> FrameTrajectory:
+        """Add a frame (its knots and its constraints, which may only refer
+        to frames already added) and return its causal estimate."""
+        t = np.sort(np.asarray(knot_times_s, dtype=np.float64).reshape(-1))
+        if t.size == 0 or not np.all(np.isfinite(t)):
+            raise ValueError(f"frame {key}: knot times must be finite, got {t!r}")
+        if self.order and t[0] <= self.frames[self.order[-1]].t_s[-1]:
+            raise ValueError(f"frame {key}: its knots start before the previous frame's end")
+        for c in constraints:
+            if c.ref_key not in self.frames:
+                raise ValueError(
+                    f"frame {key}: reference frame {c.ref_key} is not in the trajectory"
+                )
+        frame = _Frame(
+            key=key,
+            t_s=t,
+            sign=1 if sign >= 0 else -1,
+            t_mid_s=t_mid_s,
+            constraints=list(constraints),
+        )
+        frame.p = np.zeros((t.size, 2))
+        frame.sigma = np.zeros(t.size)
+        if self.origin is None:
+            self.origin = (key, float(t_mid_s))
+        self.frames[key] = frame
+        self.order.append(key)
+        # The newest frames, and the reference frames they were measured
+        # against: a keyframe's own scan is only pinned down by the frames
+        # measured against it, so it stays free while it is in use.
+        recent = self.order[-self.window :]
+        refs = {c.ref_key for k in recent for c in self.frames[k].constraints}
+        active = [k for k in self.order if k in refs or k in recent]
+        active = [k for k in active if not self.frames[k].anchor]
+        for k in self.order:
+            self.frames[k].fixed = k not in active
+        self._solve(active, causal=True)
+        return self.estimate(key)
+
+    def add_anchor(
+        self,
+        key: int,
+        knot_times_s: npt.ArrayLike,
+        *,
+        sign: int,
+        t_mid_s: float,
+        p_nm: npt.ArrayLike,
+        sigma_nm: float,
+    ) -> None:
+        """Add a frame whose drift is known, not measured (a resumed service's
+        stored reference): its knots are fixed at ``p_nm`` (2,) with ``sigma_nm``."""
+        t = np.sort(np.asarray(knot_times_s, dtype=np.float64).reshape(-1))
+        frame = _Frame(
+            key=key,
+            t_s=t,
+            sign=1 if sign >= 0 else -1,
+            t_mid_s=t_mid_s,
+            constraints=[],
+            fixed=True,
+            anchor=True,
+        )
+        frame.p = np.tile(np.asarray(p_nm, dtype=np.float64).reshape(1, 2), (t.size, 1))
+        frame.sigma = np.full(t.size, float(sigma_nm))
+        if self.origin is None:
+            self.origin = (key, float(t_mid_s))
+        self.frames[key] = frame
+        self.order.append(key)
+
+    def smoothed(self) -> dict[int, FrameTrajectory]:
+        """All frames solved at once; returns every frame's estimate (the
+        causal state is left as it was)."""
+        saved = {k: (f.p.copy(), f.sigma.copy(), f.fixed) for k, f in self.frames.items()}
+        bias, bias_var = self.bias.copy(), self.bias_var
+        try:
+            for f in self.frames.values():
+                f.fixed = f.anchor
+            self.bias, self.bias_var = np.zeros(2), BIAS_PRIOR_NM**2
+            self._solve([k for k in self.order if not self.frames[k].anchor], causal=False)
+            return {k: self.estimate(k) for k in self.order}
+        finally:
+            for k, (p, s, fx) in saved.items():
+                f = self.frames[k]
+                f.p, f.sigma, f.fixed = p, s, fx
+            self.bias, self.bias_var = bias, bias_var
+
+    def estimate(self, key: int) -> FrameTrajectory:
+        """The current estimate of frame ``key`` (bias of its direction included)."""
+        f = self.frames[key]
+        ref_sign = self.frames[self.origin[0]].sign if self.origin else f.sign
+        shift = 0.5 * (f.sign - ref_sign) * self.bias
+        xy = f.p + shift
+        sig = np.column_stack([f.sigma, f.sigma])
+        i, j, wi, wj = _weights(f.t_mid_s, f.t_s)
+        mid = wi * f.p[i] + wj * f.p[j] + shift
+        mid_sigma = float(wi * f.sigma[i] + wj * f.sigma[j])
+        return FrameTrajectory(
+            key=key, t_s=f.t_s.copy(), xy_nm=xy, sigma_nm=sig, mid_nm=mid, mid_sigma_nm=mid_sigma
+        )
+
+    def value_at(self, t_s: float) -> FloatArray:
+        """Bias-free p at ``t_s`` by linear interpolation of all knots (clamped)."""
+        if not self.order:
+            return np.zeros(2)
+        tt = np.concatenate([self.frames[k].t_s for k in self.order])
+        pp = np.vstack([self.frames[k].p for k in self.order])
+        return np.array([np.interp(t_s, tt, pp[:, 0]), np.interp(t_s, tt, pp[:, 1])])
+
+    # ------------------------------------------------------------------ solve
+
+    def _solve(self, active: list[int], *, causal: bool) -> None:
+        col: dict[tuple[int, int], int] = {}
+        for k in active:
+            for i in range(self.frames[k].t_s.size):
+                col[(k, i)] = len(col)
+        n = len(col) + 1  # + the bias
+        b_col = n - 1
+        rows: list[int] = []
+        cols: list[int] = []
+        vals: list[float] = []
+        rhs: list[FloatArray] = []
+        wts: list[float] = []
+        anchor_var: list[float] = []
+
+        def add_row(terms: list[tuple[int, float]], value: FloatArray, sigma: float) -> None:
+            r = len(rhs)
+            for c, a in terms:
+                rows.append(r)
+                cols.append(c)
+                vals.append(a)
+            rhs.append(value)
+            wts.append(1.0 / sigma)
+
+        def p_terms(key: int, t: float, scale: float) -> tuple[list[tuple[int, float]], FloatArray]:
+            """Terms of scale·p(t) in frame ``key``'s knots; fixed knots go to
+            the constant part."""
+            f = self.frames[key]
+            i, j, wi, wj = _weights(t, f.t_s)
+            terms: list[tuple[int, float]] = []
+            const = np.zeros(2)
+            for idx, w in ((i, wi), (j, wj)):
+                if w == 0.0:
+                    continue
+                c = col.get((key, idx))
+                if c is None:
+                    const += scale * w * f.p[idx]
+                    anchor_var.append(float(f.sigma[idx]) ** 2)
+                else:
+                    terms.append((c, scale * w))
+            return terms, const
+
+        # A very weak prior on each free knot keeps a frame without
+        # constraints (a new reference) solvable; it never competes with data.
+        for column in col.values():
+            add_row([(column, 1.0)], np.zeros(2), FREE_KNOT_SIGMA_NM)
+        for k in active:
+            f = self.frames[k]
+            for con in f.constraints:
+                t1, c1 = p_terms(k, con.t_s, 1.0)
+                t2, c2 = p_terms(con.ref_key, con.t_ref_s, -1.0)
+                ds = 0.5 * (f.sign - self.frames[con.ref_key].sign)
+                terms = t1 + t2
+                if ds != 0.0:
+                    terms.append((b_col, ds))
+                value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
+                add_row(terms, value, max(con.sigma_nm, MIN_SIGMA_NM))
+        # Smoothness over the sorted knots of the active frames, with up to two
+        # fixed knots before them.
+        seq: list[tuple[float, int | None, FloatArray]] = []
+        first = self.order.index(active[0]) if active else len(self.order)
+        for k in self.order[max(0, first - 2) :]:
+            f = self.frames[k]
+            for i in range(f.t_s.size):
+                seq.append((float(f.t_s[i]), col.get((k, i)), f.p[i]))
+        while len(seq) > 2 and seq[0][1] is None and seq[2][1] is None:
+            seq.pop(0)
+        for na, nb, nc in zip(seq, seq[1:], seq[2:], strict=False):
+            h1, h2 = nb[0] - na[0], nc[0] - nb[0]
+            if h1 <= 0 or h2 <= 0:
+                continue
+            coef = ((na, 1.0 / h1), (nb, -1.0 / h1 - 1.0 / h2), (nc, 1.0 / h2))
+            terms = []
+            const = np.zeros(2)
+            for node, w in coef:
+                if node[1] is None:
+                    const += w * node[2]
+                else:
+                    terms.append((node[1], w))
+            if terms:
+                add_row(terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2)))
+        # Gauge, and the bias prior.
+        if self.origin is not None and self.origin[0] in active:
+            terms, const = p_terms(self.origin[0], self.origin[1], 1.0)
+            add_row(terms, -const, GAUGE_SIGMA_NM)
+        add_row([(b_col, 1.0)], self.bias, math.sqrt(self.bias_var))
+        m = len(rhs)
+        row_w = np.asarray(wts)
+        a_mat = sp.csr_matrix((vals, (rows, cols)), shape=(m, n))
+        aw = sp.diags(row_w) @ a_mat
+        y = np.vstack(rhs) * row_w[:, None]
+        normal = (aw.T @ aw).tocsc()
+        rhs_n = aw.T @ y
+        if n <= 400:
+            dense = normal.toarray()
+            sol = np.linalg.solve(dense, rhs_n)
+            cov_diag = np.diag(np.linalg.inv(dense))
+        else:
+            lu = spla.splu(normal)
+            sol = lu.solve(np.asarray(rhs_n))
+            cov_diag = self._diag_of_inverse(lu, n)
+        resid = aw @ sol - y
+        dof = max(1, m - n)
+        scale = max(1.0, float(np.sum(resid**2)) / (2 * dof))
+        var = cov_diag * scale
+        anchor = float(np.mean(anchor_var)) if anchor_var else 0.0
+        for (k, i), c in col.items():
+            f = self.frames[k]
+            f.p[i] = sol[c]
+            f.sigma[i] = math.sqrt(max(0.0, float(var[c])) + anchor)
+        self.bias = np.asarray(sol[b_col], dtype=np.float64)
+        self.bias_var = max(float(var[b_col]), 1e-12)
+
+    @staticmethod
+    def _diag_of_inverse(lu: spla.SuperLU, n: int) -> FloatArray:
+        """Diagonal of the inverse normal matrix (column by column, in blocks)."""
+        out = np.empty(n)
+        step = 256
+        for start in range(0, n, step):
+            stop = min(n, start + step)
+            e = np.zeros((n, stop - start))
+            e[np.arange(start, stop), np.arange(stop - start)] = 1.0
+            x = lu.solve(e)
+            out[start:stop] = x[np.arange(start, stop), np.arange(stop - start)]
+        return out

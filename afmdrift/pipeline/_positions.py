@@ -1,0 +1,452 @@
+"""Where each frame sits: the one streaming position component.
+
+:class:`DriftPositions` turns frames into drift positions for the daemon,
+``afmdrift replay``, ``afmdrift evaluate`` and ``afmdrift diagnose`` (all
+through :class:`~afmdrift.pipeline.FramePipeline`), so every tool reports
+what the daemon can do online. For each frame it
+
+1. **places the block windows** where the content is expected: the tracker's
+   own expectation (last position plus last increment) plus the image motion
+   of the commanded offset moves logged since the last measured frame (a
+   move of +Δ moves content by −Δ), so a re-centring move of 100 px does not
+   leave the ±64 px search range;
+2. **registers** the frame against the tracker's reference (keyframe policy:
+   ``RegistrationConfig.reference``), with blocks judged by their residual
+   from a smooth trend over the block rows (``registration._trend``);
+3. **places every block row in time**: its content was scanned at
+   t_cur(row + v_y) in this frame and at t_ref(row) in the reference, and the
+   commanded offset O is evaluated at both times, so rows scanned before and
+   after a move each get their own offset;
+4. **updates the drift trajectory** (:class:`~afmdrift.model.DriftTrajectory`,
+   causal mode) with the block rows as constraints; the frame's drift
+   position p is the trajectory at its mid-scan time, and its samples are
+   the trajectory at its block-row times.
+
+Positions (sign convention of ``afmdrift.model._positions``)::
+
+    m  image position relative to the session reference (what registration sees)
+    p = m + O(t) − O(t_ref)          drift position, p(t_ref) = 0
+
+A new reference (a reset, a changed frame shape or pixel size) has no
+measurement of its own: its trajectory samples continue the curve from the
+frames before it (the smoothness prior), so p stays continuous; it does not
+feed the model.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.config import AfmdriftConfig
+from afmdrift.errors import InputError
+from afmdrift.model import (
+    BandConstraint,
+    DriftTrajectory,
+    FrameTrajectory,
+    commanded_offset_nm,
+)
+from afmdrift.pipeline._records import FrameRecord
+from afmdrift.records import Event, Frame, ScanDirection, row_times_s
+from afmdrift.registration import DriftTracker, TrackStep
+from afmdrift.wire import FieldSummary
+
+__all__ = ["DriftPositions", "FramePosition", "TrackerFactory", "summarise_field"]
+
+log = logging.getLogger(__name__)
+
+TrackerFactory = Callable[[tuple[float, float]], DriftTracker]
+FloatArray = npt.NDArray[np.float64]
+
+#: Frame timings kept for the reference lookup (keyframes are rarely older).
+_TIMINGS_KEPT = 256
+
+
+@dataclass(slots=True)
+class FramePosition:
+    """Where a frame sits: image position m, drift position p, the measurement
+    and the frame's trajectory samples."""
+
+    offset: FloatArray
+    reason: str
+    m: FloatArray = field(default_factory=lambda: np.full(2, np.nan))
+    p: FloatArray = field(default_factory=lambda: np.full(2, np.nan))
+    dx: float = math.nan
+    dy: float = math.nan
+    sigma: float = math.nan
+    valid_blocks: int = 0
+    total_blocks: int = 0
+    keyframe_index: int = 0
+    reanchored: bool = False
+    field: FieldSummary | None = None
+    reference_image: npt.NDArray[np.float32] | None = None
+    fed: bool = False
+    trajectory: FrameTrajectory | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class _Timing:
+    t_start_s: float
+    t_end_s: float
+    rows: int
+    direction: ScanDirection
+
+    def row_times(self) -> FloatArray:
+        return row_times_s(self.t_start_s, self.t_end_s, self.rows, self.direction)
+
+
+def _sign(direction: ScanDirection) -> int:
+    return 1 if direction is ScanDirection.UP else -1
+
+
+class DriftPositions:
+    """Frames in, drift positions and trajectory samples out (see the module
+    docstring). Not thread-safe: one thread at a time."""
+
+    def __init__(
+        self, *, config: AfmdriftConfig, tracker_factory: TrackerFactory | None = None
+    ) -> None:
+        self.config = config
+        self._tracker_factory = tracker_factory or self._default_tracker_factory
+        self._tracker: DriftTracker | None = None
+        self._tracker_key: tuple[tuple[int, int], tuple[float, float]] | None = None
+        self._base_nm = np.zeros(2)  # image position m of the tracker's reference
+        self.t_ref_s: float | None = None  # session reference time (p = 0)
+        self.last_p_nm: FloatArray | None = None
+        self._reset_requested = False
+        self.trajectory = DriftTrajectory(
+            q_nm2_s3=config.model.trajectory_q, window=config.model.trajectory_window
+        )
+        # tracker frame index -> trajectory key, and the timing of those frames
+        self._keys: dict[int, int] = {}
+        self._timings: dict[int, _Timing] = {}
+        self._last_t_s: float | None = None  # mid time of the tracker's last frame
+
+    def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
+        return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
+
+    def request_reset(self) -> None:
+        """Make the next frame the registration reference (p stays continuous)."""
+        self._reset_requested = True
+
+    # ------------------------------------------------------------------ resume
+
+    def resume(
+        self,
+        *,
+        t_ref_s: float | None,
+        last_p_nm: FloatArray | None,
+        reference: npt.NDArray[np.float32] | None,
+        reference_record: FrameRecord | None,
+        reference_m_nm: tuple[float, float],
+    ) -> None:
+        """Continue after a restart: the stored reference re-primes the tracker,
+        and its recorded drift position anchors the trajectory."""
+        self.t_ref_s = t_ref_s
+        self.last_p_nm = last_p_nm
+        if reference is None or reference_record is None:
+            return
+        r = reference_record
+        pixel = (r.pixel_x_nm, r.pixel_y_nm)
+        tracker = self._tracker_factory(pixel)
+        try:
+            tracker.update(reference)
+        except InputError as err:
+            log.warning("stored reference image unusable (%s); the next frame replaces it", err)
+            return
+        if not (math.isfinite(r.x_nm) and math.isfinite(r.y_nm)):
+            log.warning("stored reference has no drift position; the next frame replaces it")
+            return
+        self._tracker = tracker
+        self._tracker_key = ((reference.shape[0], reference.shape[1]), pixel)
+        self._base_nm = np.array(reference_m_nm, dtype=np.float64)
+        timing = _Timing(r.t_start_s, r.t_end_s, r.rows, ScanDirection(r.direction))
+        knots = self._knot_times(tracker, timing, 0.0)
+        self.trajectory.add_anchor(
+            r.seq,
+            knots,
+            sign=_sign(timing.direction),
+            t_mid_s=r.t_mid_s,
+            p_nm=(r.x_nm, r.y_nm),
+            sigma_nm=r.sigma_nm if math.isfinite(r.sigma_nm) else 0.0,
+        )
+        self._keys = {0: r.seq}
+        self._timings = {r.seq: timing}
+        self._last_t_s = r.t_mid_s
+
+    # ------------------------------------------------------------------ a frame
+
+    def locate(
+        self,
+        frame: Frame,
+        *,
+        seq: int,
+        events: Sequence[Event],
+        prediction_nm: FloatArray,
+        n_fed: int,
+        held: bool,
+    ) -> FramePosition:
+        """Register ``frame`` and place it (see the module docstring)."""
+        step, reason, tracker = self._register(frame, seq, events)
+        t = frame.t_mid_s
+        if self.t_ref_s is None and not reason:
+            self.t_ref_s = t
+        t_ref = self.t_ref_s if self.t_ref_s is not None else t
+        offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
+        pos = FramePosition(offset=offset, reason=reason)
+        if not reason and step is None and tracker is not None:
+            self._place_reference(frame, seq, tracker, pos, prediction_nm, n_fed, held)
+        elif step is not None and tracker is not None:
+            self._place_measured(frame, seq, tracker, step, pos, events, held)
+        pos.p = pos.m + offset
+        if np.all(np.isfinite(pos.p)):
+            self.last_p_nm = pos.p
+        return pos
+
+    def _register(
+        self, frame: Frame, seq: int, events: Sequence[Event]
+    ) -> tuple[TrackStep | None, str, DriftTracker | None]:
+        """Registration against the tracker's reference: ``(step, reason, tracker)``.
+
+        A new tracker (a new reference) is made for the first frame, after
+        :meth:`request_reset`, and when the frame's shape or pixel size changed.
+        """
+        key = (frame.shape, frame.pixel_size_nm)
+        new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
+        tracker = self._tracker
+        moved = (0.0, 0.0)
+        if tracker is None or new_reference:
+            tracker = self._tracker_factory(frame.pixel_size_nm)
+        elif self._last_t_s is not None:
+            # Content moves by −ΔO for a commanded offset move of +ΔO.
+            o = commanded_offset_nm([self._last_t_s, frame.t_mid_s], events)
+            d = o[1] - o[0]
+            moved = (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
+        try:
+            step = tracker.update(frame.heights_nm, moved_px=moved)
+        except InputError as err:
+            # The frame was refused before it touched anything: the current
+            # reference (if any) stays, and a pending reset stays pending.
+            reason = f"registration failed: {err}"
+            log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)
+            return None, reason, None
+        if new_reference:
+            self._tracker, self._tracker_key, self._reset_requested = tracker, key, False
+            self._keys = {}
+        return step, "", tracker
+
+    def _knot_times(self, tracker: DriftTracker, timing: _Timing, dy_px: float) -> FloatArray:
+        """Scan times of the block rows of a frame whose content sits ``dy_px``
+        below the reference grid."""
+        rows = tracker.block_rows_px + dy_px
+        rt = timing.row_times()
+        idx = np.arange(rt.size, dtype=np.float64)
+        return np.unique(np.interp(np.clip(rows, 0, rt.size - 1), idx, rt))
+
+    def _remember(self, tracker_index: int, seq: int, frame: Frame) -> None:
+        self._keys[tracker_index] = seq
+        self._timings[seq] = _Timing(
+            frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction
+        )
+        if len(self._timings) > _TIMINGS_KEPT:
+            keep = set(self._keys.values())
+            for k in list(self._timings):
+                if len(self._timings) <= _TIMINGS_KEPT // 2:
+                    break
+                if k not in keep:
+                    del self._timings[k]
+        self._last_t_s = frame.t_mid_s
+
+    def _add_to_trajectory(
+        self, seq: int, frame: Frame, knots: FloatArray, constraints: list[BandConstraint]
+    ) -> FrameTrajectory | None:
+        try:
+            return self.trajectory.add_frame(
+                seq,
+                knots,
+                sign=_sign(frame.direction),
+                t_mid_s=frame.t_mid_s,
+                constraints=constraints,
+            )
+        except ValueError as err:
+            log.warning("frame %d: not added to the drift trajectory (%s)", seq, err)
+            return None
+
+    def _place_reference(
+        self,
+        frame: Frame,
+        seq: int,
+        tracker: DriftTracker,
+        pos: FramePosition,
+        prediction_nm: FloatArray,
+        n_fed: int,
+        held: bool,
+    ) -> None:
+        """The frame is the new reference: p = 0 for the session reference;
+        otherwise the trajectory continued from the frames before it."""
+        self._remember(tracker.frames_seen - 1, seq, frame)
+        knots = self._knot_times(tracker, self._timings[seq], 0.0)
+        first = self.last_p_nm is None and n_fed == 0 and len(self.trajectory) == 0
+        # A reference has no measurement of its own: its samples are not
+        # known yet, so it reports none (the smoothed trajectory has them).
+        traj = self._add_to_trajectory(seq, frame, knots, [])
+        if first:
+            p_est = np.zeros(2)
+            pos.reason = "reference"
+            pos.fed = not held
+            pos.sigma = 0.0
+        else:
+            if traj is not None:
+                p_est = traj.mid_nm
+            elif np.all(np.isfinite(prediction_nm)):
+                p_est = prediction_nm
+            elif self.last_p_nm is not None:
+                p_est = self.last_p_nm
+            else:
+                p_est = np.zeros(2)
+            pos.reason = "new reference (position estimated)"
+        pos.m = p_est - pos.offset
+        self._base_nm = pos.m.copy()
+        pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
+
+    def _constraints(
+        self,
+        frame: Frame,
+        step: TrackStep,
+        events: Sequence[Event],
+    ) -> tuple[list[BandConstraint], float] | None:
+        """Block-row constraints of an accepted measurement, and the mean row
+        motion (px); None if its reference is not in the trajectory."""
+        ref_key = self._keys.get(step.reference_index)
+        timing_ref = None if ref_key is None else self._timings.get(ref_key)
+        if ref_key is None or timing_ref is None or ref_key not in self.trajectory.frames:
+            return None
+        meas = step.measurement
+        fld = meas.field
+        valid = np.asarray(fld.valid, dtype=bool)
+        vec = np.asarray(fld.vectors_px, dtype=np.float64)[valid]
+        rows = np.asarray(fld.centres_px, dtype=np.float64)[valid, 1]
+        if vec.shape[0] == 0:
+            return None
+        px, py = frame.pixel_size_nm
+        rt_cur = frame.row_times_s()
+        rt_ref = timing_ref.row_times()
+        idx_cur = np.arange(rt_cur.size, dtype=np.float64)
+        idx_ref = np.arange(rt_ref.size, dtype=np.float64)
+        n_valid = vec.shape[0]
+        sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
+        levels = np.unique(rows)
+        t_cur_all: list[float] = []
+        t_ref_all: list[float] = []
+        means: list[FloatArray] = []
+        sigmas: list[float] = []
+        for level in levels:
+            mine = vec[rows == level]
+            mean = mine.mean(axis=0)
+            t_cur_all.append(
+                float(np.interp(np.clip(level + mean[1], 0, rt_cur.size - 1), idx_cur, rt_cur))
+            )
+            t_ref_all.append(float(np.interp(np.clip(level, 0, rt_ref.size - 1), idx_ref, rt_ref)))
+            means.append(np.array([mean[0] * px, mean[1] * py]))
+            sigmas.append(sigma_frame * math.sqrt(n_valid / mine.shape[0]))
+        o_cur = commanded_offset_nm(t_cur_all, events)
+        o_ref = commanded_offset_nm(t_ref_all, events)
+        out = [
+            BandConstraint(
+                ref_key=ref_key,
+                t_s=t_cur_all[k],
+                t_ref_s=t_ref_all[k],
+                value_nm=(
+                    float(means[k][0] + o_cur[k, 0] - o_ref[k, 0]),
+                    float(means[k][1] + o_cur[k, 1] - o_ref[k, 1]),
+                ),
+                sigma_nm=sigmas[k],
+            )
+            for k in range(levels.size)
+        ]
+        return out, float(vec[:, 1].mean())
+
+    def _place_measured(
+        self,
+        frame: Frame,
+        seq: int,
+        tracker: DriftTracker,
+        step: TrackStep,
+        pos: FramePosition,
+        events: Sequence[Event],
+        held: bool,
+    ) -> None:
+        """A measured frame: increment since the previous accepted frame, the
+        measurement against the reference (keyframe), and the trajectory."""
+        inc, meas = step.increment, step.measurement
+        accepted = bool(step.accepted)
+        pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
+        pos.sigma = float(meas.sigma_nm)
+        pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
+        pos.keyframe_index = int(step.keyframe_index)
+        pos.reanchored = bool(step.reanchored)
+        pos.field = summarise_field(inc, frame.pixel_size_nm)
+        min_blocks = self.config.service.min_valid_blocks
+        low = (not accepted) or pos.valid_blocks < min_blocks
+        if accepted:
+            pos.m = self._base_nm + np.asarray(step.position_nm, dtype=np.float64).reshape(2)
+            if pos.reanchored or self.config.registration.reference == "consecutive":
+                pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
+            # The tracker moved on to this frame (it may be the new keyframe).
+            self._remember(step.frame_index, seq, frame)
+            made = None if low else self._constraints(frame, step, events)
+            if made is not None:
+                constraints, dy_px = made
+                knots = self._knot_times(tracker, self._timings[seq], dy_px)
+                traj = self._add_to_trajectory(seq, frame, knots, constraints)
+                if traj is not None:
+                    pos.trajectory = traj
+                    # p from the trajectory at mid-scan time; m keeps its meaning.
+                    t_ref = self.t_ref_s if self.t_ref_s is not None else frame.t_mid_s
+                    o = commanded_offset_nm([frame.t_mid_s, t_ref], events)
+                    pos.m = traj.mid_nm - (o[0] - o[1])
+                    pos.sigma = traj.mid_sigma_nm
+        else:
+            pos.dx = pos.dy = math.nan
+            pos.reason = f"measurement rejected: {meas.reason or 'invalid'}"
+        if low and not pos.reason:
+            pos.reason = (
+                f"low confidence: {pos.valid_blocks} valid blocks < "
+                f"service.min_valid_blocks={min_blocks}"
+            )
+        pos.fed = not low and not held and bool(np.all(np.isfinite(pos.m)))
+
+
+def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummary | None:
+    """Mean, spread and confidence of a DriftResult's valid block vectors (nm)."""
+    fld = getattr(inc, "field", None)
+    if fld is None:
+        return None
+    vectors = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2) * np.asarray(
+        pixel_size_nm, dtype=np.float64
+    )
+    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
+    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)
+    good = vectors[valid]
+
+    def stat(values: npt.NDArray[np.float64], fn: Callable[[Any], Any]) -> float | None:
+        if values.size == 0:
+            return None
+        v = float(fn(values))
+        return v if math.isfinite(v) else None
+
+    return FieldSummary(
+        total_blocks=int(valid.size),
+        valid_blocks=int(valid.sum()),
+        mean_dx_nm=stat(good[:, 0], np.mean),
+        mean_dy_nm=stat(good[:, 1], np.mean),
+        std_dx_nm=stat(good[:, 0], np.std),
+        std_dy_nm=stat(good[:, 1], np.std),
+        median_confidence=stat(conf[valid], np.median),
+    )

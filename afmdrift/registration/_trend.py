@@ -1,0 +1,125 @@
+"""Block selection that allows the drift to change while the frame is scanned.
+
+A frame's rows are scanned one after another (512 rows at 4 Hz take 128 s),
+so a block vector measures the drift between the scan times of *its* rows in
+the two frames, and block rows scanned at other times see other drifts. When
+the drift speeds up or slows down during the scan (warm-up, creep after an
+offset move, an air-conditioning cycle) the vectors of the top and bottom
+block rows differ by pixels, and a rule that wants all blocks to agree with
+one mean rejects exactly the frames where the drift is fastest.
+
+:func:`select_by_trend` instead judges each block by its residual from a
+smooth trend of the block vectors over the block rows (a polynomial in the
+row, per axis, of degree up to ``TREND_DEGREE``), fitted robustly:
+
+1. per block row, the median of the usable blocks (robust within a row);
+2. a weighted polynomial through those medians (weights: blocks per row);
+3. the iterated median/MAD rule (:func:`afmdrift.registration._kernels.reject_mad`)
+   on the residual vectors;
+4. the polynomial refitted by least squares on the blocks kept, and step 3
+   repeated once on the new residuals.
+
+The frame's spread is the sample standard deviation of the residuals of the
+valid blocks (degrees of freedom: valid blocks minus trend coefficients).
+Where all block rows agree the trend is flat and this is the constant model
+of the ``mad`` rule, within rounding.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.registration import _kernels
+
+__all__ = ["TREND_DEGREE", "select_by_trend"]
+
+#: Highest degree of the per-axis trend over the block rows (a quadratic
+#: follows an exponential warm-up or a logarithmic creep over one frame to
+#: well below the sub-pixel noise of a block).
+TREND_DEGREE = 2
+
+
+def _design(rows: npt.NDArray[np.float64], degree: int) -> npt.NDArray[np.float64]:
+    return np.vander(rows, degree + 1, increasing=True)
+
+
+def _fit(
+    rows: npt.NDArray[np.float64],
+    values: npt.NDArray[np.float64],
+    weights: npt.NDArray[np.float64],
+    degree: int,
+) -> npt.NDArray[np.float64]:
+    """Weighted least-squares polynomial coefficients, shape (degree + 1, 2)."""
+    a = _design(rows, degree) * np.sqrt(weights)[:, None]
+    b = values * np.sqrt(weights)[:, None]
+    coef, *_ = np.linalg.lstsq(a, b, rcond=None)
+    return np.asarray(coef, dtype=np.float64)
+
+
+def select_by_trend(
+    vectors_px: npt.NDArray[np.float64],
+    row_px: npt.NDArray[np.float64],
+    usable: npt.NDArray[np.bool_],
+    *,
+    threshold: float,
+    floor_px: float,
+    max_iter: int,
+    out: npt.NDArray[np.bool_],
+) -> tuple[int, float, float]:
+    """Valid blocks judged by their residual from a smooth trend over the rows.
+
+    Parameters
+    ----------
+    vectors_px : ndarray, shape (n, 2)
+        Block vectors ``(dx, dy)``, px.
+    row_px : ndarray, shape (n,)
+        Row of each block's centre in the reference frame, px.
+    usable : ndarray of bool, shape (n,)
+        Blocks that may be valid.
+    threshold, floor_px, max_iter
+        Parameters of the median/MAD rule (see :mod:`._outliers`).
+    out : ndarray of bool, shape (n,)
+        Receives the valid blocks.
+
+    Returns
+    -------
+    (n_valid, spread_x_px, spread_y_px)
+        Spreads are the residual standard deviations (NaN below
+        ``degree + 2`` valid blocks).
+    """
+    out[:] = usable
+    idx = np.nonzero(usable)[0]
+    if idx.size < 3:
+        return int(idx.size), float("nan"), float("nan")
+    rows = row_px[idx]
+    levels, inverse = np.unique(rows, return_inverse=True)
+    degree = min(TREND_DEGREE, levels.size - 1, max(0, (idx.size - 2) // 3))
+    scale = max(float(np.ptp(levels)), 1.0)
+    centre = float(levels.mean())
+    x_rows = (row_px - centre) / scale
+    vec = vectors_px[idx]
+    medians = np.empty((levels.size, 2))
+    counts = np.empty(levels.size)
+    for k in range(levels.size):
+        mine = vec[inverse == k]
+        medians[k] = np.median(mine, axis=0)
+        counts[k] = mine.shape[0]
+    coef = _fit((levels - centre) / scale, medians, counts, degree)
+    design = _design(x_rows, degree)
+    residual = np.ascontiguousarray(vectors_px - design @ coef)
+    keep = np.ascontiguousarray(usable)
+    for _ in range(2):
+        _kernels.reject_mad(residual, keep, threshold, floor_px, max_iter, out)
+        good = np.nonzero(out)[0]
+        if good.size < degree + 2:
+            break
+        coef = _fit(x_rows[good], vectors_px[good], np.ones(good.size), degree)
+        residual = np.ascontiguousarray(vectors_px - design @ coef)
+    good = np.nonzero(out)[0]
+    dof = good.size - (degree + 1)
+    if dof < 1:
+        return int(good.size), float("nan"), float("nan")
+    r = residual[good]
+    spread = np.sqrt(np.sum(r * r, axis=0) / dof)
+    return int(good.size), float(spread[0]), float(spread[1])

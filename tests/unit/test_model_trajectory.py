@@ -1,0 +1,122 @@
+"""The drift trajectory estimator (afmdrift.model.DriftTrajectory)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from afmdrift.model import BandConstraint, DriftTrajectory, FrameTrajectory
+
+ROWS = 8
+SCAN_S = 128.0
+PERIOD_S = 256.0
+
+
+def _drift(t: np.ndarray) -> np.ndarray:
+    """A warm-up-like drift: fast at first, slowing down, plus a slow cycle."""
+    x = 40.0 * (1 - np.exp(-t / 1500.0)) + 2.0 * np.sin(2 * np.pi * t / 900.0)
+    y = -25.0 * (1 - np.exp(-t / 1200.0)) + 1.5 * np.cos(2 * np.pi * t / 700.0)
+    return np.column_stack([x, y])
+
+
+def _knots(k: int) -> np.ndarray:
+    return k * PERIOD_S + (np.arange(ROWS) + 0.5) * SCAN_S / ROWS
+
+
+def _run(
+    n: int, *, keyframe_every: int, noise_nm: float, seed: int = 0
+) -> tuple[DriftTrajectory, list[FrameTrajectory]]:
+    """Frames measured against keyframes: the trajectory and each frame's
+    causal estimate."""
+    rng = np.random.default_rng(seed)
+    traj = DriftTrajectory(q_nm2_s3=1e-4, window=16)
+    causal = []
+    for k in range(n):
+        t = _knots(k)
+        constraints = []
+        if k > 0:
+            ref = (k - 1) // keyframe_every * keyframe_every
+            t_ref = _knots(ref)
+            true = _drift(t) - _drift(t_ref)
+            for j in range(ROWS):
+                v = true[j] + rng.normal(0, noise_nm, 2)
+                constraints.append(
+                    BandConstraint(
+                        ref, float(t[j]), float(t_ref[j]), (float(v[0]), float(v[1])), noise_nm
+                    )
+                )
+        causal.append(
+            traj.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+        )
+    return traj, causal
+
+
+def test_causal_trajectory_follows_a_drift_that_changes_within_each_frame() -> None:
+    """Eight samples a frame, each within a fraction of a nm of the true p(t)
+    (relative to the first frame's mid-scan time), using only past frames."""
+    _, causal = _run(40, keyframe_every=3, noise_nm=0.05, seed=1)
+    origin = _drift(np.array([_knots(0).mean()]))[0]
+    errors = []
+    for k, est in enumerate(causal[2:], start=2):
+        assert est.t_s.size == ROWS
+        errors.append(est.xy_nm - (_drift(_knots(k)) - origin))
+    e = np.concatenate(errors)
+    assert np.sqrt(np.mean(e**2)) < 0.5
+    # within one frame the drift moved by several nm: one shift per frame
+    # could not have matched all eight samples
+    spread = np.ptp(_drift(_knots(1)), axis=0)
+    assert spread.max() > 2.0
+
+
+def test_smoothed_trajectory_is_at_least_as_good_and_leaves_the_causal_state() -> None:
+    traj, _ = _run(30, keyframe_every=4, noise_nm=0.1)
+    origin = _drift(np.array([_knots(0).mean()]))[0]
+    before = {k: traj.estimate(k).xy_nm.copy() for k in traj.order}
+    smooth = traj.smoothed()
+    err_s = np.concatenate([smooth[k].xy_nm - (_drift(_knots(k)) - origin) for k in range(30)])
+    assert np.sqrt(np.mean(err_s**2)) < 0.3
+    for k in traj.order:  # the causal estimates are unchanged
+        np.testing.assert_array_equal(traj.estimate(k).xy_nm, before[k])
+
+
+def test_scan_direction_bias_is_estimated_not_bent_into_the_curve() -> None:
+    """Alternating up/down frames whose images differ by a constant bias b:
+    the bias is found, and the reported samples carry it (as registration
+    sees it) while the curve underneath stays smooth."""
+    b = np.array([3.0, 2.0])
+    rng = np.random.default_rng(3)
+    traj = DriftTrajectory(q_nm2_s3=1e-4, window=16)
+    signs = [1 if k % 2 == 0 else -1 for k in range(30)]
+    for k in range(30):
+        t = _knots(k)
+        constraints = []
+        if k > 0:
+            ref = k - 1
+            t_ref = _knots(ref)
+            true = _drift(t) - _drift(t_ref) + 0.5 * (signs[k] - signs[ref]) * b
+            for j in range(ROWS):
+                v = true[j] + rng.normal(0, 0.05, 2)
+                constraints.append(
+                    BandConstraint(
+                        ref, float(t[j]), float(t_ref[j]), (float(v[0]), float(v[1])), 0.05
+                    )
+                )
+        traj.add_frame(k, t, sign=signs[k], t_mid_s=float(t.mean()), constraints=constraints)
+    np.testing.assert_allclose(traj.bias, b, atol=0.3)
+
+
+def test_bad_input_is_refused_with_the_reason() -> None:
+    traj = DriftTrajectory(q_nm2_s3=1e-4)
+    traj.add_frame(0, _knots(0), sign=1, t_mid_s=64.0, constraints=[])
+    with pytest.raises(ValueError, match="reference frame 7 is not in the trajectory"):
+        traj.add_frame(
+            1,
+            _knots(1),
+            sign=1,
+            t_mid_s=320.0,
+            constraints=[BandConstraint(7, 260.0, 10.0, (0.0, 0.0), 0.1)],
+        )
+    with pytest.raises(ValueError, match="start before the previous frame"):
+        traj.add_frame(2, _knots(0), sign=1, t_mid_s=64.0, constraints=[])
+    with pytest.raises(ValueError, match="q_nm2_s3"):
+        DriftTrajectory(q_nm2_s3=0.0)
