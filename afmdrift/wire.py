@@ -41,6 +41,7 @@ __all__ = [
     "ModelMsg",
     "OffsetMsg",
     "StatusMsg",
+    "TrajectorySample",
     "WireError",
     "decode",
     "decode_control_reply",
@@ -154,6 +155,19 @@ class FieldSummary(BaseModel):
     median_confidence: float | None
 
 
+class TrajectorySample(BaseModel):
+    """One sample of the drift trajectory: p at the scan time of one block row
+    (same zero and sign as ``x_nm, y_nm``; docs/service.md, ``trajectory.csv``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    t_s: float
+    x_nm: float
+    y_nm: float
+    sigma_x_nm: float
+    sigma_y_nm: float
+
+
 class FrameMsg(_Published):
     """One frame's measurement (topic ``frame``).
 
@@ -185,6 +199,11 @@ class FrameMsg(_Published):
     pred_y_nm: float | None
     pred_error_nm: float | None
     latency_s: float
+    trajectory: list[TrajectorySample] = Field(
+        default_factory=list,
+        description="The frame's drift trajectory samples (causal), one per block row, in "
+        "time order; empty for a reference or a frame that was not measured.",
+    )
 
 
 class StatusMsg(_Published):

@@ -28,6 +28,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._evaluate",
     "afmdrift.cli._run",
     "afmdrift.cli._replay",
+    "afmdrift.cli._correct",
     "afmdrift.cli._watch",
     "afmdrift.cli._diagnose",
     "afmdrift.cli._dashboard",

@@ -47,8 +47,8 @@ def register(sub: Any) -> None:
 def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.errors import ConfigError
-    from afmdrift.model import PREDICTOR_NAMES
-    from afmdrift.model._evaluate import evaluate_series, measure_session
+    from afmdrift.model import PREDICTOR_NAMES, evaluate_series
+    from afmdrift.pipeline import measure_session
     from afmdrift.session import read_session
 
     config = load_config(args.config)
@@ -66,7 +66,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.skip < 0:
         raise ConfigError(f"--skip must be >= 0, got {args.skip}")
     session = read_session(args.session)
-    series = measure_session(session, config.registration)
+    series = measure_session(session, config)
     report = evaluate_series(session, series, predictors=names, config=config.model, skip=args.skip)
     report["session"] = str(args.session)
     if args.json:

@@ -112,7 +112,11 @@ class ModelConfig(BaseModel):
         "prior, nm^2/s^3 (larger follows faster changes of the drift speed within a frame).",
     )
     trajectory_window: int = Field(
-        16, ge=2, le=64, description="Drift trajectory: frames solved jointly in causal mode."
+        4,
+        ge=2,
+        le=64,
+        description="Drift trajectory: newest frames kept free (re-solved) in causal mode; "
+        "older ones are marginalised.",
     )
     nn: NNConfig = Field(default_factory=NNConfig)
     kalman: KalmanConfig = Field(default_factory=KalmanConfig)

@@ -106,6 +106,11 @@ class ServiceConfig(BaseModel):
         "runs/latest", min_length=1, description="Run directory (store, archive, logs)."
     )
     archive_frames: bool = Field(False, description="Also keep every image as frames/NNNNNN.npy.")
+    archive_corrected: bool = Field(
+        False,
+        description="Also keep every measured image de-warped by the causal drift trajectory "
+        "(each row moved back by the drift at its scan time) as corrected/NNNNNN.npy.",
+    )
     keep_model_states: int = Field(
         100, ge=0, le=10_000_000, description="Predictor states kept in the store (0: all)."
     )

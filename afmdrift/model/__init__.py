@@ -20,14 +20,13 @@ from afmdrift.model._effects import (
     load_term_class,
     make_term,
 )
+from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
 from afmdrift.model._feed import FeedBatch, HistoryFeed
 from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
 from afmdrift.model._physics import PhysicsPredictor, solve_wls
 from afmdrift.model._positions import (
     commanded_offset_nm,
-    correct_slow_axis_timing,
     drift_from_measurements,
-    frames_spanning_moves,
     truth_frame_mean,
 )
 from afmdrift.model._reconstruct import (
@@ -60,6 +59,7 @@ __all__ = [
     "KalmanConfig",
     "KalmanPredictor",
     "LastValuePredictor",
+    "MeasuredSeries",
     "ModelConfig",
     "NNConfig",
     "NNPredictor",
@@ -74,9 +74,8 @@ __all__ = [
     "available_terms",
     "build_offset_curve",
     "commanded_offset_nm",
-    "correct_slow_axis_timing",
     "drift_from_measurements",
-    "frames_spanning_moves",
+    "evaluate_series",
     "hermite_curve",
     "load_term_class",
     "make_predictor",

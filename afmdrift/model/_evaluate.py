@@ -1,17 +1,19 @@
-"""Offline evaluation of drift predictors on a recorded session.
+"""Offline evaluation of drift predictors over a replayed run.
 
-:func:`measure_session` runs the registration engine over a session exactly as
-the service does (a :class:`~afmdrift.registration.DriftTracker` over the
-frames), turns image positions into drift positions with
-:func:`~afmdrift.model.drift_from_measurements`, and :func:`evaluate_series`
-replays them, frame by frame and in time order, through several predictors
-side by side. For every predictor it scores
+``afmdrift evaluate`` is "replay, then score": the session first goes through
+the daemon's own pipeline (:func:`afmdrift.pipeline.measure_session`, the
+code ``afmdrift replay`` and the daemon run), which gives each frame's
+observation exactly as the daemon fed it to its model (the latest sample of
+the causal drift trajectory) in a :class:`MeasuredSeries`. Then
+:func:`evaluate_series` replays those observations, in time order, through
+several predictors side by side. For every predictor it scores
 
 * the **one-step prediction error**: before frame i is shown to the
-  predictor, its prediction at t_i (mid-scan) minus the measured p_i; and,
-  where the session has ``truth.csv``, its predicted sample position
-  (``predict_drift``, without measurement artefacts) minus the true p
-  averaged over the frame's row times;
+  predictor, its prediction at the frame's observation time t_i minus the
+  observed p_i; and, where the session has ``truth.csv``, its predicted
+  sample position (``predict_drift``, without measurement artefacts) minus
+  the true p(t_i) (relative to the true p at the session reference's
+  mid-scan time, where p = 0 by definition);
 * the **continuous-offset error** (truth only): after frame i is complete
   (t_end_i) the predictor is updated and a curve d(t) is built; it is what
   the tip follows until the next frame completes, so it is compared with the
@@ -19,10 +21,7 @@ side by side. For every predictor it scores
   reconstructions;
 * **timing**: wall time of update, prediction and curve building per frame.
 
-Reference: measured positions are relative to frame 0 (p = 0 there, by
-definition of the registration reference), whose measurement sees the mean of
-the true drift over its row times; truth is shifted by that mean so both share
-the reference.
+So every score is one the daemon can reach online: nothing uses later frames.
 """
 
 from __future__ import annotations
@@ -36,22 +35,15 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.config import ModelConfig, RegistrationConfig
+from afmdrift.config import ModelConfig
 from afmdrift.model._base import Observation
 from afmdrift.model._feed import HistoryFeed
-from afmdrift.model._positions import (
-    correct_slow_axis_timing,
-    drift_from_measurements,
-    frames_spanning_moves,
-    truth_frame_mean,
-)
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
 from afmdrift.model._registry import make_predictor
 from afmdrift.records import ScanDirection
-from afmdrift.registration import DriftTracker
 from afmdrift.session import Session
 
-__all__ = ["MeasuredSeries", "evaluate_series", "measure_session"]
+__all__ = ["MeasuredSeries", "evaluate_series"]
 
 _log = logging.getLogger(__name__)
 
@@ -63,10 +55,13 @@ DENSE_STEP_S = 2.0
 
 @dataclass(slots=True)
 class MeasuredSeries:
-    """Drift positions of a session's frames, as the service would see them.
+    """The observations a session's frames gave the daemon's model.
 
-    ``xy_nm`` (n, 2) is NaN where the measurement was invalid; ``t_s`` are
-    mid-scan times, ``t_end_s`` frame completion times.
+    One entry per frame: ``t_s`` the observation time (the frame's latest
+    drift trajectory sample; the mid-scan time where it fed nothing),
+    ``xy_nm`` (n, 2) the observed p (NaN where the frame did not feed the
+    model), ``sigma_nm`` its uncertainty, ``t_end_s`` frame completion times,
+    ``measure_ms`` the pipeline's time per frame.
     """
 
     t_s: FloatArray
@@ -76,66 +71,6 @@ class MeasuredSeries:
     directions: list[ScanDirection]
     measure_ms: FloatArray
     valid_blocks: list[int] = field(default_factory=list)
-
-
-def measure_session(
-    session: Session, config: RegistrationConfig, *, timing_correction: bool = True
-) -> MeasuredSeries:
-    """Run the registration engine over every frame and convert to drift positions.
-
-    Commanded offset moves are added back (:func:`drift_from_measurements`),
-    frames scanned across a move are dropped (:func:`frames_spanning_moves`)
-    and, unless ``timing_correction`` is False, the raster-timing bias of each
-    measurement against its reference frame is removed
-    (:func:`correct_slow_axis_timing`).
-    """
-    tracker = DriftTracker(pixel_size_nm=session.meta.pixel_size_nm, config=config)
-    n = len(session)
-    m = np.full((n, 2), np.nan)
-    sigma = np.full(n, np.nan)
-    ms = np.zeros(n)
-    blocks: list[int] = []
-    reference = [-1] * n
-    for i, frame in enumerate(session.iter_frames()):
-        t0 = time.perf_counter()
-        step = tracker.update(np.asarray(frame.heights_nm))
-        ms[i] = (time.perf_counter() - t0) * 1e3
-        if step is None:
-            m[i] = 0.0
-            sigma[i] = 0.0
-            blocks.append(-1)
-            continue
-        meas = step.measurement
-        blocks.append(int(meas.valid_blocks))
-        if step.accepted:
-            m[i] = np.asarray(step.position_nm, dtype=np.float64).reshape(2)
-            sigma[i] = float(meas.sigma_nm)
-            reference[i] = int(step.reference_index)
-        else:
-            _log.info("frame %d: measurement not accepted (%s)", i, meas.reason)
-    frames = list(session.iter_frames())
-    t = np.array([f.t_mid_s for f in frames])
-    spanning = frames_spanning_moves(session.frame_times, session.events)
-    for k in np.nonzero(spanning)[0]:
-        _log.info("frame %d: an offset move happened during its scan; not used", int(k))
-    m[spanning] = np.nan
-    p = drift_from_measurements(t, m, session.events, t_ref_s=float(t[0]))
-    if timing_correction:
-        slope = np.array(
-            [f.line_time_s if f.direction is ScanDirection.UP else -f.line_time_s for f in frames]
-        )
-        p = correct_slow_axis_timing(
-            t, p, m, reference, slope, pixel_size_y_nm=session.meta.pixel_size_nm[1]
-        )
-    return MeasuredSeries(
-        t_s=t,
-        t_end_s=session.frame_times[:, 1].copy(),
-        xy_nm=p,
-        sigma_nm=sigma,
-        directions=list(session.directions),
-        measure_ms=ms,
-        valid_blocks=blocks,
-    )
 
 
 def _stats(e: FloatArray) -> dict[str, Any]:
@@ -189,9 +124,12 @@ def evaluate_series(
     if session.truth is not None:
         truth_t = session.truth[:, 0]
         truth_xy = session.truth[:, 1:3]
-        ref = truth_frame_mean(session.frame(0), truth_t, truth_xy)
+        t0 = session.frame(0).t_mid_s
+        ref = np.array([np.interp(t0, truth_t, truth_xy[:, a]) for a in (0, 1)])
         for i in range(len(session)):
-            frame_truth[i] = truth_frame_mean(session.frame(i), truth_t, truth_xy) - ref
+            frame_truth[i] = [
+                np.interp(series.t_s[i], truth_t, truth_xy[:, a]) - ref[a] for a in (0, 1)
+            ]
     report: dict[str, Any] = {
         "frames": len(session),
         "valid_frames": int(valid.sum()),

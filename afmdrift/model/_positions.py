@@ -31,15 +31,10 @@ Where the drift curves within a frame (creep, warm-up) this is only first-order
 accurate; the comparison against simulator truth uses the exact per-line form
 (:func:`truth_frame_mean`, the mean of p over the row times) instead.
 
-Per-line timing matters a second time when drift moves content by many rows
-per frame: the reference frame scanned that content at other rows, hence at
-other times, than the ones its mid-scan time stands for.
-:func:`correct_slow_axis_timing` removes that first-order bias (a few percent
-of each increment at 30 px per frame).
-
-A frame during whose scan an offset move happened is displaced by different
-amounts above and below the move; :func:`frames_spanning_moves` finds them so
-they are not used as drift observations.
+The drift trajectory (``afmdrift.model._trajectory``) goes further and
+places each block row at its own scan time in both frames, which removes the
+raster-timing bias of a measurement against a reference whose content sat
+in other rows, and handles frames scanned across an offset move row by row.
 """
 
 from __future__ import annotations
@@ -53,9 +48,7 @@ from afmdrift.records import Event, EventKind, Frame
 
 __all__ = [
     "commanded_offset_nm",
-    "correct_slow_axis_timing",
     "drift_from_measurements",
-    "frames_spanning_moves",
     "truth_frame_mean",
 ]
 
@@ -159,106 +152,3 @@ def truth_frame_mean(
     x = np.interp(rows, tt, tv[:, 0]).mean()
     y = np.interp(rows, tt, tv[:, 1]).mean()
     return np.array([x, y])
-
-
-def correct_slow_axis_timing(
-    t_s: npt.ArrayLike,
-    drift_nm: npt.ArrayLike,
-    image_position_nm: npt.ArrayLike,
-    reference_index: Sequence[int],
-    row_slope_s: npt.ArrayLike,
-    *,
-    pixel_size_y_nm: float,
-) -> npt.NDArray[np.float64]:
-    """Remove the raster-timing bias of each measurement against its reference.
-
-    A block at row r of the current frame holds content that the reference
-    frame scanned at row r − d_y/Δy (d_y the measured image shift along y), at
-    time t_ref(r) − s·d_y/Δy, where s is the reference's row-time slope (+line
-    time for an up frame, −line time for a down frame). The measurement
-    therefore compares p at the current mid-scan time with p at the reference's
-    mid-scan time shifted by −s·d_y/Δy; to first order::
-
-        p(t_cur) − p(t_ref) = d − v_ref · s · d_y / Δy
-
-    with v_ref the drift velocity at the reference. With 30 px of drift per
-    frame on a 0.25 s line this is a 3 % error of every increment, which
-    accumulates along a keyframe chain; the correction is chained the same way
-    (each frame inherits its reference's correction).
-
-    Parameters
-    ----------
-    t_s : array_like, shape (n,)
-        Mid-scan times, s.
-    drift_nm : array_like, shape (n, 2)
-        Uncorrected drift positions (:func:`drift_from_measurements`), NaN
-        where a frame was not measured; also used for v_ref (central
-        differences over the neighbouring measured frames).
-    image_position_nm : array_like, shape (n, 2)
-        Measured image positions m (the shifts d are m_i − m_ref).
-    reference_index : sequence of int, length n
-        Frame each measurement was made against (−1 or i itself: none).
-    row_slope_s : array_like, shape (n,)
-        d(row time)/d(row index) of each frame: +line time (up), −line time (down).
-    pixel_size_y_nm : float
-        Δy, nm.
-
-    Returns
-    -------
-    ndarray, shape (n, 2)
-        Corrected drift positions.
-    """
-    t = np.asarray(t_s, dtype=np.float64)
-    p = np.asarray(drift_nm, dtype=np.float64).reshape(-1, 2)
-    m = np.asarray(image_position_nm, dtype=np.float64).reshape(-1, 2)
-    slope = np.asarray(row_slope_s, dtype=np.float64)
-    n = t.size
-    if not (p.shape[0] == m.shape[0] == slope.size == len(reference_index) == n):
-        raise ValueError(
-            f"correct_slow_axis_timing: {n} times, {p.shape[0]} drift rows, {m.shape[0]} "
-            f"image rows, {slope.size} slopes, {len(reference_index)} reference indices"
-        )
-    ok = np.all(np.isfinite(p), axis=1)
-    good = np.nonzero(ok)[0]
-    corr = np.zeros((n, 2))
-    # Two passes: the second takes v_ref from the corrected positions, which
-    # removes the second-order error of the first (v from biased positions).
-    for _ in range(2):
-        q = p + corr
-        v = np.zeros((n, 2))
-        for k in range(good.size):
-            lo = good[max(k - 1, 0)]
-            hi = good[min(k + 1, good.size - 1)]
-            if hi != lo:
-                v[good[k]] = (q[hi] - q[lo]) / (t[hi] - t[lo])
-        corr = np.zeros((n, 2))
-        for i in range(n):
-            r = int(reference_index[i])
-            if not ok[i] or r < 0 or r >= i or not ok[r]:
-                continue
-            corr[i] = corr[r] - v[r] * slope[r] * (m[i, 1] - m[r, 1]) / pixel_size_y_nm
-    return np.asarray(p + corr, dtype=np.float64)
-
-
-def frames_spanning_moves(
-    frame_times_s: npt.ArrayLike, events: Sequence[Event]
-) -> npt.NDArray[np.bool_]:
-    """Frames during whose scan a commanded offset move happened, shape (n,).
-
-    Rows scanned before the move and rows scanned after it are displaced by
-    different amounts, so the frame's measurement is neither the drift before
-    nor after the move; such frames must not become drift observations.
-
-    Parameters
-    ----------
-    frame_times_s : array_like, shape (n, 2)
-        ``(t_start_s, t_end_s)`` of each frame.
-    events : sequence of Event
-        The event log (``offset_move`` entries are used).
-    """
-    ft = np.asarray(frame_times_s, dtype=np.float64).reshape(-1, 2)
-    moves = np.array([e.t_s for e in events if e.kind is EventKind.OFFSET_MOVE])
-    if moves.size == 0:
-        return np.zeros(ft.shape[0], dtype=bool)
-    inside = (moves[None, :] > ft[:, :1]) & (moves[None, :] < ft[:, 1:2])
-    return np.asarray(np.any(inside, axis=1), dtype=np.bool_)

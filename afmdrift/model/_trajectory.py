@@ -41,9 +41,16 @@ so this also ties the chain of frames together ("frame-to-frame links").
 Two modes
 ---------
 causal (the daemon, and everything that reports what the daemon can do)
-    Each new frame is solved jointly with the knots of the last
-    ``window`` frames; older knots are fixed at their estimates (with their
-    uncertainty carried into the new knots' σ). It uses only what has arrived.
+    Each new frame updates the information form (normal equations) of the
+    free knots with its rows and is solved at once (Cholesky); knots of
+    frames that no later frame can refer to (older than the newest
+    ``window`` frames and not the keyframe of the newest one) are then
+    marginalised out by a Schur complement, not frozen, so the estimate of
+    the newest frame is that of solving every frame so far at once: the
+    Kalman filter of this model, at a cost that does not grow with the
+    session. It uses only what has arrived. Uncertainties are scaled by the
+    running χ² per degree of freedom of the block-row constraints when that
+    exceeds 1.
 smoothed (``afmdrift correct``, the smoothed trajectory of ``afmdrift replay``)
     All knots of the session solved at once (sparse normal equations).
 """
@@ -65,9 +72,10 @@ FloatArray = npt.NDArray[np.float64]
 #: Prior standard deviation of the scan-direction bias b, nm.
 BIAS_PRIOR_NM = 10.0
 #: Standard deviation of the gauge constraint p(t_ref) = 0, nm.
-GAUGE_SIGMA_NM = 1e-6
-#: Standard deviation of the weak prior p = 0 on every free knot, nm.
-FREE_KNOT_SIGMA_NM = 1e6
+GAUGE_SIGMA_NM = 1e-3
+#: Standard deviation of the weak prior on every free knot (centred on the
+#: latest estimate), nm: it only keeps a knot without data determined.
+FREE_KNOT_SIGMA_NM = 1e3
 #: Smallest standard uncertainty of a block-row mean, nm.
 MIN_SIGMA_NM = 1e-3
 
@@ -139,7 +147,7 @@ class DriftTrajectory:
         Frames solved jointly in causal mode (the newest ones).
     """
 
-    def __init__(self, *, q_nm2_s3: float, window: int = 16) -> None:
+    def __init__(self, *, q_nm2_s3: float, window: int = 4) -> None:
         if not (math.isfinite(q_nm2_s3) and q_nm2_s3 > 0):
             raise ValueError(f"q_nm2_s3 must be finite and > 0, got {q_nm2_s3!r}")
         if window < 2:
@@ -151,6 +159,14 @@ class DriftTrajectory:
         self.origin: tuple[int, float] | None = None  # (key, t) where p = 0
         self.bias = np.zeros(2)
         self.bias_var = BIAS_PRIOR_NM**2
+        # Causal state: information form over the free unknowns (index 0 is
+        # the bias), their indices, and the last two knots in time.
+        self._h = np.array([[1.0 / BIAS_PRIOR_NM**2]])
+        self._g = np.zeros((1, 2))
+        self._idx: dict[tuple[int, int], int] = {}
+        self._tail: list[tuple[float, tuple[int, int]]] = []
+        self._chi2 = 0.0
+        self._chi2_n = 0
 
     def __len__(self) -> int:
         return len(self.order)
@@ -189,17 +205,144 @@ class DriftTrajectory:
             self.origin = (key, float(t_mid_s))
         self.frames[key] = frame
         self.order.append(key)
-        # The newest frames, and the reference frames they were measured
-        # against: a keyframe's own scan is only pinned down by the frames
-        # measured against it, so it stays free while it is in use.
-        recent = self.order[-self.window :]
-        refs = {c.ref_key for k in recent for c in self.frames[k].constraints}
-        active = [k for k in self.order if k in refs or k in recent]
-        active = [k for k in active if not self.frames[k].anchor]
-        for k in self.order:
-            self.frames[k].fixed = k not in active
-        self._solve(active, causal=True)
+        self._filter_add(frame)
         return self.estimate(key)
+
+    # ------------------------------------------------------------------ causal
+
+    def _filter_add(self, frame: _Frame) -> None:
+        """Causal update: the frame's knots join the information form (H, g)
+        of the free knots, its rows are added, the system is solved, and the
+        frames no longer needed are marginalised out (Schur complement), so
+        the estimate equals that of solving all frames so far at once."""
+        n_new = frame.t_s.size
+        base = self._h.shape[0]
+        h = np.zeros((base + n_new, base + n_new))
+        h[:base, :base] = self._h
+        g = np.zeros((base + n_new, 2))
+        g[:base] = self._g
+        self._h, self._g = h, g
+        # The weak prior of each new knot is centred on the latest estimate.
+        centre = np.zeros(2)
+        if self._tail:
+            k_last, i_last = self._tail[-1][1]
+            centre = self.frames[k_last].p[i_last].copy()
+        for i in range(n_new):
+            self._idx[(frame.key, i)] = base + i
+            self._add_info([(base + i, 1.0)], centre, FREE_KNOT_SIGMA_NM)
+        # smoothness: the last two free knots before the frame, then its own
+        previous = [node for node in self._tail if node is not None][-2:]
+        chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
+        for na, nb, nc in zip(chain, chain[1:], chain[2:], strict=False):
+            h1, h2 = nb[0] - na[0], nc[0] - nb[0]
+            if h1 <= 0 or h2 <= 0:
+                continue
+            terms, const = self._terms_of_nodes(
+                ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
+            )
+            self._add_info(terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2)))
+        self._tail = chain[-2:]
+        rows: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
+        for con in frame.constraints:
+            t1, c1 = self._terms_at(frame.key, con.t_s, 1.0)
+            t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0)
+            ds = 0.5 * (frame.sign - self.frames[con.ref_key].sign)
+            terms = t1 + t2 + ([(0, ds)] if ds != 0.0 else [])
+            value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
+            sigma = max(con.sigma_nm, MIN_SIGMA_NM)
+            self._add_info(terms, value, sigma)
+            rows.append((terms, value, sigma))
+        if self.origin is not None and self.origin[0] == frame.key:
+            terms, const = self._terms_at(frame.key, self.origin[1], 1.0)
+            self._add_info(terms, -const, GAUGE_SIGMA_NM)
+        # solve
+        try:
+            cho = np.linalg.cholesky(self._h)
+        except np.linalg.LinAlgError:
+            # Numerically not positive definite (constraints far stronger than
+            # the priors): the symmetric eigen-solution, which always exists.
+            w, v = np.linalg.eigh(self._h)
+            inv = (v / np.maximum(w, w.max() * 1e-15)) @ v.T
+            sol, var = inv @ self._g, np.diag(inv).copy()
+        else:
+            sol = np.linalg.solve(cho.T, np.linalg.solve(cho, self._g))
+            inv_l = np.linalg.solve(cho, np.eye(cho.shape[0]))
+            var = np.sum(inv_l * inv_l, axis=0)
+        for terms, value, sigma in rows:
+            pred = sum(a * sol[c] for c, a in terms)
+            r = (pred - value) / sigma
+            self._chi2 += float(np.sum(r * r))
+            self._chi2_n += 2
+        scale = max(1.0, self._chi2 / self._chi2_n) if self._chi2_n else 1.0
+        for (k, i), c in self._idx.items():
+            f = self.frames[k]
+            f.p[i] = sol[c]
+            f.sigma[i] = math.sqrt(max(0.0, float(var[c])) * scale)
+        self.bias = np.asarray(sol[0], dtype=np.float64)
+        self.bias_var = max(float(var[0]) * scale, 1e-12)
+        # marginalise what no future frame can refer to
+        recent = set(self.order[-self.window :])
+        keep = recent | {c.ref_key for c in frame.constraints}
+        drop = [c for (k, _), c in self._idx.items() if k not in keep]
+        if drop:
+            self._marginalise(drop)
+
+    def _terms_at(
+        self, key: int, t: float, scale: float
+    ) -> tuple[list[tuple[int, float]], FloatArray]:
+        """Terms of scale·p(t) in frame ``key``'s knots: free knots as terms,
+        the others (marginalised or anchored) as constants."""
+        f = self.frames[key]
+        i, j, wi, wj = _weights(t, f.t_s)
+        terms: list[tuple[int, float]] = []
+        const = np.zeros(2)
+        for idx, w in ((i, wi), (j, wj)):
+            if w == 0.0:
+                continue
+            c = self._idx.get((key, idx))
+            if c is None:
+                const += scale * w * f.p[idx]
+            else:
+                terms.append((c, scale * w))
+        return terms, const
+
+    def _terms_of_nodes(
+        self, nodes: tuple[tuple[tuple[int, int], float], ...]
+    ) -> tuple[list[tuple[int, float]], FloatArray]:
+        terms: list[tuple[int, float]] = []
+        const = np.zeros(2)
+        for (k, i), w in nodes:
+            c = self._idx.get((k, i))
+            if c is None:
+                const += w * self.frames[k].p[i]
+            else:
+                terms.append((c, w))
+        return terms, const
+
+    def _add_info(self, terms: list[tuple[int, float]], value: FloatArray, sigma: float) -> None:
+        """Add the row ``Σ a·x = value ± sigma`` to the information form."""
+        if not terms:
+            return
+        cols = np.array([c for c, _ in terms])
+        a = np.array([w for _, w in terms]) / sigma
+        self._h[np.ix_(cols, cols)] += np.outer(a, a)
+        self._g[cols] += a[:, None] * (np.asarray(value, dtype=np.float64)[None, :] / sigma)
+
+    def _marginalise(self, drop: list[int]) -> None:
+        n = self._h.shape[0]
+        drop_set = set(drop)
+        keep = [c for c in range(n) if c not in drop_set]
+        h_kk = self._h[np.ix_(keep, keep)]
+        h_kd = self._h[np.ix_(keep, drop)]
+        h_dd = self._h[np.ix_(drop, drop)]
+        x = np.linalg.solve(h_dd, np.column_stack([h_kd.T, self._g[drop]]))
+        self._h = h_kk - h_kd @ x[:, : len(keep)]
+        self._g = self._g[keep] - h_kd @ x[:, len(keep) :]
+        remap = {old: new for new, old in enumerate(keep)}
+        self._idx = {node: remap[c] for node, c in self._idx.items() if c in remap}
+        for node in list(self.frames):
+            f = self.frames[node]
+            f.fixed = not any((node, i) in self._idx for i in range(f.t_s.size))
 
     def add_anchor(
         self,
@@ -225,6 +368,7 @@ class DriftTrajectory:
         )
         frame.p = np.tile(np.asarray(p_nm, dtype=np.float64).reshape(1, 2), (t.size, 1))
         frame.sigma = np.full(t.size, float(sigma_nm))
+        self._tail = [(float(t[i]), (key, i)) for i in range(t.size)][-2:]
         if self.origin is None:
             self.origin = (key, float(t_mid_s))
         self.frames[key] = frame
@@ -314,8 +458,8 @@ class DriftTrajectory:
 
         # A very weak prior on each free knot keeps a frame without
         # constraints (a new reference) solvable; it never competes with data.
-        for column in col.values():
-            add_row([(column, 1.0)], np.zeros(2), FREE_KNOT_SIGMA_NM)
+        for (k, i), column in col.items():
+            add_row([(column, 1.0)], self.frames[k].p[i].copy(), FREE_KNOT_SIGMA_NM)
         for k in active:
             f = self.frames[k]
             for con in f.constraints:

@@ -49,6 +49,7 @@ from afmdrift.model import (
     make_predictor,
     reconstruct_offset,
 )
+from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
 from afmdrift.pipeline._positions import (
     DriftPositions,
     FramePosition,
@@ -83,6 +84,8 @@ class FrameOutcome:
     history: FeedBatch
     #: The frame's drift trajectory samples (causal), if it has any.
     trajectory: FrameTrajectory | None = None
+    #: The frame de-warped by those samples (``service.archive_corrected``).
+    corrected: npt.NDArray[np.float32] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -286,7 +289,17 @@ class FramePipeline:
             low_confidence=not fed.fed and not held and fed.reason not in ("reference",),
             history=batch,
             trajectory=pos.trajectory,
+            corrected=self._corrected(frame, pos),
         )
+
+    def _corrected(self, frame: Frame, pos: FramePosition) -> npt.NDArray[np.float32] | None:
+        """The frame de-warped by its causal trajectory, when the service keeps them."""
+        traj = pos.trajectory
+        if not self.config.service.archive_corrected or traj is None:
+            return None
+        t_ref = self.t_ref_s if self.t_ref_s is not None else frame.t_mid_s
+        m = image_positions(traj, self.history.events, t_ref)
+        return dewarp_frame(frame, traj.t_s, m, fill="nan")
 
     def _feed_model(
         self,
@@ -385,6 +398,7 @@ def _frame_record(
     """The store row of a processed frame."""
     finished = time.time()
     m, p, offset = pos.m, pos.p, pos.offset
+    obs_t, obs_xy, obs_sigma = _observed(frame, pos)
     return FrameRecord(
         seq=seq,
         instrument_frame=frame.index,
@@ -419,4 +433,8 @@ def _frame_record(
         wall_s=finished,
         latency_s=finished - started,
         field_json=json.dumps(None if pos.field is None else pos.field.model_dump()),
+        obs_t_s=obs_t if fed else math.nan,
+        obs_x_nm=float(obs_xy[0]) if fed else math.nan,
+        obs_y_nm=float(obs_xy[1]) if fed else math.nan,
+        obs_sigma_nm=obs_sigma if fed else math.nan,
     )

@@ -71,6 +71,12 @@ class FrameRecord:
     wall_s: float
     latency_s: float
     field_json: str
+    #: The observation the frame gave the model (its latest trajectory
+    #: sample; NaN when it fed nothing, or in a store written before them).
+    obs_t_s: float = math.nan
+    obs_x_nm: float = math.nan
+    obs_y_nm: float = math.nan
+    obs_sigma_nm: float = math.nan
 
     @property
     def resid_x_nm(self) -> float:
@@ -131,7 +137,17 @@ class ResumeState:
 
 
 def observation_from_record(r: FrameRecord) -> Observation:
-    """The model observation that a frame which fed the model contributed."""
+    """The model observation that a frame which fed the model contributed
+    (the mid-scan position for records written before ``obs_*`` existed)."""
+    if math.isfinite(r.obs_t_s):
+        return Observation(
+            t_s=r.obs_t_s,
+            x_nm=r.obs_x_nm,
+            y_nm=r.obs_y_nm,
+            sigma_nm=r.obs_sigma_nm if math.isfinite(r.obs_sigma_nm) else 0.0,
+            direction=ScanDirection(r.direction),
+            frame=r.seq,
+        )
     return Observation(
         t_s=r.t_mid_s,
         x_nm=r.x_nm,

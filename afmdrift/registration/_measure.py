@@ -183,16 +183,14 @@ def combine(
         mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
         need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
         trend_valid = np.empty_like(measured)
-        n_trend, tx, ty = select_by_trend(
+        n_trend, tx, ty, significant = select_by_trend(
             vec, meas.centres_px[:, 1], usable, threshold=cfg.mad_threshold,
             floor_px=MAD_FLOOR_PX, max_iter=MAX_ITER, out=trend_valid,
         )  # fmt: skip
         one_mean_ok = n_valid >= need and max(spread_x, spread_y) <= cfg.max_block_spread_px
-        if n_trend >= need and (
-            not one_mean_ok or n_trend >= n_valid + max(2, math.ceil(0.1 * n_valid))
-        ):
+        if n_trend >= need and (significant or not one_mean_ok):
             # The drift changed while the frame was scanned: the trend over
-            # the rows explains clearly more blocks than one mean does.
+            # the rows explains the blocks better than one mean does.
             valid[:] = trend_valid
             n_valid, spread_x, spread_y = n_trend, tx, ty
             _kernels.masked_mean_std(vec, valid, stats)

@@ -32,8 +32,11 @@ import numpy.typing as npt
 
 from afmdrift.registration import _kernels
 
-__all__ = ["TREND_DEGREE", "select_by_trend"]
+__all__ = ["TREND_DEGREE", "TREND_F", "select_by_trend"]
 
+#: F statistic above which the trend is preferred to one mean (about the
+#: 0.1 % point of F(4, 60): a uniform shift almost never passes it).
+TREND_F = 10.0
 #: Highest degree of the per-axis trend over the block rows (a quadratic
 #: follows an exponential warm-up or a logarithmic creep over one frame to
 #: well below the sub-pixel noise of a block).
@@ -66,7 +69,7 @@ def select_by_trend(
     floor_px: float,
     max_iter: int,
     out: npt.NDArray[np.bool_],
-) -> tuple[int, float, float]:
+) -> tuple[int, float, float, bool]:
     """Valid blocks judged by their residual from a smooth trend over the rows.
 
     Parameters
@@ -84,14 +87,16 @@ def select_by_trend(
 
     Returns
     -------
-    (n_valid, spread_x_px, spread_y_px)
+    (n_valid, spread_x_px, spread_y_px, significant)
         Spreads are the residual standard deviations (NaN below
-        ``degree + 2`` valid blocks).
+        ``degree + 2`` valid blocks); ``significant`` when the trend explains
+        the kept blocks better than one mean (F statistic above
+        :data:`TREND_F`, the residual noise floored at half the MAD floor).
     """
     out[:] = usable
     idx = np.nonzero(usable)[0]
     if idx.size < 3:
-        return int(idx.size), float("nan"), float("nan")
+        return int(idx.size), float("nan"), float("nan"), False
     rows = row_px[idx]
     levels, inverse = np.unique(rows, return_inverse=True)
     degree = min(TREND_DEGREE, levels.size - 1, max(0, (idx.size - 2) // 3))
@@ -118,8 +123,15 @@ def select_by_trend(
         residual = np.ascontiguousarray(vectors_px - design @ coef)
     good = np.nonzero(out)[0]
     dof = good.size - (degree + 1)
-    if dof < 1:
-        return int(good.size), float("nan"), float("nan")
+    if dof < 1 or degree == 0:
+        return int(good.size), float("nan"), float("nan"), False
     r = residual[good]
-    spread = np.sqrt(np.sum(r * r, axis=0) / dof)
-    return int(good.size), float(spread[0]), float(spread[1])
+    rss = np.sum(r * r, axis=0)
+    spread = np.sqrt(rss / dof)
+    # F-test of the trend against one mean on the same blocks, both axes pooled.
+    v = vectors_px[good]
+    rss0 = np.sum((v - v.mean(axis=0)) ** 2, axis=0)
+    gain = float(np.sum(rss0 - rss)) / (2 * degree)
+    noise = max(float(np.sum(rss)) / (2 * dof), (floor_px / 2) ** 2)
+    significant = gain / noise > TREND_F
+    return int(good.size), float(spread[0]), float(spread[1]), significant

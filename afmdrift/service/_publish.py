@@ -19,12 +19,14 @@ from collections import deque
 from collections.abc import Callable
 from typing import Literal
 
+import numpy as np
+
 from afmdrift.config import ServiceConfig
 from afmdrift.model import OffsetCurve
 from afmdrift.pipeline import FrameOutcome
 from afmdrift.service._safety import InstrumentClock, OffsetLimiter, is_stale
 from afmdrift.service._zmq import Publisher
-from afmdrift.wire import ClockSync, FrameMsg, ModelMsg, OffsetMsg, StatusMsg
+from afmdrift.wire import ClockSync, FrameMsg, ModelMsg, OffsetMsg, StatusMsg, TrajectorySample
 
 __all__ = ["Publishing"]
 
@@ -177,6 +179,7 @@ class Publishing:
                 pred_y_nm=_opt(r.pred_y_nm),
                 pred_error_nm=_opt(r.pred_error_nm),
                 latency_s=latency,
+                trajectory=_samples(outcome),
                 run_id=self.run_id,
                 epoch=self.epoch(),
             )
@@ -311,3 +314,17 @@ def _set_flag(flags: set[str], name: str, on: bool) -> None:
 
 def _opt(v: float) -> float | None:
     return v if math.isfinite(v) else None
+
+
+def _samples(outcome: FrameOutcome) -> list[TrajectorySample]:
+    """The frame's trajectory samples for the ``frame`` topic (finite ones)."""
+    traj = outcome.trajectory
+    if traj is None:
+        return []
+    out = []
+    for k in np.argsort(traj.t_s):
+        values = (traj.t_s[k], *traj.xy_nm[k], *traj.sigma_nm[k])
+        if all(math.isfinite(float(v)) for v in values):
+            t, x, y, sx, sy = (float(v) for v in values)
+            out.append(TrajectorySample(t_s=t, x_nm=x, y_nm=y, sigma_x_nm=sx, sigma_y_nm=sy))
+    return out

@@ -53,5 +53,6 @@ def process_and_record(
         image=outcome.image,
         reference=outcome.reference,
         trajectory=outcome.trajectory,
+        corrected=outcome.corrected,
     )
     return outcome

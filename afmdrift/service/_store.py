@@ -53,7 +53,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-STORE_SCHEMA_VERSION = 1
+STORE_SCHEMA_VERSION = 2
 #: File name of the run store inside a run directory.
 DB_NAME = "run.sqlite"
 
@@ -183,6 +183,14 @@ class RunStore:
                 if version is None:
                     self._meta_set("schema_version", str(STORE_SCHEMA_VERSION))
                     self._meta_set("created_unix_s", repr(time.time()))
+                elif int(version) == 1:
+                    # Version 2 added the observation each frame fed the model
+                    # (obs_*) and the trajectory table (created above).
+                    have = {r[1] for r in self._db.execute("PRAGMA table_info(frames)")}
+                    for name in ("obs_t_s", "obs_x_nm", "obs_y_nm", "obs_sigma_nm"):
+                        if name not in have:
+                            self._db.execute(f"ALTER TABLE frames ADD COLUMN {name} REAL")
+                    self._meta_set("schema_version", str(STORE_SCHEMA_VERSION))
                 elif int(version) != STORE_SCHEMA_VERSION:
                     raise StoreError(
                         f"{self.path}: store schema version {version} is not supported "
@@ -234,6 +242,7 @@ class RunStore:
         image: npt.NDArray[np.floating] | None = None,
         reference: npt.NDArray[np.floating] | None = None,
         trajectory: FrameTrajectory | None = None,
+        corrected: npt.NDArray[np.floating] | None = None,
     ) -> None:
         """Commit one frame atomically with everything queued since the last one.
 
@@ -244,6 +253,8 @@ class RunStore:
         """
         if self.archive_frames and image is not None:
             save_image(self.run_dir / "frames" / f"{record.seq:06d}.npy", image)
+        if corrected is not None:
+            save_image(self.run_dir / "corrected" / f"{record.seq:06d}.npy", corrected)
         if reference is not None:
             save_image(self._reference_path(record.seq), reference)
         with self._transaction():

@@ -199,7 +199,9 @@ async def test_daemon_on_a_replayed_session_matches_afmdrift_replay(tmp_path: Pa
     """The daemon over ``replay:SESSION`` and ``afmdrift replay`` run the same per-frame
     code: the same frames give the same drift positions."""
     from afmdrift.drivers.sim._record import record_session
+    from afmdrift.pipeline import measure_session, series_from_records
     from afmdrift.service import open_instrument, replay_session
+    from afmdrift.session import read_session
 
     session = record_session(
         small_scenario(warmup_nm=(80.0, -50.0)), tmp_path / "session", frames=8
@@ -223,3 +225,13 @@ async def test_daemon_on_a_replayed_session_matches_afmdrift_replay(tmp_path: Pa
         assert a.x_nm == pytest.approx(b.x_nm, abs=1e-9, nan_ok=True)
         assert a.y_nm == pytest.approx(b.y_nm, abs=1e-9, nan_ok=True)
         assert a.fed_model == b.fed_model
+    # the same drift trajectory, written by both
+    traj_daemon = np.loadtxt(tmp_path / "daemon-run" / "trajectory.csv", delimiter=",", skiprows=1)
+    traj_replay = np.loadtxt(tmp_path / "replay-run" / "trajectory.csv", delimiter=",", skiprows=1)
+    assert traj_daemon.shape[0] >= 7 * 2
+    np.testing.assert_allclose(traj_daemon, traj_replay, atol=1e-9)
+    # and `afmdrift evaluate` scores the observations the daemon fed its model
+    series = measure_session(read_session(session), cfg)
+    fed = series_from_records(daemon)
+    np.testing.assert_allclose(series.t_s, fed.t_s, atol=1e-9)
+    np.testing.assert_allclose(series.xy_nm, fed.xy_nm, atol=1e-9)

@@ -9,8 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.config import AfmdriftConfig
+from afmdrift.cli import main
+from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.drivers.sim._record import record_session
+from afmdrift.pipeline import dewarp_frame
+from afmdrift.records import Frame
+from afmdrift.registration import measure_drift
 from afmdrift.service import replay_session
 from afmdrift.service._store import TRAJECTORY_COLUMNS
 from afmdrift.session import read_session
@@ -71,3 +75,92 @@ def test_every_frame_after_offset_moves_is_accepted_and_on_the_truth(
         t_mid = session.frame(k).t_mid_s
         assert xy[k, 0] == pytest.approx(np.interp(t_mid, mine[:, 0], mine[:, 1]), abs=0.05)
     assert (tmp_path / "run" / "trajectory_smoothed.csv").is_file()
+
+
+WARMUP = Path(__file__).parents[2] / "config" / "scenarios" / "hidden" / "warmup.toml"
+
+
+def _residual_block_shift_px(session_dir: Path) -> tuple[float, int]:
+    """RMS of the valid block vectors between consecutive frames, px, and the pairs."""
+    session = read_session(session_dir)
+    vectors = []
+    for i in range(len(session) - 1):
+        r = measure_drift(
+            np.asarray(session.frames[i], dtype=np.float64),
+            np.asarray(session.frames[i + 1], dtype=np.float64),
+            pixel_size_nm=session.meta.pixel_size_nm,
+            config=RegistrationConfig(coarse=False),
+            prior_px=(0.0, 0.0),
+        )
+        assert r.valid, r.reason
+        vectors.append(np.asarray(r.field.vectors_px)[np.asarray(r.field.valid)])
+    v = np.concatenate(vectors)
+    return float(np.sqrt(np.mean(v**2))), len(vectors)
+
+
+def test_afmdrift_correct_dewarps_frames_to_the_reference_geometry(tmp_path: Path) -> None:
+    """`afmdrift correct` moves every row back by the drift at its scan time:
+    consecutive corrected frames of a warm-up session line up to a small
+    fraction of a pixel, block by block, where the raw frames are pixels apart."""
+    session = tmp_path / "warmup"
+    record_session(WARMUP, session, frames=16)
+    raw_rms, _ = _residual_block_shift_px(session)
+    assert main(["correct", str(session), "--out", str(tmp_path / "corrected")]) == 0
+    rms, pairs = _residual_block_shift_px(tmp_path / "corrected")
+    assert pairs == 15
+    assert raw_rms > 0.5
+    assert rms < 0.1
+    assert (
+        main(
+            [
+                "correct",
+                str(session),
+                "--out",
+                str(tmp_path / "npy"),
+                "--format",
+                "npy",
+                "--trajectory",
+                "causal",
+                "--fill",
+                "nan",
+            ]
+        )
+        == 0
+    )
+    stack = np.load(tmp_path / "npy" / "frames.npy")
+    assert stack.shape == (16, *read_session(session).frames.shape[1:])
+    assert np.isnan(stack).any()  # the part of the reference a drifted frame did not scan
+
+
+def test_dewarp_refuses_samples_it_cannot_use() -> None:
+    frame = read_session_frame()
+    with pytest.raises(ValueError, match="one \\(x, y\\) image position per time"):
+        dewarp_frame(frame, [1.0, 2.0], [[0.0, 0.0]])
+    with pytest.raises(ValueError, match="finite"):
+        dewarp_frame(frame, [1.0], [[np.nan, 0.0]])
+
+
+def read_session_frame() -> Frame:
+    return Frame(
+        index=0,
+        heights_nm=np.zeros((64, 64), np.float32),
+        pixel_size_nm=(1.0, 1.0),
+        t_start_s=0.0,
+        t_end_s=16.0,
+    )
+
+
+def test_the_run_can_archive_dewarped_frames(creep_session: Path, tmp_path: Path) -> None:
+    """`[service] archive_corrected`: every measured frame is also kept de-warped
+    by its causal trajectory, in the same per-frame code the daemon runs."""
+    cfg = AfmdriftConfig()
+    cfg = cfg.model_copy(
+        update={"service": cfg.service.model_copy(update={"archive_corrected": True})}
+    )
+    replay_session(creep_session, tmp_path / "run", config=cfg)
+    kept = sorted((tmp_path / "run" / "corrected").glob("*.npy"))
+    n = len(read_session(creep_session))
+    assert [p.name for p in kept] == [f"{k:06d}.npy" for k in range(1, n)]
+    image = np.load(kept[-1])
+    assert image.dtype == np.float32
+    assert np.isfinite(image).mean() > 0.5

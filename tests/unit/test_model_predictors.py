@@ -231,39 +231,3 @@ def test_importing_the_model_package_does_not_import_torch() -> None:
     code = "import sys, afmdrift.model; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
-
-
-@pytest.mark.parametrize("slope_sign", [1.0, -1.0])
-def test_slow_axis_timing_bias_is_removed_along_a_keyframe_chain(slope_sign: float) -> None:
-    """Regression: at tens of px of drift per frame the raw measurements were a few
-    percent short of the truth; the chained first-order correction recovers p exactly
-    for constant velocity."""
-    from afmdrift.model import correct_slow_axis_timing
-
-    line_s, dy_nm, n = 0.25, 4.0, 12
-    t = 64.0 + PERIOD_S * np.arange(n)
-    v = np.array([0.8, -0.5])
-    p_true = (t - t[0])[:, None] * v[None, :]
-    refs = [-1] + [0 if i < 5 else 4 for i in range(1, n)]  # keyframe re-anchored at frame 4
-    slope = np.full(n, slope_sign * line_s)
-    # What the raster measures against reference r: p(t_i) - p(t_r - s*d_y/dy), solved for d.
-    m = np.zeros((n, 2))
-    for i in range(1, n):
-        r = refs[i]
-        dp = p_true[i] - p_true[r]
-        d_y = dp[1] / (1 - v[1] * slope[r] / dy_nm)
-        m[i] = m[r] + dp + v * slope[r] * d_y / dy_nm
-    assert np.max(np.abs(m - p_true)) > 5.0
-    fixed = correct_slow_axis_timing(t, m, m, refs, slope, pixel_size_y_nm=dy_nm)
-    np.testing.assert_allclose(fixed, p_true, atol=0.2)
-
-
-def test_frame_scanned_across_a_move_is_flagged() -> None:
-    """Regression: a move at a frame's mid-scan time mixed pre- and post-move rows and
-    was taken as a 500 nm drift jump."""
-    from afmdrift.model import frames_spanning_moves
-
-    times = [[0.0, 128.0], [256.0, 384.0], [512.0, 640.0]]
-    events = [Event(320.0, EventKind.OFFSET_MOVE, 400.0, 0.0), Event(450.0, EventKind.TIP_CHANGE)]
-    np.testing.assert_array_equal(frames_spanning_moves(times, events), [False, True, False])
-    np.testing.assert_array_equal(frames_spanning_moves(times, []), [False, False, False])

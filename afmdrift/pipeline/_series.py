@@ -1,0 +1,152 @@
+"""A whole session through the pipeline: what the daemon would have fed its
+model (for ``afmdrift evaluate``), and the de-warped frames (``afmdrift correct``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.config import AfmdriftConfig
+from afmdrift.model import FrameTrajectory, MeasuredSeries
+from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
+from afmdrift.pipeline._frame import FramePipeline
+from afmdrift.pipeline._records import FrameRecord, observation_from_record
+from afmdrift.records import EventKind, ScanDirection
+from afmdrift.session import Session, write_session
+
+__all__ = ["CorrectionSummary", "correct_session", "measure_session", "series_from_records"]
+
+
+def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
+    """The observations the frames gave the model (see :class:`MeasuredSeries`),
+    from the records of a run: the daemon's store, or :func:`measure_session`."""
+    n = len(records)
+    t = np.empty(n)
+    xy = np.full((n, 2), np.nan)
+    sigma = np.full(n, np.nan)
+    for i, r in enumerate(records):
+        if r.fed_model:
+            obs = observation_from_record(r)
+            t[i], xy[i], sigma[i] = obs.t_s, (obs.x_nm, obs.y_nm), obs.sigma_nm
+        else:
+            t[i] = r.t_mid_s
+    return MeasuredSeries(
+        t_s=t,
+        t_end_s=np.array([r.t_end_s for r in records], dtype=np.float64),
+        xy_nm=xy,
+        sigma_nm=sigma,
+        directions=[ScanDirection(r.direction) for r in records],
+        measure_ms=np.array([r.latency_s * 1e3 for r in records], dtype=np.float64),
+        valid_blocks=[int(r.valid_blocks) if math.isfinite(r.x_nm) else -1 for r in records],
+    )
+
+
+def measure_session(session: Session, config: AfmdriftConfig) -> MeasuredSeries:
+    """Run every frame of ``session`` through :class:`FramePipeline`, as
+    ``afmdrift replay`` and the daemon do (the session's channels and events
+    known from the start, each reaching the model with the first frame that
+    ends after it), and return what the frames gave the model."""
+    pipeline = FramePipeline(config=config)
+    pipeline.push(session.channel_samples(), session.events)
+    records = [
+        pipeline.process(frame, seq=k, t_now_s=frame.t_end_s).record
+        for k, frame in enumerate(session.iter_frames())
+    ]
+    return series_from_records(records)
+
+
+@dataclass(frozen=True, slots=True)
+class CorrectionSummary:
+    """What :func:`correct_session` wrote."""
+
+    out: Path
+    frames_written: int
+    frames_skipped: list[int]
+    mode: str
+
+
+def correct_session(
+    session: Session,
+    out: str | Path,
+    *,
+    config: AfmdriftConfig,
+    mode: Literal["smoothed", "causal"] = "smoothed",
+    output: Literal["session", "npy"] = "session",
+    fill: Literal["nan", "nearest"] = "nearest",
+) -> CorrectionSummary:
+    """De-warp every frame of ``session`` with its drift trajectory.
+
+    The session goes through :class:`FramePipeline` (as ``afmdrift replay``);
+    ``mode`` picks the trajectory: ``smoothed`` (the whole session at once,
+    every frame has samples) or ``causal`` (what the daemon knew when each
+    frame arrived; a reference frame, which has no samples of its own, is
+    moved by its position as a whole). Frames that were not measured are
+    skipped (their numbers are in the summary). ``output`` is a session
+    directory (format v1; the same times, channels and truth, and no
+    ``offset_move`` events, since the corrected frames no longer show them)
+    or ``DIR/frames.npy`` (N, rows, cols) float32 with ``DIR/frames.csv``
+    (frame, t_start_s, t_end_s).
+    """
+    pipeline = FramePipeline(config=config)
+    pipeline.push(session.channel_samples(), session.events)
+    causal: dict[int, FrameTrajectory] = {}
+    records = []
+    for k, frame in enumerate(session.iter_frames()):
+        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s)
+        records.append(outcome.record)
+        if outcome.trajectory is not None:
+            causal[k] = outcome.trajectory
+    samples = pipeline.positions.trajectory.smoothed() if mode == "smoothed" else causal
+    t_ref = pipeline.t_ref_s if pipeline.t_ref_s is not None else 0.0
+    images: list[npt.NDArray[np.float32]] = []
+    kept: list[int] = []
+    skipped: list[int] = []
+    for k, frame in enumerate(session.iter_frames()):
+        traj = samples.get(k)
+        r = records[k]
+        if traj is not None:
+            t = traj.t_s
+            m = image_positions(traj, session.events, t_ref)
+        elif r.valid and np.isfinite(r.image_x_nm) and np.isfinite(r.image_y_nm):
+            t = np.array([frame.t_mid_s])
+            m = np.array([[r.image_x_nm, r.image_y_nm]])
+        else:
+            skipped.append(k)
+            continue
+        images.append(dewarp_frame(frame, t, m, fill=fill))
+        kept.append(k)
+    target = Path(out)
+    if output == "npy":
+        target.mkdir(parents=True, exist_ok=True)
+        stack = np.stack(images) if images else np.zeros((0, *session.frames.shape[1:]), np.float32)
+        np.save(target / "frames.npy", stack)
+        times = session.frame_times[kept]
+        with (target / "frames.csv").open("w", encoding="utf-8") as fh:
+            fh.write("frame,t_start_s,t_end_s\n")
+            for k, (a, b) in zip(kept, times, strict=True):
+                fh.write(f"{k},{a!r},{b!r}\n")
+    else:
+        meta = dataclasses.replace(
+            session.meta,
+            source=f"afmdrift correct ({mode} drift trajectory) of: {session.meta.source}",
+        )
+        corrected = Session(
+            meta=meta,
+            frames=np.stack(images) if images else np.zeros((0, 1, 1), np.float32),
+            frame_times=session.frame_times[kept],
+            directions=[session.directions[k] for k in kept],
+            channel_t_s=session.channel_t_s,
+            channels=dict(session.channels),
+            events=[e for e in session.events if e.kind is not EventKind.OFFSET_MOVE],
+            truth=session.truth,
+        )
+        write_session(corrected, target)
+    return CorrectionSummary(
+        out=target, frames_written=len(kept), frames_skipped=skipped, mode=mode
+    )
