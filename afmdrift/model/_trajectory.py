@@ -57,6 +57,7 @@ smoothed (``afmdrift correct``, the smoothed trajectory of ``afmdrift replay``)
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field
 
@@ -64,6 +65,7 @@ import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg import lapack
 
 __all__ = ["BandConstraint", "DriftTrajectory", "FrameTrajectory"]
 
@@ -130,10 +132,11 @@ def _weights(t: float, knots: FloatArray) -> tuple[int, int, float, float]:
     n = knots.size
     if n == 1:
         return 0, 0, 1.0, 0.0
-    k = int(np.clip(np.searchsorted(knots, t) - 1, 0, n - 2))
-    h = knots[k + 1] - knots[k]
-    w = (t - knots[k]) / h if h > 0 else 0.0
-    return k, k + 1, 1.0 - float(w), float(w)
+    k = min(max(bisect.bisect_left(knots.tolist(), t) - 1, 0), n - 2)
+    t0, t1 = float(knots[k]), float(knots[k + 1])
+    h = t1 - t0
+    w = (t - t0) / h if h > 0 else 0.0
+    return k, k + 1, 1.0 - w, w
 
 
 class DriftTrajectory:
@@ -167,6 +170,7 @@ class DriftTrajectory:
         self._tail: list[tuple[float, tuple[int, int]]] = []
         self._chi2 = 0.0
         self._chi2_n = 0
+        self._pending: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
 
     def __len__(self) -> int:
         return len(self.order)
@@ -229,7 +233,7 @@ class DriftTrajectory:
             centre = self.frames[k_last].p[i_last].copy()
         for i in range(n_new):
             self._idx[(frame.key, i)] = base + i
-            self._add_info([(base + i, 1.0)], centre, FREE_KNOT_SIGMA_NM)
+            self._pending.append(([(base + i, 1.0)], centre, FREE_KNOT_SIGMA_NM))
         # smoothness: the last two free knots before the frame, then its own
         previous = [node for node in self._tail if node is not None][-2:]
         chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
@@ -240,7 +244,7 @@ class DriftTrajectory:
             terms, const = self._terms_of_nodes(
                 ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
             )
-            self._add_info(terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2)))
+            self._pending.append((terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2))))
         self._tail = chain[-2:]
         rows: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
         for con in frame.constraints:
@@ -250,28 +254,30 @@ class DriftTrajectory:
             terms = t1 + t2 + ([(0, ds)] if ds != 0.0 else [])
             value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
             sigma = max(con.sigma_nm, MIN_SIGMA_NM)
-            self._add_info(terms, value, sigma)
+            self._pending.append((terms, value, sigma))
             rows.append((terms, value, sigma))
         if self.origin is not None and self.origin[0] == frame.key:
             terms, const = self._terms_at(frame.key, self.origin[1], 1.0)
-            self._add_info(terms, -const, GAUGE_SIGMA_NM)
+            self._pending.append((terms, -const, GAUGE_SIGMA_NM))
+        self._flush_info()
         # solve
-        try:
-            cho = np.linalg.cholesky(self._h)
-        except np.linalg.LinAlgError:
+        cho, info = lapack.dpotrf(self._h, lower=1, clean=1)
+        if info == 0:
+            sol, _ = lapack.dpotrs(cho, self._g, lower=1)
+            inv, _ = lapack.dpotri(cho, lower=1)
+            var = np.diag(inv).copy()
+        else:
             # Numerically not positive definite (constraints far stronger than
             # the priors): the symmetric eigen-solution, which always exists.
             w, v = np.linalg.eigh(self._h)
             inv = (v / np.maximum(w, w.max() * 1e-15)) @ v.T
             sol, var = inv @ self._g, np.diag(inv).copy()
-        else:
-            sol = np.linalg.solve(cho.T, np.linalg.solve(cho, self._g))
-            inv_l = np.linalg.solve(cho, np.eye(cho.shape[0]))
-            var = np.sum(inv_l * inv_l, axis=0)
         for terms, value, sigma in rows:
-            pred = sum(a * sol[c] for c, a in terms)
+            pred = sol[terms[0][0]] * terms[0][1]
+            for c, a in terms[1:]:
+                pred = pred + a * sol[c]
             r = (pred - value) / sigma
-            self._chi2 += float(np.sum(r * r))
+            self._chi2 += float(r[0] * r[0] + r[1] * r[1])
             self._chi2_n += 2
         scale = max(1.0, self._chi2 / self._chi2_n) if self._chi2_n else 1.0
         for (k, i), c in self._idx.items():
@@ -319,14 +325,24 @@ class DriftTrajectory:
                 terms.append((c, w))
         return terms, const
 
-    def _add_info(self, terms: list[tuple[int, float]], value: FloatArray, sigma: float) -> None:
-        """Add the row ``Σ a·x = value ± sigma`` to the information form."""
-        if not terms:
+    def _flush_info(self) -> None:
+        """Add the pending rows ``Σ a·x = value ± sigma`` to the information
+        form, all at once (one small dense product)."""
+        rows = [r for r in self._pending if r[0]]
+        self._pending = []
+        if not rows:
             return
-        cols = np.array([c for c, _ in terms])
-        a = np.array([w for _, w in terms]) / sigma
-        self._h[np.ix_(cols, cols)] += np.outer(a, a)
-        self._g[cols] += a[:, None] * (np.asarray(value, dtype=np.float64)[None, :] / sigma)
+        n = self._h.shape[0]
+        a = np.zeros((len(rows), n))
+        y = np.empty((len(rows), 2))
+        for k, (terms, value, sigma) in enumerate(rows):
+            for c, w in terms:
+                a[k, c] += w / sigma
+            y[k] = np.asarray(value, dtype=np.float64) / sigma
+        used = np.nonzero(np.any(a != 0.0, axis=0))[0]
+        au = a[:, used]
+        self._h[np.ix_(used, used)] += au.T @ au
+        self._g[used] += au.T @ y
 
     def _marginalise(self, drop: list[int]) -> None:
         n = self._h.shape[0]
@@ -339,10 +355,10 @@ class DriftTrajectory:
         self._h = h_kk - h_kd @ x[:, : len(keep)]
         self._g = self._g[keep] - h_kd @ x[:, len(keep) :]
         remap = {old: new for new, old in enumerate(keep)}
+        dropped = {node[0] for node, c in self._idx.items() if c not in remap}
         self._idx = {node: remap[c] for node, c in self._idx.items() if c in remap}
-        for node in list(self.frames):
-            f = self.frames[node]
-            f.fixed = not any((node, i) in self._idx for i in range(f.t_s.size))
+        for key in dropped:
+            self.frames[key].fixed = True
 
     def add_anchor(
         self,
