@@ -81,7 +81,7 @@ def main() -> None:
             with_traj.append(t2 - t1)
         accepted += pos.trajectory is not None
     # the trajectory update alone, on the constraints of the same stream
-    traj = DriftTrajectory(q_nm2_s3=cfg.model.trajectory_q, window=cfg.model.trajectory_window)
+    traj = DriftTrajectory(q_nm2_s3=positions.trajectory.q, window=cfg.model.trajectory_window)
     alone: list[float] = []
     for key in positions.trajectory.order:
         f = positions.trajectory.frames[key]

@@ -104,12 +104,13 @@ class ModelConfig(BaseModel):
         description="Hermite: hand over to the new prediction within this fraction of a frame "
         "period after publication (0: at the next frame time).",
     )
-    trajectory_q: float = Field(
-        1e-4,
+    trajectory_q: float | None = Field(
+        None,
         gt=0,
-        le=1e3,
+        le=1e6,
         description="Drift trajectory: velocity diffusion q of the integrated random-walk "
-        "prior, nm^2/s^3 (larger follows faster changes of the drift speed within a frame).",
+        "prior, nm^2/s^3 (larger follows faster changes of the drift speed). Default: "
+        "1e-4 x (128 s / scan time of the first frame)^2 (model/_trajectory.py).",
     )
     trajectory_window: int = Field(
         4,

@@ -38,7 +38,12 @@ from afmdrift.model._reconstruct import (
     sinc_reconstruct,
 )
 from afmdrift.model._registry import PREDICTOR_NAMES, make_predictor
-from afmdrift.model._trajectory import BandConstraint, DriftTrajectory, FrameTrajectory
+from afmdrift.model._trajectory import (
+    BandConstraint,
+    DriftTrajectory,
+    FrameTrajectory,
+    default_q,
+)
 
 if TYPE_CHECKING:
     from afmdrift.model._nn import NNPredictor, NNSeriesModel
@@ -74,6 +79,7 @@ __all__ = [
     "available_terms",
     "build_offset_curve",
     "commanded_offset_nm",
+    "default_q",
     "drift_from_measurements",
     "evaluate_series",
     "hermite_curve",

@@ -27,7 +27,8 @@ under
   the discrete form of the prior whose MAP estimate is a cubic smoothing
   spline (Wahba, J. R. Stat. Soc. B 40, 364 (1978); the same model as a
   constant-velocity Kalman filter with RTS smoothing). ``q`` (nm²/s³, the
-  velocity diffusion) is ``ModelConfig.trajectory_q``;
+  velocity diffusion) is ``ModelConfig.trajectory_q``, by default
+  :func:`default_q` of the first frame's scan time;
 * the scan-direction bias b as one extra unknown (prior N(0, (10 nm)²)):
   it jumps between up and down frames, which the smooth curve cannot, so it
   does not bend p; positions are reported *with* the frame's bias relative to
@@ -67,9 +68,31 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg import lapack
 
-__all__ = ["BandConstraint", "DriftTrajectory", "FrameTrajectory"]
+__all__ = ["BandConstraint", "DriftTrajectory", "FrameTrajectory", "default_q"]
 
 FloatArray = npt.NDArray[np.float64]
+
+#: Velocity diffusion of the prior for frames scanned in REFERENCE_SCAN_S, nm²/s³.
+REFERENCE_Q_NM2_S3 = 1e-4
+#: Scan time at which REFERENCE_Q_NM2_S3 applies (512 lines at 4 Hz), s.
+REFERENCE_SCAN_S = 128.0
+
+
+def default_q(scan_s: float) -> float:
+    """The prior's velocity diffusion for frames scanned in ``scan_s`` seconds.
+
+    1e-4 nm²/s³ for 128 s scans (the simulator's 8 h sessions: it follows a
+    warm-up and creep after offset moves within each frame to well below a
+    nanometre) and ∝ 1/scan_s² otherwise: a high-speed AFM movie (1 s frames)
+    resolves, and needs, velocity changes on its own time scale (1.6 nm²/s³
+    there; checked on the real movie's closures of direct against chained
+    measurements). An instrument whose drift changes faster or slower than
+    this sets ``[model] trajectory_q``.
+    """
+    if not (math.isfinite(scan_s) and scan_s > 0):
+        return REFERENCE_Q_NM2_S3
+    return REFERENCE_Q_NM2_S3 * (REFERENCE_SCAN_S / scan_s) ** 2
+
 
 #: Prior standard deviation of the scan-direction bias b, nm.
 BIAS_PRIOR_NM = 10.0

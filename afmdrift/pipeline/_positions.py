@@ -51,6 +51,7 @@ from afmdrift.model import (
     DriftTrajectory,
     FrameTrajectory,
     commanded_offset_nm,
+    default_q,
 )
 from afmdrift.pipeline._records import FrameRecord
 from afmdrift.records import Event, Frame, ScanDirection, row_times_s
@@ -120,8 +121,11 @@ class DriftPositions:
         self.t_ref_s: float | None = None  # session reference time (p = 0)
         self.last_p_nm: FloatArray | None = None
         self._reset_requested = False
+        q = config.model.trajectory_q
+        self._q_set = q is not None
         self.trajectory = DriftTrajectory(
-            q_nm2_s3=config.model.trajectory_q, window=config.model.trajectory_window
+            q_nm2_s3=q if q is not None else default_q(math.nan),
+            window=config.model.trajectory_window,
         )
         # tracker frame index -> trajectory key, and the timing of those frames
         self._keys: dict[int, int] = {}
@@ -266,6 +270,9 @@ class DriftPositions:
     def _add_to_trajectory(
         self, seq: int, frame: Frame, knots: FloatArray, constraints: list[BandConstraint]
     ) -> FrameTrajectory | None:
+        if not self._q_set and len(self.trajectory) == 0:
+            self.trajectory.q = default_q(frame.t_end_s - frame.t_start_s)
+            self._q_set = True
         try:
             return self.trajectory.add_frame(
                 seq,

@@ -32,11 +32,16 @@ import numpy.typing as npt
 
 from afmdrift.registration import _kernels
 
-__all__ = ["TREND_DEGREE", "TREND_F", "select_by_trend"]
+__all__ = ["TREND_DEGREE", "TREND_EXPLAINED", "TREND_F", "select_by_trend"]
 
 #: F statistic above which the trend is preferred to one mean (about the
 #: 0.1 % point of F(4, 60): a uniform shift almost never passes it).
 TREND_F = 10.0
+#: Smallest share of the one-mean residual sum of squares the trend must
+#: explain: a trend that is significant but leaves most of the scatter is
+#: texture-correlated error of the blocks (quantised high-speed AFM frames),
+#: not the drift changing during the scan.
+TREND_EXPLAINED = 0.5
 #: Highest degree of the per-axis trend over the block rows (a quadratic
 #: follows an exponential warm-up or a logarithmic creep over one frame to
 #: well below the sub-pixel noise of a block).
@@ -91,7 +96,8 @@ def select_by_trend(
         Spreads are the residual standard deviations (NaN below
         ``degree + 2`` valid blocks); ``significant`` when the trend explains
         the kept blocks better than one mean (F statistic above
-        :data:`TREND_F`, the residual noise floored at half the MAD floor).
+        :data:`TREND_F`, the residual noise floored at half the MAD floor, and
+        at least :data:`TREND_EXPLAINED` of their scatter explained).
     """
     out[:] = usable
     idx = np.nonzero(usable)[0]
@@ -133,5 +139,6 @@ def select_by_trend(
     rss0 = np.sum((v - v.mean(axis=0)) ** 2, axis=0)
     gain = float(np.sum(rss0 - rss)) / (2 * degree)
     noise = max(float(np.sum(rss)) / (2 * dof), (floor_px / 2) ** 2)
-    significant = gain / noise > TREND_F
+    explained = 1.0 - float(np.sum(rss)) / max(float(np.sum(rss0)), 1e-300)
+    significant = gain / noise > TREND_F and explained >= TREND_EXPLAINED
     return int(good.size), float(spread[0]), float(spread[1]), significant
