@@ -30,6 +30,7 @@ A spec ``FILE:i`` selects frame ``i`` of a multi-frame file.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import re
 from collections.abc import Sequence
@@ -287,6 +288,10 @@ def _read_tiff(
 ) -> list[AfmImage]:
     import tifffile
 
+    # tifffile logs an ERROR for every file it finds corrupt before it raises;
+    # the error reaches the user as ImageFileError, and the folder instrument
+    # meets partial files routinely, so its log stays quiet.
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     try:
         with tifffile.TiffFile(path) as tif:
             if not tif.series:
