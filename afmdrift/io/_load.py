@@ -25,6 +25,11 @@ Formats
     NetCDF-3, see :mod:`afmdrift.io._netcdf`.
 
 A spec ``FILE:i`` selects frame ``i`` of a multi-frame file.
+
+Every image read is checked against plausible AFM bounds
+(:func:`~afmdrift.io._image.check_calibration`: 1 pm to 100 µm per pixel, a
+scan of at most 1 mm, a height range of at most 100 µm); a corrupt header
+calibration gives :class:`ImageFileError` naming the value.
 """
 
 from __future__ import annotations
@@ -43,7 +48,7 @@ import numpy.typing as npt
 
 from afmdrift.io._asd import read_asd
 from afmdrift.io._gwyddion import read_gwy
-from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
+from afmdrift.io._image import AfmImage, ImageFileError, check_calibration, length_unit_to_nm
 from afmdrift.io._nanoscope import is_nanoscope_suffix, read_nanoscope
 from afmdrift.io._netcdf import read_netcdf
 from afmdrift.io._sxm import read_sxm
@@ -118,6 +123,8 @@ def _read_all(
         ) from None
     if pixel_size_nm is not None:
         images = [dataclasses.replace(im, pixel_size_nm=pixel_size_nm) for im in images]
+    for im in images:
+        check_calibration(im)
     return images
 
 

@@ -140,3 +140,65 @@ def test_truncated_tif_is_refused(tmp_path: Path, keep: float) -> None:
     p.write_bytes(data[: int(len(data) * keep)])
     with pytest.raises(ImageFileError, match=r"cut\.tif"):
         load_image(p)
+
+
+# --------------------------------------------------------------------------- NetCDF-4
+
+
+def _write_nc4(path: Path, heights_m: np.ndarray, *, step_m: float = 2e-9) -> Path:
+    """A NetCDF-4 file as netCDF4/xarray write it: HDF5 with dimension scales."""
+    import h5py
+
+    rows, cols = heights_m.shape[-2:]
+    with h5py.File(path, "w") as f:
+        f.attrs["start_time"] = "2025-03-04T05:06:07"
+        f.attrs["line_time_s"] = 0.5
+        f.attrs["scan_direction"] = b"down"
+        for name, n in (("y", rows), ("x", cols)):
+            d = f.create_dataset(name, data=np.arange(n) * step_m)
+            d.attrs["units"] = b"m"
+            d.make_scale(name)
+        h = f.create_dataset("Height", data=heights_m)
+        h.attrs["units"] = "m"
+        h.dims[0].attach_scale(f["y"])
+        h.dims[1].attach_scale(f["x"])
+    return path
+
+
+def test_netcdf4_round_trip(tmp_path: Path) -> None:
+    img = _texture()
+    im = load_image(_write_nc4(tmp_path / "afspm.nc", img * 1e-9))
+    np.testing.assert_allclose(im.heights_nm, img, rtol=1e-12, atol=1e-12)
+    assert im.pixel_size_nm == pytest.approx((2.0, 2.0))
+    assert im.timestamp == START
+    assert im.line_time_s == 0.5
+    assert im.scan_direction is ScanDirection.DOWN
+
+
+def test_netcdf4_missing_variable_and_truncated(tmp_path: Path) -> None:
+    p = _write_nc4(tmp_path / "a.nc", _texture() * 1e-9)
+    with pytest.raises(ImageFileError, match=r"no variable 'Phase'.*Height"):
+        load_image(p, channel="Phase")
+    cut = tmp_path / "cut.nc"
+    cut.write_bytes(p.read_bytes()[:1000])
+    with pytest.raises(ImageFileError, match=r"cut\.nc"):
+        load_image(cut)
+
+
+# --------------------------------------------------------------------------- calibration bounds
+
+
+def test_implausible_pixel_size_is_refused_with_the_value(tmp_path: Path) -> None:
+    p = write_tif(tmp_path / "f.tif", _texture(), pixel_size_nm=(1.0, 1.0))
+    with pytest.raises(ImageFileError, match=r"implausible pixel size along x: 1\.07e\+07 nm"):
+        load_image(p, pixel_size_nm=1.07e7)
+    with pytest.raises(ImageFileError, match=r"implausible pixel size along y: 0\.0001 nm"):
+        load_image(p, pixel_size_nm=(1.0, 1e-4))
+
+
+def test_implausible_height_range_is_refused(tmp_path: Path) -> None:
+    img = _texture(8, 8)
+    img[0, 0] = 2e5
+    p = write_sxm(tmp_path / "z.sxm", img, pixel_size_nm=(1, 1), start=START, line_time_s=0.1)
+    with pytest.raises(ImageFileError, match=r"implausible height range 2e\+05 nm"):
+        load_image(p)
