@@ -243,7 +243,11 @@ async def main(n_files: int, pause_s: float) -> None:
             await asyncio.sleep(0.5)
             writer.start()
             deadline = time.time() + n_files * (pause_s + 2.0) + 30
-            while len(frame_wall) < n_files and time.time() < deadline:
+            while len(frame_wall) < len(instrument.delivered) or (
+                set(name for name, _ in items) - set(instrument.delivered)
+            ):
+                if time.time() > deadline:
+                    break
                 with contextlib.suppress(TimeoutError):
                     async with asyncio.timeout(1.0):
                         msg = await sub.recv()
@@ -271,8 +275,9 @@ async def main(n_files: int, pause_s: float) -> None:
     names = [name for name, _ in items]
     delivered = instrument.delivered
     missed = [n for n in names if n not in delivered]
-    by_name = dict(zip(delivered, instrument.digests, strict=True))
-    partial = [n for n, d in zip(names, digests, strict=True) if n in by_name and by_name[n] != d]
+    expected = dict(zip(names, digests, strict=True))
+    partial = [n for n, d in zip(delivered, instrument.digests, strict=True) if expected[n] != d]
+    repeated = sorted({n for n in delivered if delivered.count(n) > 1})
     index = {n: i for i, n in enumerate(delivered)}
     lat_frame = np.array(
         [frame_wall[index[n]] - done[k] for k, n in enumerate(names) if index.get(n) in frame_wall]
@@ -287,7 +292,8 @@ async def main(n_files: int, pause_s: float) -> None:
         f"wall time: {elapsed:.0f} s; read errors (partial files refused): {instrument.read_errors}"
     )
     print(f"frames handed out: {len(delivered)}; missed: {len(missed)} {missed[:5]}")
-    print(f"partial reads: {len(partial)}; skipped: {instrument.skipped}")
+    print(f"partial reads: {len(partial)} {partial[:5]}; skipped: {instrument.skipped}")
+    print(f"files handed out more than once: {len(repeated)} {repeated[:5]}")
     for label, lat in (
         ("complete -> frame published", lat_frame),
         ("complete -> model received", lat_model),
