@@ -1,4 +1,4 @@
-"""Instrument drivers: NanoScope-style controller, simulator, replay.
+"""Instrument drivers: NanoScope-style controller, folder of saved images, simulator, replay.
 
 Runtime code depends only on :class:`Instrument` and the records of
 :mod:`afmdrift.records` (re-exported here);
@@ -8,6 +8,7 @@ service.
 
 from afmdrift.config import DriverConfig
 from afmdrift.drivers._base import Instrument
+from afmdrift.drivers._folder import FolderInstrument, OffsetNotSupportedError
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers._open import instrument_from_config
 from afmdrift.drivers._protocol import (
@@ -28,6 +29,7 @@ __all__ = [
     "DriverConfig",
     "Event",
     "EventKind",
+    "FolderInstrument",
     "Frame",
     "Instrument",
     "InstrumentDisconnected",
@@ -35,6 +37,7 @@ __all__ = [
     "InstrumentInfo",
     "InstrumentTimeout",
     "NanoScopeDriver",
+    "OffsetNotSupportedError",
     "OutOfSequenceError",
     "ProtocolError",
     "ReplayInstrument",

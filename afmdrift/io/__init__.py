@@ -1,14 +1,18 @@
-"""Readers for image files: .npy, .tif, NanoScope, Gwyddion, HS-AFM .asd, NetCDF.
+"""Readers for image files: .npy, .tif, NanoScope, Gwyddion, HS-AFM .asd, NetCDF, Nanonis .sxm.
 
 :func:`load_image` reads one height image (``FILE`` or ``FILE:i`` for frame
 ``i`` of a movie or stack) and :func:`load_stack` every frame of a file, as
 :class:`AfmImage` records with heights in nm and the pixel size (x, y) in nm.
 Format readers (AFMReader, tifffile, scipy) are imported only when used.
+:func:`write_tif` and :func:`write_sxm` save simulator frames as instrument
+software would (for the folder instrument's tests and benchmark).
 """
 
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 from afmdrift.io._load import SUFFIXES, PixelSize, load_image, load_stack, parse_spec
 from afmdrift.io._nanoscope import NanoscopeHeader, parse_nanoscope_header
+from afmdrift.io._sxm import write_sxm
+from afmdrift.io._write import write_tif
 
 __all__ = [
     "SUFFIXES",
@@ -21,4 +25,6 @@ __all__ = [
     "load_stack",
     "parse_nanoscope_header",
     "parse_spec",
+    "write_sxm",
+    "write_tif",
 ]

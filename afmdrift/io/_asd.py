@@ -21,7 +21,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.io._afmreader import afmreader_module
-from afmdrift.io._image import AfmImage, ImageFileError
+from afmdrift.io._image import AfmImage, ImageFileError, check_calibration
 
 __all__ = ["read_asd"]
 
@@ -70,6 +70,10 @@ def read_asd(path: Path, *, channel: str) -> list[AfmImage]:
     )
     frame_time_s = _positive(header, "frame_time", path) * 1e-3
     start = _header_date(header, path)
+    check_calibration(
+        AfmImage(heights_nm=stack[0], pixel_size_nm=pixel, path=path),
+        what=f"calibration (header fields x_nm = {header['x_nm']}, y_nm = {header['y_nm']})",
+    )
     return [
         AfmImage(
             heights_nm=_finite(stack[i], path, i),

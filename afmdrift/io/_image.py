@@ -12,7 +12,27 @@ import numpy.typing as npt
 from afmdrift.errors import InputError
 from afmdrift.records import ScanDirection
 
-__all__ = ["AfmImage", "ImageFileError", "height_factor_nm", "length_unit_to_nm"]
+__all__ = [
+    "MAX_HEIGHT_RANGE_NM",
+    "MAX_PIXEL_NM",
+    "MAX_SCAN_NM",
+    "MIN_PIXEL_NM",
+    "AfmImage",
+    "ImageFileError",
+    "check_calibration",
+    "height_factor_nm",
+    "length_unit_to_nm",
+]
+
+#: Plausible bounds of a header calibration. AFM pixels range from a few pm
+#: (atomic resolution) to tens of µm (a 100 µm scan at a few px); scanners move
+#: at most ~200 µm laterally and ~20 µm in z. A value outside these bounds is a
+#: corrupt header field, not a measurement: an ``.asd`` header field corrupted
+#: to 2.14e9 nm gives a 10.7 mm pixel and a drift of millimetres.
+MIN_PIXEL_NM = 1e-3
+MAX_PIXEL_NM = 1e5
+MAX_SCAN_NM = 1e6
+MAX_HEIGHT_RANGE_NM = 1e5
 
 
 class ImageFileError(InputError):
@@ -121,3 +141,33 @@ def height_factor_nm(file_unit: str, height_unit: str | None, *, where: str) -> 
     raise ImageFileError(
         f"{where}: heights have no unit; give the height unit (height_unit=..., --height-unit)"
     )
+
+
+def check_calibration(image: AfmImage, *, what: str = "pixel size") -> None:
+    """Refuse a calibration outside plausible AFM bounds (see :data:`MAX_SCAN_NM`).
+
+    Raises
+    ------
+    ImageFileError
+        Names the file, the quantity (``what``, e.g. a header field), its value
+        and the bounds.
+    """
+    where = image.source
+    rows, cols = image.shape
+    for axis, pixel, n in (
+        ("x", image.pixel_size_nm[0], cols),
+        ("y", image.pixel_size_nm[1], rows),
+    ):
+        if not (MIN_PIXEL_NM <= pixel <= MAX_PIXEL_NM and pixel * n <= MAX_SCAN_NM):
+            raise ImageFileError(
+                f"{where}: implausible {what} along {axis}: {pixel:.4g} nm per pixel "
+                f"({pixel * n:.4g} nm over {n} px); an AFM pixel is {MIN_PIXEL_NM:g} to "
+                f"{MAX_PIXEL_NM:g} nm and a scan at most {MAX_SCAN_NM:g} nm: the header "
+                "calibration is corrupt (or give pixel_size_nm / --pixel-size-nm)"
+            )
+    span = float(np.ptp(image.heights_nm)) if image.heights_nm.size else 0.0
+    if not span <= MAX_HEIGHT_RANGE_NM:
+        raise ImageFileError(
+            f"{where}: implausible height range {span:.4g} nm (an AFM's z range is at most "
+            f"{MAX_HEIGHT_RANGE_NM:g} nm): the header's height scale or unit is corrupt"
+        )

@@ -10,7 +10,11 @@ Formats
     size comes from the ImageJ ``unit`` metadata with the X/YResolution tags,
     or from X/YResolution in cm or inch when that gives a pixel below 10 µm
     (larger values are printing defaults such as 72 dpi, not calibrations);
-    otherwise ``pixel_size_nm`` is required.
+    otherwise ``pixel_size_nm`` is required. Timing from the ImageJ description
+    keys ``start_time`` (ISO-8601), ``line_time_s`` and ``scan_direction``
+    (``up``/``down``), as :func:`afmdrift.io.write_tif` writes them.
+``.sxm``
+    Nanonis scan, see :mod:`afmdrift.io._sxm`.
 ``.spm``, ``.000``–``.999``
     NanoScope, see :mod:`afmdrift.io._nanoscope`.
 ``.gwy``
@@ -21,14 +25,21 @@ Formats
     NetCDF-3, see :mod:`afmdrift.io._netcdf`.
 
 A spec ``FILE:i`` selects frame ``i`` of a multi-frame file.
+
+Every image read is checked against plausible AFM bounds
+(:func:`~afmdrift.io._image.check_calibration`: 1 pm to 100 µm per pixel, a
+scan of at most 1 mm, a height range of at most 100 µm); a corrupt header
+calibration gives :class:`ImageFileError` naming the value.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import re
 from collections.abc import Sequence
+from datetime import datetime
 from pathlib import Path
 from typing import Any
 
@@ -37,14 +48,16 @@ import numpy.typing as npt
 
 from afmdrift.io._asd import read_asd
 from afmdrift.io._gwyddion import read_gwy
-from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
+from afmdrift.io._image import AfmImage, ImageFileError, check_calibration, length_unit_to_nm
 from afmdrift.io._nanoscope import is_nanoscope_suffix, read_nanoscope
 from afmdrift.io._netcdf import read_netcdf
+from afmdrift.io._sxm import read_sxm
+from afmdrift.records import ScanDirection
 
 __all__ = ["SUFFIXES", "PixelSize", "load_image", "load_stack", "parse_spec"]
 
 #: Suffixes understood by :func:`load_image` (plus ``.000``–``.999``).
-SUFFIXES = (".npy", ".tif", ".tiff", ".spm", ".gwy", ".asd", ".nc")
+SUFFIXES = (".npy", ".tif", ".tiff", ".spm", ".gwy", ".asd", ".nc", ".sxm")
 
 #: A pixel size in nm: one number for square pixels or ``(x, y)``.
 PixelSize = float | Sequence[float]
@@ -110,6 +123,8 @@ def _read_all(
         ) from None
     if pixel_size_nm is not None:
         images = [dataclasses.replace(im, pixel_size_nm=pixel_size_nm) for im in images]
+    for im in images:
+        check_calibration(im)
     return images
 
 
@@ -132,6 +147,8 @@ def _dispatch(
         images = [
             read_gwy(path, channel=channel, pixel_size_nm=pixel_size_nm, height_unit=height_unit)
         ]
+    elif suffix == ".sxm":
+        images = [read_sxm(path, channel=channel)]
     elif suffix == ".asd":
         images = read_asd(path, channel=channel)
     elif suffix == ".nc":
@@ -278,6 +295,10 @@ def _read_tiff(
 ) -> list[AfmImage]:
     import tifffile
 
+    # tifffile logs an ERROR for every file it finds corrupt before it raises;
+    # the error reaches the user as ImageFileError, and the folder instrument
+    # meets partial files routinely, so its log stays quiet.
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
     try:
         with tifffile.TiffFile(path) as tif:
             if not tif.series:
@@ -285,11 +306,43 @@ def _read_tiff(
             _check_size(path, tuple(tif.series[0].shape))
             data = np.asarray(tif.asarray(), dtype=np.float64)
             calibration = _tiff_pixel_size(tif, path)
+            timing = _tiff_timing(tif.imagej_metadata or {}, path)
     except (tifffile.TiffFileError, ValueError, OSError, EOFError, KeyError, IndexError) as err:
         raise ImageFileError(f"{path}: not a readable TIFF image ({err})") from None
     if data.ndim == 3 and data.shape[-1] in (3, 4) and data.shape[0] > 4:
         raise ImageFileError(f"{path}: colour TIFF (shape {data.shape}) holds no height data")
-    return _read_array(path, data, pixel_size_nm or calibration, height_unit, "TIFF image")
+    images = _read_array(path, data, pixel_size_nm or calibration, height_unit, "TIFF image")
+    if data.ndim == 2 and timing:
+        line_time = timing.get("line_time_s")
+        images = [
+            dataclasses.replace(
+                images[0],
+                frame_time_s=line_time * data.shape[0] if line_time is not None else None,
+                **timing,
+            )
+        ]
+    return images
+
+
+def _tiff_timing(imagej: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``timestamp``, ``line_time_s``, ``scan_direction`` from ImageJ description keys."""
+    out: dict[str, Any] = {}
+    if "start_time" in imagej:
+        try:
+            out["timestamp"] = datetime.fromisoformat(str(imagej["start_time"]))
+        except ValueError:
+            raise ImageFileError(
+                f"{path}: start_time {imagej['start_time']!r} is not ISO-8601"
+            ) from None
+    if "line_time_s" in imagej:
+        line_time = imagej["line_time_s"]
+        if not isinstance(line_time, int | float) or not 0 < line_time < math.inf:
+            raise ImageFileError(f"{path}: line_time_s {line_time!r} must be a positive number")
+        out["line_time_s"] = float(line_time)
+    direction = str(imagej.get("scan_direction", "")).strip().lower()
+    if direction in ("up", "down"):
+        out["scan_direction"] = ScanDirection(direction)
+    return out
 
 
 def _tiff_pixel_size(tif: Any, path: Path) -> tuple[float, float] | None:

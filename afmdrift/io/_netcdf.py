@@ -1,4 +1,4 @@
-"""NetCDF-3 (classic / 64-bit offset) height files, read with ``scipy.io.netcdf_file``.
+"""NetCDF height files: NetCDF-3 read with ``scipy.io.netcdf_file``, NetCDF-4 with h5py.
 
 There is no single AFM convention for NetCDF, so afmdrift reads this simple one
 (``docs/session-format.md`` has it with an example; any tool can write it):
@@ -16,8 +16,11 @@ There is no single AFM convention for NetCDF, so afmdrift reads this simple one
   start of frame 0), ``line_time_s`` (s per line) and ``scan_direction``
   (``up``/``down``).
 
-NetCDF-4 (HDF5-based) files are not read; save as NETCDF3_CLASSIC or
-NETCDF3_64BIT.
+NetCDF-4 files (what afspm and xarray write by default) are HDF5 files and
+are read with h5py: the variable is a dataset of the root group, its dimension
+names those of the dimension scales netCDF-4 attaches to it, attributes as
+above (byte strings decoded). A file is taken as NetCDF-4 when it starts with
+the HDF5 signature.
 """
 
 from __future__ import annotations
@@ -62,26 +65,10 @@ def read_netcdf(
     ImageFileError
         Not NetCDF-3, variable absent, wrong dimensions, or units missing.
     """
-    from scipy.io import netcdf_file
-
-    try:
-        nc = netcdf_file(path, "r", mmap=False)
-    except (OSError, TypeError, ValueError, IndexError) as err:
-        raise ImageFileError(f"{path}: not a readable NetCDF-3 file ({err})") from None
-    with nc:
-        variables: dict[str, Any] = dict(nc.variables)
-        name = _pick(variables, channel, path)
-        var = variables[name]
-        dims = tuple(var.dimensions)
-        data = np.array(var.data, dtype=np.float64)
-        attrs = {k: _text(v) for k, v in var._attributes.items()}
-        globals_ = {k: _text(v) for k, v in nc._attributes.items()}
-        coords = {
-            d: (np.array(variables[d].data, dtype=np.float64), _text(variables[d].units))
-            for d in dims[-2:]
-            if d in variables and hasattr(variables[d], "units")
-        }
-        times = np.array(variables["time"].data, dtype=np.float64) if "time" in variables else None
+    with path.open("rb") as f:
+        is_hdf5 = f.read(8) == _HDF5_SIGNATURE
+    read = _read_hdf5 if is_hdf5 else _read_nc3
+    name, dims, data, attrs, globals_, coords, times = read(path, channel)
     if data.ndim not in (2, 3) or min(data.shape) == 0:
         raise ImageFileError(
             f"{path}: variable {name!r} must have dimensions (y, x) or (frame, y, x), got {dims}"
@@ -120,6 +107,87 @@ def read_netcdf(
             )
         )
     return out
+
+
+_HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+#: name, dimensions, data, variable attributes, global attributes,
+#: {dimension: (coordinate values, units)}, frame times.
+_Contents = tuple[
+    str,
+    tuple[str, ...],
+    npt.NDArray[np.float64],
+    dict[str, str],
+    dict[str, str],
+    dict[str, tuple[npt.NDArray[np.float64], str]],
+    npt.NDArray[np.float64] | None,
+]
+
+
+def _read_nc3(path: Path, channel: str) -> _Contents:
+    from scipy.io import netcdf_file
+
+    try:
+        nc = netcdf_file(path, "r", mmap=False)
+    except (OSError, TypeError, ValueError, IndexError) as err:
+        raise ImageFileError(f"{path}: not a readable NetCDF-3 file ({err})") from None
+    with nc:
+        variables: dict[str, Any] = dict(nc.variables)
+        name = _pick(variables, channel, path)
+        var = variables[name]
+        dims = tuple(var.dimensions)
+        data = np.array(var.data, dtype=np.float64)
+        attrs = {k: _text(v) for k, v in var._attributes.items()}
+        globals_ = {k: _text(v) for k, v in nc._attributes.items()}
+        coords = {
+            d: (np.array(variables[d].data, dtype=np.float64), _text(variables[d].units))
+            for d in dims[-2:]
+            if d in variables and hasattr(variables[d], "units")
+        }
+        times = np.array(variables["time"].data, dtype=np.float64) if "time" in variables else None
+    return name, dims, data, attrs, globals_, coords, times
+
+
+def _read_hdf5(path: Path, channel: str) -> _Contents:
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise ImageFileError(f"{path}: not a readable NetCDF-4/HDF5 file ({err})") from None
+    with f:
+        variables = {k: v for k, v in f.items() if isinstance(v, h5py.Dataset)}
+        name = _pick(variables, channel, path)
+        ds = variables[name]
+        _check_values(path, ds.shape)
+        dims = tuple(
+            ds.dims[i][0].name.rsplit("/", 1)[-1] if len(ds.dims[i]) else f"dim{i}"
+            for i in range(ds.ndim)
+        )
+        data = np.array(ds[()], dtype=np.float64)
+        attrs = {k: _text(v) for k, v in ds.attrs.items() if not k.isupper()}
+        globals_ = {k: _text(v) for k, v in f.attrs.items()}
+        coords = {
+            d: (np.array(variables[d][()], dtype=np.float64), _text(variables[d].attrs["units"]))
+            for d in dims[-2:]
+            if d in variables and "units" in variables[d].attrs
+        }
+        times = np.array(variables["time"][()], dtype=np.float64) if "time" in variables else None
+    return name, dims, data, attrs, globals_, coords, times
+
+
+def _check_values(path: Path, shape: tuple[int, ...]) -> None:
+    n = 1
+    for v in shape:
+        n *= int(v)
+    if n > _MAX_VALUES:
+        raise ImageFileError(
+            f"{path}: declares {n} values (shape {shape}); the limit is {_MAX_VALUES}"
+        )
+
+
+#: As :data:`afmdrift.io._load.MAX_VALUES`.
+_MAX_VALUES = 1 << 28
 
 
 def _pick(variables: dict[str, Any], channel: str, path: Path) -> str:

@@ -13,7 +13,8 @@ Configuration files are trusted input: an effect plugin named in
 from __future__ import annotations
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.drivers import Instrument
+from afmdrift.drivers import FolderInstrument, Instrument
+from afmdrift.errors import ConfigError
 from afmdrift.model import Predictor, make_predictor
 from afmdrift.service._runner import open_instrument
 from afmdrift.service._zmq import load_curve_keys
@@ -32,10 +33,18 @@ def check_config(
     ------
     AfmdriftError
         :class:`~afmdrift.errors.ConfigError` for an unknown predictor or term,
-        a plugin that cannot be imported, an unusable instrument URL;
+        a plugin that cannot be imported, an unusable instrument URL,
+        ``closed_loop`` with an instrument that cannot move (``folder:``);
         :class:`~afmdrift.service.ServiceSocketError` for missing CURVE keys.
     """
     predictor = make_predictor(config.model.predictor, config.model)
     load_curve_keys(config.service)
     instrument = open_instrument(config, url=instrument_url)
+    if config.service.closed_loop and isinstance(instrument, FolderInstrument):
+        url = instrument_url or config.driver.transport
+        raise ConfigError(
+            f"service.closed_loop = true, but the instrument {url}"
+            " is a folder of saved images: it cannot move the scan offset. Set closed_loop = false"
+            " and apply the published d(t) with your own controller (docs/instruments.md)."
+        )
     return predictor, instrument
