@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
 from afmdrift._bounded import read_text
-from afmdrift.config._driver import REPLAY_PREFIX, DriverConfig
+from afmdrift.config._driver import NANONIS_PREFIX, REPLAY_PREFIX, DriverConfig
 from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.config._registration import RegistrationConfig
 from afmdrift.config._service import (
@@ -34,6 +34,7 @@ from afmdrift.errors import ConfigError
 __all__ = [
     "DEFAULT_CONFIG_PATH",
     "MAX_CONFIG_BYTES",
+    "NANONIS_PREFIX",
     "REPLAY_PREFIX",
     "AfmdriftConfig",
     "DriverConfig",

@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+import re
+from typing import Literal
 
-__all__ = ["REPLAY_PREFIX", "DriverConfig"]
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+__all__ = ["NANONIS_PREFIX", "REPLAY_PREFIX", "DriverConfig"]
 
 #: URL prefix that selects :class:`~afmdrift.drivers.ReplayInstrument`.
 REPLAY_PREFIX = "replay:"
+#: URL prefix that selects :class:`~afmdrift.drivers.nanonis.NanonisDriver`.
+NANONIS_PREFIX = "nanonis://"
+_NANONIS_URL = re.compile(r"nanonis://([^:/\s]+):([0-9]{1,5})/?")
+_CHANNEL_KEY = re.compile(r"[a-z][a-z0-9_]*")
 
 
 class DriverConfig(BaseModel):
@@ -16,7 +23,9 @@ class DriverConfig(BaseModel):
     ``transport`` is a serial port (``/dev/ttyUSB0``), a pseudo-terminal
     (``/dev/pts/5``, e.g. from ``afmdrift sim serve --pty``), loopback TCP
     (``socket://127.0.0.1:5025``, e.g. from ``afmdrift sim serve --port 5025``),
-    or ``replay:PATH`` to replay a recorded session directory.
+    ``replay:PATH`` to replay a recorded session directory, or
+    ``nanonis://HOST:PORT`` for a Nanonis controller's TCP interface (the
+    ``nanonis_*`` options apply to it only; ``docs/instruments.md``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -24,7 +33,9 @@ class DriverConfig(BaseModel):
     transport: str = Field(
         "socket://127.0.0.1:5025",
         min_length=1,
-        description="Serial port, pty path, socket://HOST:PORT, or replay:SESSION_DIR.",
+        description=(
+            "Serial port, pty path, socket://HOST:PORT, replay:SESSION_DIR or nanonis://HOST:PORT."
+        ),
     )
     timeout_s: float = Field(2.0, gt=0, le=600, description="Longest wait for a reply line.")
     frame_timeout_s: float = Field(
@@ -45,9 +56,77 @@ class DriverConfig(BaseModel):
         description="replay: virtual seconds per wall second; 0 = as fast as frames are polled.",
     )
 
+    nanonis_channel: int = Field(
+        14,
+        ge=0,
+        le=127,
+        description="nanonis: scan channel read by Scan.FrameDataGrab (height, m).",
+    )
+    nanonis_direction: Literal["forward", "backward"] = Field(
+        "forward", description="nanonis: which trace of each line Scan.FrameDataGrab reads."
+    )
+    nanonis_channels: dict[str, str] = Field(
+        default_factory=dict,
+        description=(
+            "nanonis: afmdrift channel -> Nanonis signal name (Signals.NamesGet), "
+            'e.g. {temperature_c = "Temperature (C)"}.'
+        ),
+    )
+    nanonis_offset_mode: Literal["frame", "follow_me"] = Field(
+        "frame", description="nanonis: the XY offset moves the scan frame or the follow-me tip."
+    )
+    nanonis_clock_signal: str = Field(
+        "",
+        max_length=200,
+        description="nanonis: signal giving the instrument time in s; empty: the host clock.",
+    )
+    nanonis_wait_ms: int = Field(
+        200, ge=0, le=60_000, description="nanonis: timeout of each Scan.WaitEndOfScan."
+    )
+    nanonis_drift_comp_limit_pct: float = Field(
+        10.0, gt=0, le=100, description="nanonis: drift compensation saturation limit, % of range."
+    )
+
     @field_validator("transport")
     @classmethod
     def _check_transport(cls, url: str) -> str:
         if url.startswith(REPLAY_PREFIX) and not url[len(REPLAY_PREFIX) :].strip():
             raise ValueError("replay: needs a session directory, e.g. replay:runs/session1")
+        if url.startswith(NANONIS_PREFIX):
+            m = _NANONIS_URL.fullmatch(url)
+            if m is None or not 0 < int(m.group(2)) < 65536:
+                raise ValueError(
+                    f"expected nanonis://HOST:PORT with a port in 1..65535, got {url!r}"
+                )
         return url
+
+    @field_validator("nanonis_channels")
+    @classmethod
+    def _check_channels(cls, mapping: dict[str, str]) -> dict[str, str]:
+        for key, signal in mapping.items():
+            if not _CHANNEL_KEY.fullmatch(key):
+                raise ValueError(
+                    f"channel name {key!r} must be lower-case snake_case (e.g. temperature_c)"
+                )
+            if not signal.strip():
+                raise ValueError(f"channel {key!r}: the Nanonis signal name is empty")
+        return mapping
+
+    @model_validator(mode="after")
+    def _nanonis_options_need_nanonis(self) -> DriverConfig:
+        if self.transport.startswith(NANONIS_PREFIX):
+            return self
+        defaults = type(self).model_fields
+        changed = sorted(
+            name
+            for name in self.model_fields_set
+            if name.startswith("nanonis_")
+            and getattr(self, name) != defaults[name].default
+            and not (name == "nanonis_channels" and not self.nanonis_channels)
+        )
+        if changed:
+            raise ValueError(
+                f"{', '.join(changed)} apply to transport = nanonis://HOST:PORT only "
+                f"(transport is {self.transport!r})"
+            )
+        return self

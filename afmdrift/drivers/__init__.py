@@ -1,4 +1,4 @@
-"""Instrument drivers: NanoScope-style controller, simulator, replay.
+"""Instrument drivers: NanoScope-style controller, Nanonis (:mod:`.nanonis`), simulator, replay.
 
 Runtime code depends only on :class:`Instrument` and the records of
 :mod:`afmdrift.records` (re-exported here);
@@ -7,7 +7,7 @@ service.
 """
 
 from afmdrift.config import DriverConfig
-from afmdrift.drivers._base import Instrument
+from afmdrift.drivers._base import Instrument, VelocityActuator
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers._open import instrument_from_config
 from afmdrift.drivers._protocol import (
@@ -42,5 +42,6 @@ __all__ = [
     "ScriptedTransport",
     "SerialTransport",
     "Transport",
+    "VelocityActuator",
     "instrument_from_config",
 ]
