@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 __all__ = ["NANONIS_PREFIX", "REPLAY_PREFIX", "DriverConfig"]
 
@@ -25,7 +25,8 @@ class DriverConfig(BaseModel):
     (``socket://127.0.0.1:5025``, e.g. from ``afmdrift sim serve --port 5025``),
     ``replay:PATH`` to replay a recorded session directory, or
     ``nanonis://HOST:PORT`` for a Nanonis controller's TCP interface (the
-    ``nanonis_*`` options apply to it only; ``docs/instruments.md``).
+    ``nanonis_*`` options apply to it only, and are ignored otherwise, so that
+    ``afmdrift run --instrument`` can switch transports; ``docs/instruments.md``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -111,22 +112,3 @@ class DriverConfig(BaseModel):
             if not signal.strip():
                 raise ValueError(f"channel {key!r}: the Nanonis signal name is empty")
         return mapping
-
-    @model_validator(mode="after")
-    def _nanonis_options_need_nanonis(self) -> DriverConfig:
-        if self.transport.startswith(NANONIS_PREFIX):
-            return self
-        defaults = type(self).model_fields
-        changed = sorted(
-            name
-            for name in self.model_fields_set
-            if name.startswith("nanonis_")
-            and getattr(self, name) != defaults[name].default
-            and not (name == "nanonis_channels" and not self.nanonis_channels)
-        )
-        if changed:
-            raise ValueError(
-                f"{', '.join(changed)} apply to transport = nanonis://HOST:PORT only "
-                f"(transport is {self.transport!r})"
-            )
-        return self
