@@ -141,6 +141,8 @@ class DriftService:
         self._absolute_offset_base: tuple[float, float] | None = None
         self._last_command: tuple[float, float] | None = None
         self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
+        self._last_frame_end_s: float | None = None
+        self._frame_period_s: float | None = None  # between the last two frame ends
         self._store: RunStore | None = None
         self._control: ControlSocket | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -354,6 +356,9 @@ class DriftService:
         self.frames_processed += 1
         self._frame_done.set()
         self.link.see_frame_end(outcome.record.t_end_s)
+        if self._last_frame_end_s is not None and outcome.record.t_end_s > self._last_frame_end_s:
+            self._frame_period_s = outcome.record.t_end_s - self._last_frame_end_s
+        self._last_frame_end_s = outcome.record.t_end_s
         self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
 
     async def wait_for_frames(self, n: int) -> None:
@@ -410,11 +415,15 @@ class DriftService:
 
     async def _velocity_tick(self, hold: tuple[float, float] | None) -> None:
         """Drive the instrument's own drift compensation: a piecewise-constant
-        velocity that brings the offset onto ``hold + d(t)`` by the next tick.
+        velocity that brings the offset onto ``hold + d(t)`` one horizon ahead.
 
-        The horizon is the instrument time between the last two ticks; the
-        velocity is limited to ``max_offset_rate_nm_s``. Without a valid
-        prediction the velocity is set to zero once.
+        ``v = (hold + d(t + H) − offset(t)) / H`` with the horizon ``H`` one
+        frame period (at least the time between two ticks). A ramp of d is
+        followed without lag, an error decays with time constant ``H``, and
+        the delay of a command behind a frame transfer (seconds) stays small
+        against ``H`` (a horizon of one tick would make the loop oscillate).
+        The velocity is limited to ``max_offset_rate_nm_s``; without a valid
+        prediction it is set to zero once.
         """
         actuator = self.instrument
         assert isinstance(actuator, VelocityActuator)
@@ -427,7 +436,8 @@ class DriftService:
         t_now = await self.link.now_s()
         ox, oy = await self.link.call(self.instrument.get_offset)
         prev = self._last_velocity
-        horizon = t_now - prev[0] if prev is not None and t_now > prev[0] else 1.0
+        tick = t_now - prev[0] if prev is not None and t_now > prev[0] else 1.0
+        horizon = max(tick, self._frame_period_s or 0.0)
         target = curve.at([t_now + horizon]).reshape(-1)
         vx = (hold[0] + float(target[0]) - ox) / horizon
         vy = (hold[1] + float(target[1]) - oy) / horizon
