@@ -27,7 +27,8 @@ from afmdrift.service import RunStore
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from service_sim import running_service, service_config
 
-pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
+# 2.5 min of wall time per actuator: excluded by default, run with -m soak.
+pytestmark = [pytest.mark.asyncio, pytest.mark.slow, pytest.mark.soak]
 
 DURATION_S = 7200.0
 SPEED = 50.0
