@@ -64,8 +64,9 @@ def _register_serve(ssub: Any) -> None:
         description="Serve the instrument protocol (docs/protocol.md) backed by the simulated "
         "AFM. With --pty the slave path (e.g. /dev/pts/5) is printed on stdout; with --port the "
         "bound TCP port on 127.0.0.1 is printed (--port 0 picks a free one). Connect with "
-        "[driver] transport = that path or socket://127.0.0.1:PORT. Stops cleanly on "
-        "SIGINT/SIGTERM.",
+        "[driver] transport = that path or socket://127.0.0.1:PORT. With --protocol nanonis "
+        "the same AFM speaks the Nanonis TCP protocol on --port (connect with "
+        "nanonis://127.0.0.1:PORT; docs/instruments.md). Stops cleanly on SIGINT/SIGTERM.",
     )
     where = p.add_mutually_exclusive_group()
     where.add_argument("--pty", action="store_true", help="Serve on a new pseudo-terminal.")
@@ -85,6 +86,13 @@ def _register_serve(ssub: Any) -> None:
         help="Virtual seconds per wall second (1 = real time; 1000 runs 8 h in about 29 s).",
     )
     p.add_argument("--seed", type=int, default=None, help="Override the scenario's seed.")
+    p.add_argument(
+        "--protocol",
+        choices=("line", "nanonis"),
+        default="line",
+        help="line: the protocol of docs/protocol.md (pty or TCP); nanonis: the Nanonis TCP "
+        "protocol (TCP only, no --faults).",
+    )
     p.add_argument(
         "--faults",
         type=float,
@@ -111,6 +119,13 @@ def _serve(args: argparse.Namespace) -> int:
         from afmdrift.errors import ConfigError
 
         raise ConfigError(f"--faults {args.faults}: must be a fraction in [0, 1]")
+    if args.protocol == "nanonis":
+        from afmdrift.errors import ConfigError
+
+        if port is None or args.faults:
+            raise ConfigError("--protocol nanonis serves TCP only (--port N), without --faults")
+        asyncio.run(_serve_nanonis_until_signal(sim, port=port, speed=args.speed))
+        return 0
     asyncio.run(_serve_until_signal(sim, port=port, speed=args.speed, faults=args.faults))
     return 0
 
@@ -151,6 +166,33 @@ async def _serve_until_signal(
                         f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
                     ) from None
                 print(bound, flush=True)
+            await stop.wait()
+    finally:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.remove_signal_handler(sig)
+
+
+async def _serve_nanonis_until_signal(sim: Any, *, port: int, speed: float) -> None:
+    import asyncio
+    import signal
+
+    from afmdrift.drivers.sim._nanonis_server import NanonisSimServer
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        async with NanonisSimServer(sim, speed=speed) as server:
+            try:
+                bound = await server.start_tcp(port)
+            except OSError as err:
+                from afmdrift.errors import ConfigError
+
+                raise ConfigError(
+                    f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
+                ) from None
+            print(bound, flush=True)
             await stop.wait()
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):

@@ -20,7 +20,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from pydantic.fields import FieldInfo
 
 from afmdrift._bounded import read_text
-from afmdrift.config._driver import FOLDER_PREFIX, REPLAY_PREFIX, DriverConfig
+from afmdrift.config._driver import FOLDER_PREFIX, NANONIS_PREFIX, REPLAY_PREFIX, DriverConfig
 from afmdrift.config._model import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
 from afmdrift.config._registration import RegistrationConfig
 from afmdrift.config._service import (
@@ -35,6 +35,7 @@ __all__ = [
     "DEFAULT_CONFIG_PATH",
     "FOLDER_PREFIX",
     "MAX_CONFIG_BYTES",
+    "NANONIS_PREFIX",
     "REPLAY_PREFIX",
     "AfmdriftConfig",
     "DriverConfig",

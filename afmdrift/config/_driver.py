@@ -2,12 +2,19 @@
 
 from __future__ import annotations
 
+import re
+from typing import Literal
+
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
-__all__ = ["FOLDER_PREFIX", "REPLAY_PREFIX", "DriverConfig"]
+__all__ = ["FOLDER_PREFIX", "NANONIS_PREFIX", "REPLAY_PREFIX", "DriverConfig"]
 
 #: URL prefix that selects :class:`~afmdrift.drivers.ReplayInstrument`.
 REPLAY_PREFIX = "replay:"
+#: URL prefix that selects :class:`~afmdrift.drivers.nanonis.NanonisDriver`.
+NANONIS_PREFIX = "nanonis://"
+_NANONIS_URL = re.compile(r"nanonis://([^:/\s]+):([0-9]{1,5})/?")
+_CHANNEL_KEY = re.compile(r"[a-z][a-z0-9_]*")
 
 #: URL prefix that selects :class:`~afmdrift.drivers.FolderInstrument`.
 FOLDER_PREFIX = "folder:"
@@ -19,9 +26,12 @@ class DriverConfig(BaseModel):
     ``transport`` is a serial port (``/dev/ttyUSB0``), a pseudo-terminal
     (``/dev/pts/5``, e.g. from ``afmdrift sim serve --pty``), loopback TCP
     (``socket://127.0.0.1:5025``, e.g. from ``afmdrift sim serve --port 5025``),
-    ``replay:PATH`` to replay a recorded session directory, or ``folder:PATH``
-    for an AFM whose own software saves each finished image into a folder
-    (``docs/instruments.md``; the ``folder_*`` settings apply to it only).
+    ``replay:PATH`` to replay a recorded session directory, ``folder:PATH``
+    for an AFM whose own software saves each finished image into a folder (the
+    ``folder_*`` settings apply to it only), or ``nanonis://HOST:PORT`` for a
+    Nanonis controller's TCP interface (the ``nanonis_*`` options apply to it
+    only, and are ignored otherwise, so that ``afmdrift run --instrument`` can
+    switch transports; ``docs/instruments.md``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -29,7 +39,10 @@ class DriverConfig(BaseModel):
     transport: str = Field(
         "socket://127.0.0.1:5025",
         min_length=1,
-        description="Serial port, pty path, socket://HOST:PORT, replay:SESSION_DIR or folder:DIR.",
+        description=(
+            "Serial port, pty path, socket://HOST:PORT, replay:SESSION_DIR, folder:DIR or "
+            "nanonis://HOST:PORT."
+        ),
     )
     timeout_s: float = Field(2.0, gt=0, le=600, description="Longest wait for a reply line.")
     frame_timeout_s: float = Field(
@@ -80,6 +93,36 @@ class DriverConfig(BaseModel):
         max_length=255,
         description="folder: name of the sensor log (CSV) inside the folder.",
     )
+    nanonis_channel: int = Field(
+        14,
+        ge=0,
+        le=127,
+        description="nanonis: scan channel read by Scan.FrameDataGrab (height, m).",
+    )
+    nanonis_direction: Literal["forward", "backward"] = Field(
+        "forward", description="nanonis: which trace of each line Scan.FrameDataGrab reads."
+    )
+    nanonis_channels: dict[str, str] = Field(
+        default_factory=dict,
+        description=(
+            "nanonis: afmdrift channel -> Nanonis signal name (Signals.NamesGet), "
+            'e.g. {temperature_c = "Temperature (C)"}.'
+        ),
+    )
+    nanonis_offset_mode: Literal["frame", "follow_me"] = Field(
+        "frame", description="nanonis: the XY offset moves the scan frame or the follow-me tip."
+    )
+    nanonis_clock_signal: str = Field(
+        "",
+        max_length=200,
+        description="nanonis: signal giving the instrument time in s; empty: the host clock.",
+    )
+    nanonis_wait_ms: int = Field(
+        200, ge=0, le=60_000, description="nanonis: timeout of each Scan.WaitEndOfScan."
+    )
+    nanonis_drift_comp_limit_pct: float = Field(
+        10.0, gt=0, le=100, description="nanonis: drift compensation saturation limit, % of range."
+    )
 
     @field_validator("transport")
     @classmethod
@@ -88,6 +131,12 @@ class DriverConfig(BaseModel):
             raise ValueError("replay: needs a session directory, e.g. replay:runs/session1")
         if url.startswith(FOLDER_PREFIX) and not url[len(FOLDER_PREFIX) :].strip():
             raise ValueError("folder: needs a directory, e.g. folder:/data/afm/today")
+        if url.startswith(NANONIS_PREFIX):
+            m = _NANONIS_URL.fullmatch(url)
+            if m is None or not 0 < int(m.group(2)) < 65536:
+                raise ValueError(
+                    f"expected nanonis://HOST:PORT with a port in 1..65535, got {url!r}"
+                )
         return url
 
     @field_validator("folder_sensor_file")
@@ -96,3 +145,15 @@ class DriverConfig(BaseModel):
         if "/" in name or "\\" in name or name in (".", ".."):
             raise ValueError(f"must be a file name inside the folder, not a path: {name!r}")
         return name
+
+    @field_validator("nanonis_channels")
+    @classmethod
+    def _check_channels(cls, mapping: dict[str, str]) -> dict[str, str]:
+        for key, signal in mapping.items():
+            if not _CHANNEL_KEY.fullmatch(key):
+                raise ValueError(
+                    f"channel name {key!r} must be lower-case snake_case (e.g. temperature_c)"
+                )
+            if not signal.strip():
+                raise ValueError(f"channel {key!r}: the Nanonis signal name is empty")
+        return mapping

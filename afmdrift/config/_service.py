@@ -9,7 +9,7 @@ replay behaves like the real instrument.
 from __future__ import annotations
 
 import ipaddress
-from typing import Self
+from typing import Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
@@ -157,6 +157,13 @@ class ServiceConfig(BaseModel):
     )
     closed_loop: bool = Field(
         False, description="Apply the offset on the instrument (XY-offset command)."
+    )
+    closed_loop_actuator: Literal["offset", "velocity"] = Field(
+        "offset",
+        description=(
+            "offset: move the XY offset to d(t); velocity: drive the instrument's own drift "
+            "compensation with piecewise-constant velocities from d(t) (nanonis://)."
+        ),
     )
     closed_loop_interval_s: float = Field(
         1.0, ge=0.01, le=3600.0, description="Wall seconds between closed-loop moves."

@@ -1,4 +1,5 @@
-"""Instrument drivers: NanoScope-style controller, folder of saved images, simulator, replay.
+"""Instrument drivers: NanoScope-style controller, Nanonis (:mod:`.nanonis`), folder of
+saved images, simulator, replay.
 
 Runtime code depends only on :class:`Instrument` and the records of
 :mod:`afmdrift.records` (re-exported here);
@@ -7,7 +8,7 @@ service.
 """
 
 from afmdrift.config import DriverConfig
-from afmdrift.drivers._base import Instrument
+from afmdrift.drivers._base import Instrument, VelocityActuator
 from afmdrift.drivers._folder import FolderInstrument, OffsetNotSupportedError
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers._open import instrument_from_config
@@ -45,5 +46,6 @@ __all__ = [
     "ScriptedTransport",
     "SerialTransport",
     "Transport",
+    "VelocityActuator",
     "instrument_from_config",
 ]

@@ -13,7 +13,7 @@ from typing import Protocol, TypeVar, runtime_checkable
 
 from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
-__all__ = ["ConnectOnEnter", "Instrument"]
+__all__ = ["ConnectOnEnter", "Instrument", "VelocityActuator"]
 
 
 @runtime_checkable
@@ -52,6 +52,22 @@ class Instrument(Protocol):
         ...
 
     async def get_offset(self) -> tuple[float, float]: ...
+
+
+@runtime_checkable
+class VelocityActuator(Protocol):
+    """An instrument that can move the image at a velocity by itself (an optional
+    capability, e.g. a Nanonis controller's ``Piezo.DriftCompSet``).
+
+    The service's closed loop uses it with ``closed_loop_actuator = "velocity"``.
+    The displacement the instrument applies must show in :meth:`Instrument.get_offset`
+    and in the event log (``offset_move`` entries), like commanded moves, so that
+    drift positions stay ``p = m + O(t) − O(t_ref)``.
+    """
+
+    async def set_drift_velocity(self, vx_nm_per_s: float, vy_nm_per_s: float) -> None:
+        """Move the XY offset at this velocity (nm/s) from now until the next call."""
+        ...
 
 
 class _Connectable(Protocol):

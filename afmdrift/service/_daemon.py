@@ -43,7 +43,8 @@ from typing import TypeVar
 import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.drivers import Instrument
+from afmdrift.drivers import Instrument, VelocityActuator
+from afmdrift.errors import ConfigError
 from afmdrift.model import commanded_offset_nm
 from afmdrift.pipeline import FramePipeline
 from afmdrift.records import InstrumentInfo
@@ -98,6 +99,15 @@ class DriftService:
     ) -> None:
         self.config = config
         self.svc = config.service
+        if (
+            self.svc.closed_loop
+            and self.svc.closed_loop_actuator == "velocity"
+            and not isinstance(instrument, VelocityActuator)
+        ):
+            raise ConfigError(
+                f"service.closed_loop_actuator = 'velocity' needs an instrument that can move "
+                f"at a velocity (nanonis://); {type(instrument).__name__} cannot"
+            )
         self.ctx = ctx
         self.config_path = Path(config_path) if config_path is not None else None
         self.pipeline = pipeline or FramePipeline(config=config)
@@ -130,6 +140,9 @@ class DriftService:
         self._frame_done = asyncio.Event()
         self._absolute_offset_base: tuple[float, float] | None = None
         self._last_command: tuple[float, float] | None = None
+        self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
+        self._last_frame_end_s: float | None = None
+        self._frame_period_s: float | None = None  # between the last two frame ends
         self._store: RunStore | None = None
         self._control: ControlSocket | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -343,6 +356,9 @@ class DriftService:
         self.frames_processed += 1
         self._frame_done.set()
         self.link.see_frame_end(outcome.record.t_end_s)
+        if self._last_frame_end_s is not None and outcome.record.t_end_s > self._last_frame_end_s:
+            self._frame_period_s = outcome.record.t_end_s - self._last_frame_end_s
+        self._last_frame_end_s = outcome.record.t_end_s
         self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
 
     async def wait_for_frames(self, n: int) -> None:
@@ -364,18 +380,30 @@ class DriftService:
 
     # ------------------------------------------------------------------ closed loop
 
-    async def _closed_loop_tick(self) -> None:
-        """Move the instrument's XY offset so the image stays on the same spot."""
+    def _hold_offset(self) -> tuple[float, float] | None:
+        """The instrument's absolute offset at the reference frame (where d = 0
+        puts it), or ``None`` while there is no valid prediction to follow."""
         last = self.publishing.last_offset
         base = self._absolute_offset_base
         if last is None or not last.valid or base is None or self.publishing.curve is None:
-            return
+            return None
         t_ref = self.pipeline.t_ref_s
         if t_ref is None:
-            return
+            return None
         moved_ref = commanded_offset_nm([t_ref], self.acquisition.events)[0]
-        x = base[0] + moved_ref[0] + last.x_nm
-        y = base[1] + moved_ref[1] + last.y_nm
+        return base[0] + moved_ref[0], base[1] + moved_ref[1]
+
+    async def _closed_loop_tick(self) -> None:
+        """Move the instrument's XY offset so the image stays on the same spot."""
+        hold = self._hold_offset()
+        if self.svc.closed_loop_actuator == "velocity":
+            await self._velocity_tick(hold)
+            return
+        last = self.publishing.last_offset
+        if hold is None or last is None:
+            return
+        x = hold[0] + last.x_nm
+        y = hold[1] + last.y_nm
         if (
             self._last_command is not None
             and math.hypot(x - self._last_command[0], y - self._last_command[1])
@@ -384,6 +412,41 @@ class DriftService:
             return
         await self.link.set_offset(x, y)
         self._last_command = (x, y)
+
+    async def _velocity_tick(self, hold: tuple[float, float] | None) -> None:
+        """Drive the instrument's own drift compensation: a piecewise-constant
+        velocity that brings the offset onto ``hold + d(t)`` one horizon ahead.
+
+        ``v = (hold + d(t + H) − offset(t)) / H`` with the horizon ``H`` one
+        frame period (at least the time between two ticks). A ramp of d is
+        followed without lag, an error decays with time constant ``H``, and
+        the delay of a command behind a frame transfer (seconds) stays small
+        against ``H`` (a horizon of one tick would make the loop oscillate).
+        The velocity is limited to ``max_offset_rate_nm_s``; without a valid
+        prediction it is set to zero once.
+        """
+        actuator = self.instrument
+        assert isinstance(actuator, VelocityActuator)
+        curve = self.publishing.curve
+        if hold is None or curve is None:
+            if self._last_velocity is not None and self._last_velocity[1:] != (0.0, 0.0):
+                await self.link.call(actuator.set_drift_velocity, 0.0, 0.0)
+                self._last_velocity = (self._last_velocity[0], 0.0, 0.0)
+            return
+        t_now = await self.link.now_s()
+        ox, oy = await self.link.call(self.instrument.get_offset)
+        prev = self._last_velocity
+        tick = t_now - prev[0] if prev is not None and t_now > prev[0] else 1.0
+        horizon = max(tick, self._frame_period_s or 0.0)
+        target = curve.at([t_now + horizon]).reshape(-1)
+        vx = (hold[0] + float(target[0]) - ox) / horizon
+        vy = (hold[1] + float(target[1]) - oy) / horizon
+        speed = math.hypot(vx, vy)
+        limit = self.svc.max_offset_rate_nm_s
+        if speed > limit:
+            vx, vy = vx * limit / speed, vy * limit / speed
+        await self.link.call(actuator.set_drift_velocity, vx, vy)
+        self._last_velocity = (t_now, vx, vy)
 
 
 async def _supervised(name: str, fn: Callable[[], Awaitable[None]]) -> None:

@@ -5,7 +5,7 @@ The physics (each drift effect with its equation and sources) is documented in
 package.
 """
 
-from afmdrift.drivers.sim._instrument import SimulatedAFM
+from afmdrift.drivers.sim._instrument import PIEZO_RANGE_NM, SimulatedAFM
 from afmdrift.drivers.sim._physics import COMPONENTS, DriftPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scenario import (
@@ -18,6 +18,7 @@ from afmdrift.drivers.sim._scenario import (
 
 __all__ = [
     "COMPONENTS",
+    "PIEZO_RANGE_NM",
     "SCENARIO_DIR",
     "DriftPhysics",
     "Sample",

@@ -31,11 +31,15 @@ from afmdrift.drivers.sim._scanner import FrameRaster, ScanGeometry, render_line
 from afmdrift.drivers.sim._scenario import Scenario, check_scan_geometry, load_scenario
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo, ScanDirection
 
-__all__ = ["SimulatedAFM"]
+__all__ = ["PIEZO_RANGE_NM", "SimulatedAFM"]
 
 _log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
+
+#: Range of the simulated scanner piezo (x, y, z) in nm; the drift
+#: compensation stops at a percentage of it.
+PIEZO_RANGE_NM = (10_000.0, 10_000.0, 2_000.0)
 
 
 class SimulatedAFM:
@@ -89,6 +93,9 @@ class SimulatedAFM:
         self._t = 0.0
         self._events: list[Event] = [Event(0.0, EventKind.POWER_ON)]
         self._tip_nm = (0.0, 0.0)
+        self._comp_on = False
+        self._comp_velocity: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._comp_limit_pct = 10.0
         self._running = False
         self._frame: FrameRaster | None = None
         self._next_frame_start_s = 0.0
@@ -467,6 +474,62 @@ class SimulatedAFM:
         c = self.physics.commanded_offset_at(self._t)
         return float(c[0]), float(c[1])
 
+    def set_drift_compensation(
+        self,
+        *,
+        on: bool | None,
+        velocity_nm_per_s: tuple[float, float, float],
+        limit_pct: float,
+    ) -> None:
+        """The controller's linear drift compensation (Nanonis ``Piezo.DriftCompSet``).
+
+        While on, the piezo moves the scan window at ``velocity_nm_per_s``
+        (x, y; z is kept and reported, not applied) until the displacement
+        reaches ``limit_pct`` % of :data:`PIEZO_RANGE_NM` on an axis, where
+        that axis stops (saturated). Switching it off releases the
+        displacement (the window returns by it); switching it on starts from
+        zero. ``on=None`` keeps the state and changes velocity and limit.
+        """
+        for name, v in zip(("vx", "vy", "vz"), velocity_nm_per_s, strict=True):
+            if not math.isfinite(v) or abs(v) > 1e4:
+                raise ValueError(
+                    f"drift compensation {name} = {v} nm/s is out of range (|v| <= 1e4)"
+                )
+        if not 0 < limit_pct <= 100:
+            raise ValueError(f"saturation limit {limit_pct} % is out of range (allowed: (0, 100])")
+        was_on = self._comp_on
+        self._comp_on = was_on if on is None else bool(on)
+        vx, vy, vz = (float(v) for v in velocity_nm_per_s)
+        self._comp_velocity = (vx, vy, vz)
+        self._comp_limit_pct = float(limit_pct)
+        ramp = (vx, vy) if self._comp_on else (0.0, 0.0)
+        self.physics.ramp_compensation(
+            self._t, ramp, self._comp_limit_nm(), release=was_on and not self._comp_on
+        )
+
+    def _comp_limit_nm(self) -> tuple[float, float]:
+        f = self._comp_limit_pct / 100.0
+        return (f * PIEZO_RANGE_NM[0], f * PIEZO_RANGE_NM[1])
+
+    def drift_compensation(
+        self,
+    ) -> tuple[bool, tuple[float, float, float], tuple[bool, bool, bool], float]:
+        """``(on, velocity_nm_per_s, saturated_xyz, limit_pct)`` now."""
+        q = self.physics.compensation_at(self._t)
+        lim = self._comp_limit_nm()
+        sat = tuple(
+            self._comp_on
+            and self._comp_velocity[k] != 0
+            and abs(float(q[k])) >= lim[k] * (1 - 1e-9)
+            for k in range(2)
+        )
+        return self._comp_on, self._comp_velocity, (sat[0], sat[1], False), self._comp_limit_pct
+
+    def compensation_nm(self) -> tuple[float, float]:
+        """Displacement the drift compensation applies now, nm."""
+        q = self.physics.compensation_at(self._t)
+        return float(q[0]), float(q[1])
+
     def tip_move(self, x_nm: float, y_nm: float) -> None:
         """Park the tip at image position (x, y) nm (no effect on the sample; not logged)."""
         for name, v in (("x_nm", x_nm), ("y_nm", y_nm)):
@@ -481,7 +544,7 @@ class SimulatedAFM:
 
     def image_to_sample(self, x_nm: float, y_nm: float) -> tuple[float, float]:
         """Sample position under image position (x, y) now, without scan-direction bias."""
-        c = self.physics.commanded_offset_at(self._t)
+        c = self.physics.scan_offset_at(self._t)
         p = self.physics.drift_at(self._t)
         return float(x_nm + c[0] - p[0]), float(y_nm + c[1] - p[1])
 

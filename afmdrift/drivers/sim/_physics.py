@@ -119,6 +119,51 @@ class _StepTable:
         return out
 
 
+class _RampTable:
+    """A piecewise-linear (x, y) displacement that stops at its limits.
+
+    Segment ``k`` starts at ``t_k`` from ``q_k`` with velocity ``v_k`` and
+    limits ``±L_k`` per axis: ``q(t) = clip(q_k + v_k (t − t_k), −L_k, L_k)``
+    for ``t_k <= t < t_{k+1}``; zero before the first segment. Appended in
+    time order.
+    """
+
+    def __init__(self) -> None:
+        self.times: list[float] = []
+        self.starts: list[tuple[float, float]] = []
+        self.velocities: list[tuple[float, float]] = []
+        self.limits: list[tuple[float, float]] = []
+
+    def append(
+        self,
+        t_s: float,
+        start: tuple[float, float],
+        velocity: tuple[float, float],
+        limit: tuple[float, float],
+    ) -> None:
+        if self.times and t_s < self.times[-1]:
+            raise ValueError(f"compensation change at t={t_s} s is before the last one")
+        self.times.append(float(t_s))
+        self.starts.append(start)
+        self.velocities.append(velocity)
+        self.limits.append(limit)
+
+    def at(self, t_s: FloatArray) -> FloatArray:
+        out = np.zeros((*np.shape(t_s), 2))
+        if not self.times:
+            return out
+        times = np.asarray(self.times)
+        k = np.searchsorted(times, t_s, side="right") - 1
+        ok = k >= 0
+        kk = np.where(ok, k, 0)
+        q0 = np.asarray(self.starts)[kk]
+        v = np.asarray(self.velocities)[kk]
+        lim = np.asarray(self.limits)[kk]
+        q = np.clip(q0 + v * (np.asarray(t_s) - times[kk])[..., None], -lim, lim)
+        out[ok] = q[ok]
+        return out
+
+
 class _CreepModes:
     """Sum-of-exponentials state of the logarithmic creep of many moves.
 
@@ -228,6 +273,7 @@ class DriftPhysics:
         self._start_offset = (float(start_offset_nm[0]), float(start_offset_nm[1]))
         self._play = np.array(self._start_offset, dtype=np.float64)  # play-operator output
         self._tips: list[TipChange] = []
+        self._comp = _RampTable()  # drift compensation: the piezo ramped at a velocity
         self._generate_first()
         self._t_scanner_0 = float(self._grid.data["t_scanner"][0])
         self._rh_0 = float(self._grid.data["rh"][0])
@@ -386,6 +432,35 @@ class DriftPhysics:
         """Commanded XY offset (piecewise constant), shape (..., 2), nm."""
         t = np.asarray(t_s, dtype=np.float64)
         return self._commanded.at(t)
+
+    def ramp_compensation(
+        self,
+        t_s: float,
+        velocity_nm_per_s: tuple[float, float],
+        limit_nm: tuple[float, float],
+        *,
+        release: bool = False,
+    ) -> FloatArray:
+        """From ``t_s`` on, ramp the compensation displacement at ``velocity_nm_per_s``.
+
+        The displacement ``q`` adds to the commanded offset (it moves the scan
+        window like an offset move, without creep or hysteresis) and stops at
+        ``±limit_nm`` per axis. ``release`` first returns it to zero (the
+        compensation switched off). Returns ``q(t_s)`` before the change.
+        """
+        q = self.compensation_at(float(t_s))
+        start = (0.0, 0.0) if release else (float(q[0]), float(q[1]))
+        velocity = (float(velocity_nm_per_s[0]), float(velocity_nm_per_s[1]))
+        self._comp.append(float(t_s), start, velocity, (float(limit_nm[0]), float(limit_nm[1])))
+        return q
+
+    def compensation_at(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Drift-compensation displacement of the scan window, shape (..., 2), nm."""
+        return self._comp.at(np.asarray(t_s, dtype=np.float64))
+
+    def scan_offset_at(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Where the actuator puts the scan window: commanded offset plus compensation, nm."""
+        return self.commanded_offset_at(t_s) + self.compensation_at(t_s)
 
     # ------------------------------------------------------------------ drift components
 

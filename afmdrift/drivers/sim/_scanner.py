@@ -13,7 +13,8 @@ reads the sample at
 
     s = u + c(t) − p(t) − b_dir
 
-where ``c`` is the commanded offset, ``p`` the true drift (so a feature at
+where ``c`` is the commanded offset (plus the drift-compensation ramp, see
+``DriftPhysics.scan_offset_at``), ``p`` the true drift (so a feature at
 image position ``u`` at t = 0 appears at ``u + p(t)``), and ``b_dir`` the
 scan-direction bias (``+b/2`` for up, ``−b/2`` for down frames). The height is
 the sample's height at ``s`` plus the tilt plane, the slow z offset (per line),
@@ -112,7 +113,8 @@ class FrameRaster:
 def _window_per_pixel(
     physics: DriftPhysics, t: FloatArray, jumps_s: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
-    """Window displacement ``w = c(t) − p(t)`` for every pixel time ``t`` (lines × cols).
+    """Window displacement ``w = c(t) + q(t) − p(t)`` for every pixel time ``t``
+    (lines × cols); ``q`` is the drift-compensation ramp.
 
     Evaluated at the first and last pixel of each line and interpolated linearly
     in between (c is constant and p smooth on the scale of one trace), except on
@@ -120,7 +122,7 @@ def _window_per_pixel(
     evaluated exactly. Returns ``(w_x, w_y)``, each of shape (lines, cols), nm.
     """
     ends_t = t[:, [0, -1]]
-    w_ends = physics.commanded_offset_at(ends_t) - physics.drift_at(ends_t)  # (lines, 2, 2)
+    w_ends = physics.scan_offset_at(ends_t) - physics.drift_at(ends_t)  # (lines, 2, 2)
     cols = t.shape[1]
     frac = np.arange(cols) / max(cols - 1, 1)
     out = []
@@ -131,7 +133,7 @@ def _window_per_pixel(
     if jumps_s.size:
         inside = (jumps_s[None, :] > t[:, :1]) & (jumps_s[None, :] <= t[:, -1:])
         for i in np.nonzero(inside.any(axis=1))[0]:
-            exact = physics.commanded_offset_at(t[i]) - physics.drift_at(t[i])
+            exact = physics.scan_offset_at(t[i]) - physics.drift_at(t[i])
             out[0][i] = exact[:, 0]
             out[1][i] = exact[:, 1]
     return out[0], out[1]

@@ -32,8 +32,6 @@ import errno
 import logging
 import os
 import re
-import threading
-import time
 import tty
 from collections import deque
 from collections.abc import Callable, Coroutine
@@ -60,6 +58,8 @@ from afmdrift.drivers._protocol import (
     parse_args_floats,
     parse_command,
 )
+from afmdrift.drivers.sim._clock import VirtualClock
+from afmdrift.drivers.sim._running import RunningSimulation
 from afmdrift.errors import AfmdriftError
 from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
@@ -110,37 +110,6 @@ class SimulatedInstrument(Protocol):
     def get_offset(self) -> tuple[float, float]: ...
     def tip_move(self, x_nm: float, y_nm: float) -> None: ...
     def manipulate(self, x0_nm: float, y0_nm: float, x1_nm: float, y1_nm: float) -> object: ...
-
-
-class VirtualClock:
-    """Virtual seconds that run ``speed`` times faster than ``wall()`` seconds.
-
-    Parameters
-    ----------
-    speed : float
-        Virtual seconds per wall second (1.0 real time; 1000 runs 8 h in under 30 s).
-    start_s : float
-        Virtual time now.
-    wall : callable
-        Wall clock in s (default :func:`time.monotonic`).
-    """
-
-    def __init__(
-        self,
-        *,
-        speed: float = 1.0,
-        start_s: float = 0.0,
-        wall: Callable[[], float] = time.monotonic,
-    ) -> None:
-        if not (np.isfinite(speed) and speed > 0):
-            raise ValueError(f"speed must be a positive number, got {speed!r}")
-        self.speed = float(speed)
-        self._wall = wall
-        self._wall0 = wall()
-        self._start_s = float(start_s)
-
-    def now_s(self) -> float:
-        return self._start_s + self.speed * (self._wall() - self._wall0)
 
 
 # --------------------------------------------------------------------------- faults
@@ -395,23 +364,24 @@ class SimulatorServer:
         tick_s: float = 0.05,
         clock: VirtualClock | None = None,
     ) -> None:
-        if not tick_s > 0:
-            raise ValueError(f"tick_s must be > 0, got {tick_s!r}")
         self.sim = sim
-        self.clock = clock if clock is not None else VirtualClock(speed=speed, start_s=sim.now_s)
+        self.running = RunningSimulation(
+            sim,
+            clock=clock if clock is not None else VirtualClock(speed=speed, start_s=sim.now_s),
+            tick_s=tick_s,
+        )
+        self.clock = self.running.clock
         self.faults = faults if faults is not None else ServerFaults()
         self.tick_s = tick_s
         self.port: int | None = None
         self.pty_path: str | None = None
         self.connections = 0  # connections accepted so far (TCP)
         self._errors: deque[tuple[int, str]] = deque()
-        self._sim_lock = threading.Lock()  # the simulator runs in worker threads
-        self._stopping = threading.Event()
+        self._sim_lock = self.running.lock
         self._frame_cache: tuple[int, bytes] | None = None
         self._tcp: asyncio.Server | None = None
         self._pty_fds: tuple[int, int] | None = None
         self._tasks: set[asyncio.Task[None]] = set()
-        self._ticker: asyncio.Task[None] | None = None
         self._handlers: dict[tuple[str, bool], Callable[[Command], bytes]] = {
             ("*IDN", True): self._idn,
             ("*CLS", False): self._cls,
@@ -457,43 +427,17 @@ class SimulatorServer:
         await self.stop()
 
     def _ensure_ticker(self) -> None:
-        self._stopping.clear()
-        if self._ticker is None or self._ticker.done():
-            self._ticker = asyncio.create_task(self._tick(), name="sim-server-tick")
-
-    async def _tick(self) -> None:
-        while True:
-            await asyncio.to_thread(self.advance)
-            await asyncio.sleep(self.tick_s)
+        self.running.start()
 
     def advance(self) -> None:
-        """Run the simulation up to the virtual clock's now (thread-safe).
-
-        Advances in steps of :attr:`step_s` virtual seconds, releasing the lock
-        between steps, so commands are answered and :meth:`stop` returns
-        promptly even when the physics lags behind a high speed. Frames that a
-        later frame of the same step supersedes are not rendered
-        (``render_all=False``): only the last completed frame is served, so
-        nobody could fetch them.
-        """
-        target = self.clock.now_s()
-        while not self._stopping.is_set():
-            with self._sim_lock:
-                if not self._advance_step_locked(target):
-                    return
+        """Run the simulation up to the virtual clock's now (thread-safe; see
+        :meth:`RunningSimulation.advance`)."""
+        self.running.advance()
 
     @property
     def step_s(self) -> float:
         """Largest virtual time one physics step covers: a quarter of a tick."""
-        return max(0.25 * self.tick_s * self.clock.speed, 1e-3)
-
-    def _advance_step_locked(self, target_s: float) -> bool:
-        """Advance by at most one step towards ``target_s``; ``False`` once there."""
-        now = self.sim.now_s
-        if now >= target_s:
-            return False
-        self.sim.advance_to(min(now + self.step_s, target_s), render_all=False)
-        return True
+        return self.running.step_s
 
     async def start_tcp(self, port: int = 0, *, host: str = "127.0.0.1") -> int:
         """Listen on ``host:port`` (0 picks a free port); returns the bound port.
@@ -523,14 +467,13 @@ class SimulatorServer:
 
     async def stop(self) -> None:
         """Close the listener, every connection, the pty and the ticker (idempotent)."""
-        self._stopping.set()
+        ticker = self.running.take_ticker()
         listener, self._tcp = self._tcp, None
         if listener is not None:
             listener.close()  # stop accepting; connections are cancelled below
         tasks = list(self._tasks)
-        if self._ticker is not None:
-            tasks.append(self._ticker)
-            self._ticker = None
+        if ticker is not None:
+            tasks.append(ticker)
         for task in tasks:
             task.cancel()
         await asyncio.gather(*tasks, return_exceptions=True)
@@ -642,7 +585,7 @@ class SimulatorServer:
         try:
             # One bounded step keeps the answer fresh at low speed without making a
             # query wait for a long render at high speed (the ticker does the rest).
-            self._advance_step_locked(self.clock.now_s())
+            self.running.advance_step_locked(self.clock.now_s())
             return handler(cmd), cmd.header
         except CommandError as err:
             return self._push_error(err.code, str(err), tag), cmd.header

@@ -1,0 +1,532 @@
+"""Async client for a Nanonis (SPECS) controller over its TCP interface.
+
+:class:`NanonisDriver` implements :class:`afmdrift.drivers.Instrument` and
+:class:`afmdrift.drivers.VelocityActuator` with the codec of
+:mod:`afmdrift.drivers.nanonis._codec`, over any
+:class:`~afmdrift.drivers.Transport` (``nanonis://HOST:PORT`` opens a
+:class:`~afmdrift.drivers.SerialTransport` on ``socket://HOST:PORT``). One
+request and its reply run as one blocking exchange in a worker thread under
+one :class:`asyncio.Lock`, as in the NanoScope driver.
+
+What the controller does not have, the driver keeps itself:
+
+Time
+    Nanonis has no clock query. ``now_s()`` is the host's monotonic clock
+    since the driver was made, or, with ``clock_signal``, the value of that
+    signal (the simulator offers ``"Clock (s)"``, which runs on its virtual
+    time).
+Frames
+    ``latest_frame()`` asks ``Scan.WaitEndOfScan`` with a short timeout
+    (``wait_ms``). When a scan ended, the frame is read at once with
+    ``Scan.FrameDataGrab``; its geometry comes from ``Scan.FrameGet`` and
+    ``Scan.BufferGet``, its timing from ``Scan.SpeedGet`` (line time is
+    forward + backward time per line) and the time the end was seen. A scan
+    that ends between two waits is missed; polling continuously
+    (``frame_poll_interval_s`` <= ``wait_ms``) keeps that window to the
+    duration of the other commands.
+Event log
+    Nanonis logs nothing afmdrift can read, so the driver logs what moves the
+    image: every offset it commands (``offset_move`` with the delta), and the
+    displacement the controller's drift compensation (``Piezo.DriftComp``)
+    applied since the last entry, booked at every ``events()`` call and
+    before every change of velocity. ``get_offset()`` is the scan frame centre
+    (or the follow-me position) plus that displacement, so
+    ``p = m + O(t) − O(t_ref)`` holds whatever moved the piezo.
+
+Units: Nanonis speaks SI (m, m/s, s); the driver converts to nm and nm/s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+from urllib.parse import urlsplit
+
+import numpy as np
+
+from afmdrift.drivers._base import ConnectOnEnter
+from afmdrift.drivers._protocol import InstrumentDisconnected, InstrumentTimeout, ProtocolError
+from afmdrift.drivers._transport import SerialTransport, Transport
+from afmdrift.drivers.nanonis._codec import (
+    HEADER_SIZE,
+    MAX_BODY_BYTES,
+    decode_header,
+    decode_reply,
+    encode_request,
+)
+from afmdrift.records import (
+    ChannelSample,
+    Event,
+    EventKind,
+    Frame,
+    InstrumentInfo,
+    ScanDirection,
+)
+
+__all__ = ["NANONIS_SCHEME", "DriftCompState", "NanonisDriver", "nanonis_socket_url"]
+
+log = logging.getLogger(__name__)
+
+#: URL scheme that selects this driver.
+NANONIS_SCHEME = "nanonis://"
+
+_M_TO_NM = 1e9
+
+OffsetMode = Literal["frame", "follow_me"]
+
+
+def nanonis_socket_url(url: str) -> str:
+    """``nanonis://HOST:PORT`` → ``socket://HOST:PORT``.
+
+    Raises
+    ------
+    ValueError
+        Not a ``nanonis://HOST:PORT`` URL with a port in 1..65535.
+    """
+    if not url.startswith(NANONIS_SCHEME):
+        raise ValueError(f"not a nanonis:// URL: {url!r}")
+    parts = urlsplit(url)
+    try:
+        port = parts.port
+    except ValueError:
+        port = None
+    if not parts.hostname or port is None or not 0 < port < 65536 or parts.path not in ("", "/"):
+        raise ValueError(f"expected nanonis://HOST:PORT with a port in 1..65535, got {url!r}")
+    return f"socket://{parts.hostname}:{port}"
+
+
+@dataclass(frozen=True, slots=True)
+class DriftCompState:
+    """The controller's drift compensation (``Piezo.DriftCompGet``), in nm and nm/s."""
+
+    on: bool
+    velocity_nm_per_s: tuple[float, float, float]
+    saturated: tuple[bool, bool, bool]
+    limit_pct: float
+
+
+class NanonisDriver(ConnectOnEnter):
+    """A Nanonis controller seen through the :class:`Instrument` interface.
+
+    Parameters
+    ----------
+    transport : Transport or str
+        An unopened transport (re-opened to reconnect), or a URL:
+        ``nanonis://HOST:PORT`` or ``socket://HOST:PORT``.
+    channel_index : int
+        Scan channel that ``Scan.FrameDataGrab`` reads (an index of the
+        channels ``Scan.BufferGet`` lists; a height channel in metres).
+    direction : {"forward", "backward"}
+        Which trace of each line to read.
+    channels : mapping of str to str
+        afmdrift channel name (``temperature_c``) → Nanonis signal name
+        (``"Temperature (C)"``) read with ``Signals.ValsGet``.
+    offset_mode : {"frame", "follow_me"}
+        ``set_offset`` moves the scan frame centre (``Scan.FrameSet``) or the
+        tip (``FolMe.XYPosSet``).
+    clock_signal : str
+        Signal giving the instrument time in s; empty: the host clock.
+    wait_ms : int
+        Timeout of each ``Scan.WaitEndOfScan``.
+    drift_comp_limit_pct : float
+        Saturation limit sent with ``Piezo.DriftCompSet`` (% of the piezo range).
+    recentre_fraction : float
+        Re-centre the drift compensation once its displacement reaches this
+        fraction of the limit on an axis (or the controller reports saturation).
+    comp_log_step_s : float
+        Instrument seconds of compensation ramp per logged ``offset_move``.
+    timeout_s : float
+        Longest wait for a reply (beyond ``wait_ms`` for ``Scan.WaitEndOfScan``).
+    reconnect_attempts : int
+        Attempts to (re)open the transport.
+    max_body_bytes : int
+        Largest reply body accepted.
+    """
+
+    def __init__(
+        self,
+        transport: Transport | str,
+        *,
+        channel_index: int = 0,
+        direction: Literal["forward", "backward"] = "forward",
+        channels: Mapping[str, str] | None = None,
+        offset_mode: OffsetMode = "frame",
+        clock_signal: str = "",
+        wait_ms: int = 200,
+        drift_comp_limit_pct: float = 10.0,
+        recentre_fraction: float = 0.8,
+        comp_log_step_s: float = 5.0,
+        timeout_s: float = 5.0,
+        reconnect_attempts: int = 3,
+        max_body_bytes: int = MAX_BODY_BYTES,
+    ) -> None:
+        if isinstance(transport, str):
+            url = (
+                nanonis_socket_url(transport) if transport.startswith(NANONIS_SCHEME) else transport
+            )
+            transport = SerialTransport(url)
+        if direction not in ("forward", "backward"):
+            raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
+        if offset_mode not in ("frame", "follow_me"):
+            raise ValueError(f"offset_mode must be 'frame' or 'follow_me', got {offset_mode!r}")
+        if not 0 < drift_comp_limit_pct <= 100:
+            raise ValueError(
+                f"drift_comp_limit_pct must be in (0, 100], got {drift_comp_limit_pct}"
+            )
+        if not 0 < recentre_fraction <= 1:
+            raise ValueError(f"recentre_fraction must be in (0, 1], got {recentre_fraction}")
+        if not comp_log_step_s > 0:
+            raise ValueError(f"comp_log_step_s must be > 0, got {comp_log_step_s}")
+        if wait_ms < 0 or timeout_s <= 0 or reconnect_attempts < 1:
+            raise ValueError(
+                f"need wait_ms >= 0, timeout_s > 0, reconnect_attempts >= 1; got {wait_ms}, "
+                f"{timeout_s}, {reconnect_attempts}"
+            )
+        self.transport = transport
+        self.channel_index = int(channel_index)
+        self.direction = direction
+        self.channel_map = dict(channels or {})
+        self.offset_mode: OffsetMode = offset_mode
+        self.clock_signal = clock_signal
+        self.wait_ms = int(wait_ms)
+        self.drift_comp_limit_pct = float(drift_comp_limit_pct)
+        self.recentre_fraction = float(recentre_fraction)
+        self.comp_log_step_s = float(comp_log_step_s)
+        self.timeout_s = float(timeout_s)
+        self.reconnect_attempts = int(reconnect_attempts)
+        self.max_body_bytes = int(max_body_bytes)
+        self._lock = asyncio.Lock()
+        self._io_lock = threading.Lock()
+        self._t0 = time.monotonic()
+        self._signal_index: dict[str, int] = {}
+        self._range_nm = (math.inf, math.inf)
+        self._events: list[Event] = [Event(0.0, EventKind.POWER_ON)]
+        self._latest: Frame | None = None
+        self._next_index = 0
+        # Drift compensation as the driver books it: velocity (nm/s) since
+        # ``_comp_t``, displacement (nm) the controller applied since it was
+        # switched on, and the part of it already logged as offset_move.
+        self._comp_on = False
+        self._comp_v = (0.0, 0.0)
+        self._comp_t = 0.0
+        self._comp_q = [0.0, 0.0]
+        self._comp_saturated = [False, False]
+        self.recentres = 0
+        self.frame_transfers = 0
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def connect(self) -> None:
+        """Open the transport; read the signal names, piezo range and drift compensation."""
+        async with self._lock:
+            await self._open_with_retries()
+        names = (await self.call("Signals.NamesGet"))[0]
+        self._signal_index = {str(n): k for k, n in enumerate(names)}
+        for key, signal in [*self.channel_map.items(), ("clock", self.clock_signal)]:
+            if signal and signal not in self._signal_index:
+                raise ProtocolError(
+                    f"{self.transport.name}: signal {signal!r} (for {key}) is not among the "
+                    f"controller's {len(names)} signals"
+                )
+        rx, ry, _ = await self.call("Piezo.RangeGet")
+        self._range_nm = (float(rx) * _M_TO_NM, float(ry) * _M_TO_NM)
+        state = await self.drift_comp()
+        t = await self.now_s()
+        # Compensation that was already running is booked from now on (its
+        # earlier displacement is part of where the piezo stands).
+        self._comp_on = state.on
+        self._comp_v = state.velocity_nm_per_s[:2]
+        self._comp_t = t
+        self._comp_saturated = list(state.saturated[:2])
+
+    async def _open_with_retries(self) -> None:
+        last: Exception | None = None
+        for attempt in range(self.reconnect_attempts):
+            if attempt:
+                await asyncio.sleep(min(0.1 * 2**attempt, 2.0))
+            try:
+                await asyncio.to_thread(self._reopen_sync)
+                return
+            except InstrumentDisconnected as err:
+                last = err
+        raise InstrumentDisconnected(
+            f"{self.transport.name}: could not connect after {self.reconnect_attempts} "
+            f"attempt(s): {last}"
+        )
+
+    def _reopen_sync(self) -> None:
+        with self._io_lock:
+            self.transport.close()
+            self.transport.open()
+
+    async def close(self) -> None:
+        """Close the transport (idempotent)."""
+        async with self._lock:
+            await asyncio.to_thread(self._close_sync)
+
+    def _close_sync(self) -> None:
+        with self._io_lock:
+            self.transport.close()
+
+    # ---------------------------------------------------------------- exchange
+
+    async def call(self, name: str, *args: Any, wait_s: float = 0.0) -> tuple[Any, ...]:
+        """Send command ``name`` with ``args``; return its reply values.
+
+        ``wait_s`` extends the reply timeout (for commands that block on the
+        controller, like ``Scan.WaitEndOfScan``).
+
+        Raises
+        ------
+        NanonisError
+            The controller reported an error.
+        ProtocolError, InstrumentTimeout, InstrumentDisconnected
+            The reply was malformed, late, or the line was lost (the input is
+            flushed after the first two, so the next command starts clean).
+        """
+        request = encode_request(name, *args)
+        async with self._lock:
+            if not self.transport.is_open:
+                await self._open_with_retries()
+            return await asyncio.to_thread(self._exchange, name, request, wait_s)
+
+    def _exchange(self, name: str, request: bytes, wait_s: float) -> tuple[Any, ...]:
+        with self._io_lock:
+            try:
+                self.transport.write(request)
+                timeout = self.timeout_s + wait_s
+                header = decode_header(
+                    self.transport.read_exact(HEADER_SIZE, timeout),
+                    max_body_bytes=self.max_body_bytes,
+                )
+                body = self.transport.read_exact(header.body_size, timeout)
+                return decode_reply(name, header, body)
+            except (ProtocolError, InstrumentTimeout) as err:
+                log.warning("%s: %s: %s; resynchronising", self.transport.name, name, err)
+                self.transport.flush_input()
+                raise
+
+    # ---------------------------------------------------------------- Instrument
+
+    async def identify(self) -> InstrumentInfo:
+        """Vendor and model; the serial is the connection (Nanonis does not report one)."""
+        await self.call("Scan.StatusGet")
+        return InstrumentInfo("SPECS", "Nanonis", self.transport.name, "TCP interface")
+
+    async def now_s(self) -> float:
+        """Instrument time in s: the clock signal, or the host clock since the driver was made."""
+        if not self.clock_signal:
+            return time.monotonic() - self._t0
+        (values,) = await self.call(
+            "Signals.ValsGet", np.array([self._signal_index[self.clock_signal]]), 0
+        )
+        return float(values[0])
+
+    async def read_channels(self) -> ChannelSample:
+        """The mapped signals (``Signals.ValsGet``) at the instrument's current time."""
+        keys = list(self.channel_map)
+        indexes = [self._signal_index[self.channel_map[k]] for k in keys]
+        if self.clock_signal:
+            indexes.append(self._signal_index[self.clock_signal])
+        if not indexes:
+            return ChannelSample(t_s=await self.now_s())
+        (values,) = await self.call("Signals.ValsGet", np.array(indexes), 0)
+        if len(values) != len(indexes):
+            raise ProtocolError(f"Signals.ValsGet: asked {len(indexes)} values, got {len(values)}")
+        t = float(values[-1]) if self.clock_signal else time.monotonic() - self._t0
+        return ChannelSample(
+            t_s=t, values={k: float(v) for k, v in zip(keys, values, strict=False)}
+        )
+
+    async def latest_frame(self) -> Frame | None:
+        """Wait up to ``wait_ms`` for an end of scan; read the new frame, else the last one."""
+        timed_out, _path = await self.call(
+            "Scan.WaitEndOfScan", self.wait_ms, wait_s=self.wait_ms / 1000.0
+        )
+        if timed_out:
+            return self._latest
+        t_end = await self.now_s()
+        frame = await self._grab(t_end)
+        self._latest = frame
+        return frame
+
+    async def _grab(self, t_end_s: float) -> Frame:
+        name, data, up = await self.call(
+            "Scan.FrameDataGrab", self.channel_index, 1 if self.direction == "forward" else 0
+        )
+        _cx, _cy, width_m, height_m, _angle = await self.call("Scan.FrameGet")
+        _chans, pixels, lines = await self.call("Scan.BufferGet")
+        _vf, _vb, fwd_s, bwd_s, _keep, _ratio = await self.call("Scan.SpeedGet")
+        rows, cols = data.shape
+        if (rows, cols) != (lines, pixels) or rows < 2 or cols < 2:
+            raise ProtocolError(
+                f"Scan.FrameDataGrab gave {rows} × {cols} data, Scan.BufferGet says "
+                f"{lines} lines × {pixels} pixels"
+            )
+        scale = _M_TO_NM if str(name).endswith("(m)") else 1.0
+        heights = data.astype(np.float32) * np.float32(scale)
+        line_s = float(fwd_s) + float(bwd_s)
+        index = self._next_index
+        self._next_index += 1
+        self.frame_transfers += 1
+        return Frame(
+            index=index,
+            heights_nm=heights,
+            pixel_size_nm=(float(width_m) * _M_TO_NM / cols, float(height_m) * _M_TO_NM / rows),
+            t_start_s=t_end_s - rows * line_s,
+            t_end_s=t_end_s,
+            direction=ScanDirection.UP if up else ScanDirection.DOWN,
+        )
+
+    async def events(self, start: int = 0) -> list[Event]:
+        """The driver's log from ``start``, after booking the drift compensation up to now."""
+        if start < 0:
+            raise ValueError(f"events: start must be >= 0, got {start}")
+        if self._comp_on:
+            self._book_comp(await self.now_s())
+        return self._events[start:]
+
+    async def get_offset(self) -> tuple[float, float]:
+        """Frame centre (or follow-me position) plus the compensation booked so far, nm."""
+        x, y = await self._base_offset_nm()
+        if self._comp_on:
+            self._book_comp(await self.now_s())
+        return x + self._comp_q[0], y + self._comp_q[1]
+
+    async def set_offset(self, x_nm: float, y_nm: float) -> None:
+        """Move the effective offset (see :meth:`get_offset`) to ``(x_nm, y_nm)``.
+
+        The frame centre (or tip) moves by the difference; logged as ``offset_move``.
+        """
+        ex, ey = await self.get_offset()
+        dx, dy = float(x_nm) - ex, float(y_nm) - ey
+        await self._move_base(dx, dy)
+
+    async def _base_offset_nm(self) -> tuple[float, float]:
+        if self.offset_mode == "frame":
+            cx, cy, *_ = await self.call("Scan.FrameGet")
+        else:
+            cx, cy = await self.call("FolMe.XYPosGet", 0)
+        return float(cx) * _M_TO_NM, float(cy) * _M_TO_NM
+
+    async def _move_base(self, dx_nm: float, dy_nm: float) -> None:
+        if self.offset_mode == "frame":
+            cx, cy, w, h, angle = await self.call("Scan.FrameGet")
+            nx = float(cx) + dx_nm / _M_TO_NM
+            ny = float(cy) + dy_nm / _M_TO_NM
+            await self.call("Scan.FrameSet", nx, ny, w, h, angle)
+            # The controller holds the centre as float32: log the move it made.
+            done_x = (float(np.float32(nx)) - float(cx)) * _M_TO_NM
+            done_y = (float(np.float32(ny)) - float(cy)) * _M_TO_NM
+        else:
+            x, y = await self.call("FolMe.XYPosGet", 0)
+            await self.call("FolMe.XYPosSet", x + dx_nm / _M_TO_NM, y + dy_nm / _M_TO_NM, 0)
+            done_x, done_y = dx_nm, dy_nm
+        self._events.append(Event(await self.now_s(), EventKind.OFFSET_MOVE, done_x, done_y))
+
+    # ---------------------------------------------------------------- drift compensation
+
+    async def drift_comp(self) -> DriftCompState:
+        """``Piezo.DriftCompGet`` in nm/s."""
+        on, vx, vy, vz, sx, sy, sz, limit = await self.call("Piezo.DriftCompGet")
+        return DriftCompState(
+            on=bool(on),
+            velocity_nm_per_s=(vx * _M_TO_NM, vy * _M_TO_NM, vz * _M_TO_NM),
+            saturated=(bool(sx), bool(sy), bool(sz)),
+            limit_pct=float(limit),
+        )
+
+    def _book_comp(self, t_s: float) -> None:
+        """Log the displacement the compensation applied since the last booking.
+
+        One ``offset_move`` per ``comp_log_step_s`` of instrument time (at the
+        end of each step), so the offset the service reconstructs from the log
+        follows the ramp to within ``v · comp_log_step_s``.
+        """
+        t0 = self._comp_t
+        if t_s <= t0:
+            return
+        steps = max(1, math.ceil((t_s - t0) / self.comp_log_step_s))
+        for k in range(1, steps + 1):
+            t = t_s if k == steps else t0 + k * self.comp_log_step_s
+            dt = t - self._comp_t
+            self._comp_t = t
+            step = [0.0, 0.0]
+            for axis in range(2):
+                if self._comp_saturated[axis]:
+                    continue
+                limit = self.drift_comp_limit_pct / 100.0 * self._range_nm[axis]
+                q = min(max(self._comp_q[axis] + self._comp_v[axis] * dt, -limit), limit)
+                step[axis] = q - self._comp_q[axis]
+                self._comp_q[axis] = q
+            if step[0] or step[1]:
+                self._events.append(Event(t, EventKind.OFFSET_MOVE, step[0], step[1]))
+
+    async def set_drift_velocity(self, vx_nm_per_s: float, vy_nm_per_s: float) -> None:
+        """Move the image at this velocity with the controller's drift compensation.
+
+        Books the displacement so far, reads the saturation back, re-centres
+        when an axis saturated or came within ``recentre_fraction`` of the
+        limit (the frame centre takes over the displacement and the
+        compensation is released), then sets the new velocity (Vz = 0).
+        """
+        for name, v in (("vx_nm_per_s", vx_nm_per_s), ("vy_nm_per_s", vy_nm_per_s)):
+            if not math.isfinite(v):
+                raise ValueError(f"set_drift_velocity: {name} = {v} is not finite")
+        state = await self.drift_comp()
+        t = await self.now_s()
+        if self._comp_on:
+            self._book_comp(t)
+        limits = [self.drift_comp_limit_pct / 100.0 * r for r in self._range_nm]
+        near = any(
+            abs(q) >= self.recentre_fraction * lim
+            for q, lim in zip(self._comp_q, limits, strict=True)
+        )
+        if self._comp_on and (any(state.saturated[:2]) or near):
+            await self._recentre()
+        vx = float(np.float32(vx_nm_per_s / _M_TO_NM))
+        vy = float(np.float32(vy_nm_per_s / _M_TO_NM))
+        await self.call("Piezo.DriftCompSet", 1, vx, vy, 0.0, self.drift_comp_limit_pct)
+        self._comp_on = True
+        self._comp_v = (vx * _M_TO_NM, vy * _M_TO_NM)
+        self._comp_t = await self.now_s()
+        self._comp_saturated = [False, False]
+
+    async def _recentre(self) -> None:
+        qx, qy = self._comp_q
+        log.info("drift compensation re-centred at (%.2f, %.2f) nm", qx, qy)
+        if self.offset_mode == "frame":
+            cx, cy, w, h, angle = await self.call("Scan.FrameGet")
+            await self.call("Scan.FrameSet", cx + qx / _M_TO_NM, cy + qy / _M_TO_NM, w, h, angle)
+        else:
+            x, y = await self.call("FolMe.XYPosGet", 0)
+            await self.call("FolMe.XYPosSet", x + qx / _M_TO_NM, y + qy / _M_TO_NM, 0)
+        await self.call("Piezo.DriftCompSet", 2, 0.0, 0.0, 0.0, self.drift_comp_limit_pct)
+        t = await self.now_s()
+        # The base took over what the compensation had applied: net zero.
+        self._events.append(Event(t, EventKind.OFFSET_MOVE, qx, qy))
+        self._events.append(Event(t, EventKind.OFFSET_MOVE, -qx, -qy))
+        self._comp_q = [0.0, 0.0]
+        self._comp_on = False
+        self._comp_t = t
+        self.recentres += 1
+
+    # ---------------------------------------------------------------- scan control
+
+    async def scanning(self) -> bool:
+        """``Scan.StatusGet``."""
+        (status,) = await self.call("Scan.StatusGet")
+        return bool(status)
+
+    async def start_scan(self, *, up: bool = True) -> None:
+        """``Scan.Action`` start."""
+        await self.call("Scan.Action", 0, 1 if up else 0)
+
+    async def stop_scan(self) -> None:
+        await self.call("Scan.Action", 1, 1)

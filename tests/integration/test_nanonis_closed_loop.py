@@ -1,0 +1,104 @@
+"""Closed loop on the Nanonis simulator: 2 simulated hours of the default scenario.
+
+Two actuators, each over the Nanonis protocol on loopback TCP: the scan frame
+(``Scan.FrameSet``) and the controller's own drift compensation
+(``Piezo.DriftCompSet``, piecewise-constant velocities from d(t)). Ground truth
+comes from the simulator (never sent over the wire): where image content sits
+at each frame's mid-time, ``p(t) − c(t) − q(t)`` (drift minus commanded offset
+minus the compensation ramp), relative to the first frame.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zmq.asyncio
+
+from afmdrift.config import parse_config
+from afmdrift.drivers.nanonis import NanonisDriver
+from afmdrift.drivers.sim import SCENARIO_DIR, SimulatedAFM
+from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL, NanonisSimServer
+from afmdrift.service import RunStore
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from service_sim import running_service, service_config
+
+# 2.5 min of wall time per actuator: excluded by default, run with -m soak.
+pytestmark = [pytest.mark.asyncio, pytest.mark.slow, pytest.mark.soak]
+
+DURATION_S = 7200.0
+SPEED = 50.0
+
+
+async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
+    sim = SimulatedAFM.from_scenario(SCENARIO_DIR / "default.toml")
+    ctx = zmq.asyncio.Context()
+    try:
+        async with NanonisSimServer(sim, speed=SPEED) as server:
+            port = await server.start_tcp(0)
+            driver = NanonisDriver(
+                f"nanonis://127.0.0.1:{port}",
+                channel_index=SCAN_CHANNEL,
+                channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
+                clock_signal=CLOCK_SIGNAL,
+                wait_ms=100,
+            )
+            # The project's default registration and model; the service's loops fast.
+            svc = service_config(
+                run_dir,
+                closed_loop=True,
+                closed_loop_actuator=actuator,
+                closed_loop_interval_s=0.1,
+                closed_loop_min_step_nm=0.0,
+            ).service
+            cfg = parse_config({"service": svc.model_dump(mode="json", exclude_defaults=True)})
+            async with running_service(cfg, driver, ctx) as service:
+                async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
+                    while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
+                        await asyncio.sleep(0.5)
+                latencies = np.array(service.latencies_s)
+                recentres = driver.recentres
+    finally:
+        ctx.term()
+    records = RunStore(run_dir).frames()
+    t_mid = np.array([0.5 * (r.t_start_s + r.t_end_s) for r in records])
+    content = sim.physics.drift_at(t_mid) - sim.physics.scan_offset_at(t_mid)
+    error = content - content[0]
+    drift = sim.physics.drift_at(t_mid)
+    return {
+        "frames": float(len(records)),
+        "rms_nm": float(np.sqrt(np.mean(np.sum(error**2, axis=1)))),
+        "rms_after_10_frames_nm": float(np.sqrt(np.mean(np.sum(error[10:] ** 2, axis=1)))),
+        "err_every_10": [round(float(np.hypot(*e)), 2) for e in error[::10]],  # type: ignore[dict-item]
+        "max_nm": float(np.max(np.hypot(error[:, 0], error[:, 1]))),
+        "drift_nm": float(np.max(np.hypot(*(drift - drift[0]).T))),
+        "latency_p50_s": float(np.median(latencies)),
+        "latency_p95_s": float(np.percentile(latencies, 95)),
+        "recentres": float(recentres),
+    }
+
+
+@pytest.mark.timeout(600)
+@pytest.mark.parametrize("actuator", ["offset", "velocity"])
+async def test_two_hours_of_closed_loop_hold_the_image_while_the_sample_drifts(
+    tmp_path: Path, actuator: str
+) -> None:
+    """Scan.FrameSet (offset) or Piezo.DriftCompSet (velocity): the loop is stable
+    and holds the image content near its first position while the sample drifts
+    by more than 50 nm.
+
+    Regression guard at the measured level, not the issue's target: issue 15
+    asks for 2 nm RMS; measured (benchmarks/RESULTS.md) 3.9 nm RMS through
+    Scan.FrameSet and 5.6 nm through Piezo.DriftCompSet, against 120 to 130 nm
+    of drift.
+    """
+    m = await _closed_loop(tmp_path / "run", actuator)
+    print(f"closed loop via {actuator}: {m}")
+    assert m["frames"] > 80
+    assert m["drift_nm"] > 50.0
+    assert m["rms_nm"] < 7.0
+    assert m["recentres"] == 0
