@@ -3,9 +3,10 @@
 The registration engine measures where the image content of each frame sits
 relative to a reference frame. Two things move image content: drift, and the
 XY scan offset that the operator (or afmdrift itself) commands. Models want
-drift only, so commanded moves are added back here. The service and
-``afmdrift evaluate`` both use :func:`drift_from_measurements`, so there is one
-definition of the sign convention.
+drift only, so commanded moves are added back: :func:`commanded_offset_nm`
+gives O(t), which the position component of the pipeline
+(``afmdrift.pipeline.DriftPositions``) applies per block row; the sign
+convention is stated once, here.
 
 Sign convention
 ---------------

@@ -185,6 +185,7 @@ class DriftTrajectory:
         self.origin: tuple[int, float] | None = None  # (key, t) where p = 0
         self.bias = np.zeros(2)
         self.bias_var = BIAS_PRIOR_NM**2
+        self.breaks: list[float] = []
         # Causal state: information form over the free unknowns (index 0 is
         # the bias), their indices, and the last two knots in time.
         self._h = np.array([[1.0 / BIAS_PRIOR_NM**2]])
@@ -197,6 +198,18 @@ class DriftTrajectory:
 
     def __len__(self) -> int:
         return len(self.order)
+
+    def add_break(self, t_s: float) -> None:
+        """Let p jump at ``t_s`` (a logged tip change shifts the image at once):
+        no smoothness row spans it, so the knots after it follow their own
+        constraints rather than being bent towards the curve before it."""
+        if math.isfinite(t_s):
+            bisect.insort(self.breaks, float(t_s))
+
+    def _breaks_between(self, t0: float, t1: float) -> bool:
+        """A break in (t0, t1]."""
+        k = bisect.bisect_right(self.breaks, t0)
+        return k < len(self.breaks) and self.breaks[k] <= t1
 
     def add_frame(
         self,
@@ -262,7 +275,7 @@ class DriftTrajectory:
         chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
         for na, nb, nc in zip(chain, chain[1:], chain[2:], strict=False):
             h1, h2 = nb[0] - na[0], nc[0] - nb[0]
-            if h1 <= 0 or h2 <= 0:
+            if h1 <= 0 or h2 <= 0 or self._breaks_between(na[0], nc[0]):
                 continue
             terms, const = self._terms_of_nodes(
                 ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
@@ -522,7 +535,7 @@ class DriftTrajectory:
             seq.pop(0)
         for na, nb, nc in zip(seq, seq[1:], seq[2:], strict=False):
             h1, h2 = nb[0] - na[0], nc[0] - nb[0]
-            if h1 <= 0 or h2 <= 0:
+            if h1 <= 0 or h2 <= 0 or self._breaks_between(na[0], nc[0]):
                 continue
             coef = ((na, 1.0 / h1), (nb, -1.0 / h1 - 1.0 / h2), (nc, 1.0 / h2))
             terms = []

@@ -54,7 +54,7 @@ from afmdrift.model import (
     default_q,
 )
 from afmdrift.pipeline._records import FrameRecord
-from afmdrift.records import Event, Frame, ScanDirection, row_times_s
+from afmdrift.records import Event, EventKind, Frame, ScanDirection, row_times_s
 from afmdrift.registration import DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
 
@@ -131,6 +131,7 @@ class DriftPositions:
         self._keys: dict[int, int] = {}
         self._timings: dict[int, _Timing] = {}
         self._last_t_s: float | None = None  # mid time of the tracker's last frame
+        self._breaks_to_s = -math.inf  # tip changes up to here are breaks already
 
     def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
         return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
@@ -205,7 +206,7 @@ class DriftPositions:
         offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
         pos = FramePosition(offset=offset, reason=reason)
         if not reason and step is None and tracker is not None:
-            self._place_reference(frame, seq, tracker, pos, prediction_nm, n_fed, held)
+            self._place_reference(frame, seq, tracker, pos, prediction_nm, n_fed, held, events)
         elif step is not None and tracker is not None:
             self._place_measured(frame, seq, tracker, step, pos, events, held)
         pos.p = pos.m + offset
@@ -268,8 +269,22 @@ class DriftPositions:
         self._last_t_s = frame.t_mid_s
 
     def _add_to_trajectory(
-        self, seq: int, frame: Frame, knots: FloatArray, constraints: list[BandConstraint]
+        self,
+        seq: int,
+        frame: Frame,
+        knots: FloatArray,
+        constraints: list[BandConstraint],
+        events: Sequence[Event],
     ) -> FrameTrajectory | None:
+        for e in events:
+            # A tip change shifts the image at once: the trajectory may jump there.
+            if (
+                e.kind is EventKind.TIP_CHANGE
+                and e.t_s > self._breaks_to_s
+                and (e.t_s <= frame.t_end_s)
+            ):
+                self.trajectory.add_break(e.t_s)
+        self._breaks_to_s = max(self._breaks_to_s, frame.t_end_s)
         if not self._q_set and len(self.trajectory) == 0:
             self.trajectory.q = default_q(frame.t_end_s - frame.t_start_s)
             self._q_set = True
@@ -294,6 +309,7 @@ class DriftPositions:
         prediction_nm: FloatArray,
         n_fed: int,
         held: bool,
+        events: Sequence[Event],
     ) -> None:
         """The frame is the new reference: p = 0 for the session reference;
         otherwise the trajectory continued from the frames before it."""
@@ -302,7 +318,7 @@ class DriftPositions:
         first = self.last_p_nm is None and n_fed == 0 and len(self.trajectory) == 0
         # A reference has no measurement of its own: its samples are not
         # known yet, so it reports none (the smoothed trajectory has them).
-        traj = self._add_to_trajectory(seq, frame, knots, [])
+        traj = self._add_to_trajectory(seq, frame, knots, [], events)
         if first:
             p_est = np.zeros(2)
             pos.reason = "reference"
@@ -411,7 +427,7 @@ class DriftPositions:
             if made is not None:
                 constraints, dy_px = made
                 knots = self._knot_times(tracker, self._timings[seq], dy_px)
-                traj = self._add_to_trajectory(seq, frame, knots, constraints)
+                traj = self._add_to_trajectory(seq, frame, knots, constraints, events)
                 if traj is not None:
                     pos.trajectory = traj
                     # p from the trajectory at mid-scan time; m keeps its meaning.
