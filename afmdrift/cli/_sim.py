@@ -124,7 +124,7 @@ def _serve(args: argparse.Namespace) -> int:
 
         if port is None or args.faults:
             raise ConfigError("--protocol nanonis serves TCP only (--port N), without --faults")
-        asyncio.run(_serve_nanonis_until_signal(sim, port=port, speed=args.speed))
+        asyncio.run(_serve_until_signal(sim, port=port, speed=args.speed, protocol="nanonis"))
         return 0
     asyncio.run(_serve_until_signal(sim, port=port, speed=args.speed, faults=args.faults))
     return 0
@@ -140,59 +140,39 @@ def _scenario(name: str | None) -> Any:
 
 
 async def _serve_until_signal(
-    sim: Any, *, port: int | None, speed: float, faults: float = 0.0
+    sim: Any, *, port: int | None, speed: float, faults: float = 0.0, protocol: str = "line"
 ) -> None:
-    import asyncio
-    import signal
-
-    from afmdrift.drivers.sim._server import ServerFaults, SimulatorServer
-
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, stop.set)
-    try:
-        random_faults = ServerFaults(seed=1, random_rate=faults)
-        async with SimulatorServer(sim, speed=speed, faults=random_faults) as server:
-            if port is None:
-                print(await server.start_pty(), flush=True)
-            else:
-                try:
-                    bound = await server.start_tcp(port)
-                except OSError as err:
-                    from afmdrift.errors import ConfigError
-
-                    raise ConfigError(
-                        f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
-                    ) from None
-                print(bound, flush=True)
-            await stop.wait()
-    finally:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.remove_signal_handler(sig)
-
-
-async def _serve_nanonis_until_signal(sim: Any, *, port: int, speed: float) -> None:
+    """Serve ``sim`` over ``protocol`` (TCP on ``port``, or a pseudo-terminal
+    for the line protocol) until SIGINT or SIGTERM; print the address."""
     import asyncio
     import signal
 
     from afmdrift.drivers.sim._nanonis_server import NanonisSimServer
+    from afmdrift.drivers.sim._server import ServerFaults, SimulatorServer
+    from afmdrift.errors import ConfigError
 
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    server: NanonisSimServer | SimulatorServer
+    if protocol == "nanonis":
+        server = NanonisSimServer(sim, speed=speed)
+    else:
+        server = SimulatorServer(sim, speed=speed, faults=ServerFaults(seed=1, random_rate=faults))
     try:
-        async with NanonisSimServer(sim, speed=speed) as server:
-            try:
-                bound = await server.start_tcp(port)
-            except OSError as err:
-                from afmdrift.errors import ConfigError
-
-                raise ConfigError(
-                    f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
-                ) from None
-            print(bound, flush=True)
+        async with server:
+            if port is None and isinstance(server, SimulatorServer):
+                print(await server.start_pty(), flush=True)
+            else:
+                assert port is not None
+                try:
+                    bound = await server.start_tcp(port)
+                except OSError as err:
+                    raise ConfigError(
+                        f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
+                    ) from None
+                print(bound, flush=True)
             await stop.wait()
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):

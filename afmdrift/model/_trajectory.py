@@ -330,10 +330,18 @@ class DriftTrajectory:
             self._marginalise(drop)
 
     def _terms_at(
-        self, key: int, t: float, scale: float
+        self,
+        key: int,
+        t: float,
+        scale: float,
+        index: dict[tuple[int, int], int] | None = None,
+        fixed_var: list[float] | None = None,
     ) -> tuple[list[tuple[int, float]], FloatArray]:
-        """Terms of scale·p(t) in frame ``key``'s knots: free knots as terms,
-        the others (marginalised or anchored) as constants."""
+        """Terms of scale·p(t) in frame ``key``'s knots: knots in ``index``
+        (default: the causal state's free knots) as terms, the others
+        (marginalised, fixed or anchored) as constants, whose variances are
+        appended to ``fixed_var`` if given."""
+        idx_map = self._idx if index is None else index
         f = self.frames[key]
         i, j, wi, wj = _weights(t, f.t_s)
         terms: list[tuple[int, float]] = []
@@ -341,9 +349,11 @@ class DriftTrajectory:
         for idx, w in ((i, wi), (j, wj)):
             if w == 0.0:
                 continue
-            c = self._idx.get((key, idx))
+            c = idx_map.get((key, idx))
             if c is None:
                 const += scale * w * f.p[idx]
+                if fixed_var is not None:
+                    fixed_var.append(float(f.sigma[idx]) ** 2)
             else:
                 terms.append((c, scale * w))
         return terms, const
@@ -435,7 +445,7 @@ class DriftTrajectory:
             for f in self.frames.values():
                 f.fixed = f.anchor
             self.bias, self.bias_var = np.zeros(2), BIAS_PRIOR_NM**2
-            self._solve([k for k in self.order if not self.frames[k].anchor], causal=False)
+            self._solve([k for k in self.order if not self.frames[k].anchor])
             return {k: self.estimate(k) for k in self.order}
         finally:
             for k, (p, s, fx) in saved.items():
@@ -467,7 +477,7 @@ class DriftTrajectory:
 
     # ------------------------------------------------------------------ solve
 
-    def _solve(self, active: list[int], *, causal: bool) -> None:
+    def _solve(self, active: list[int]) -> None:
         col: dict[tuple[int, int], int] = {}
         for k in active:
             for i in range(self.frames[k].t_s.size):
@@ -490,24 +500,6 @@ class DriftTrajectory:
             rhs.append(value)
             wts.append(1.0 / sigma)
 
-        def p_terms(key: int, t: float, scale: float) -> tuple[list[tuple[int, float]], FloatArray]:
-            """Terms of scale·p(t) in frame ``key``'s knots; fixed knots go to
-            the constant part."""
-            f = self.frames[key]
-            i, j, wi, wj = _weights(t, f.t_s)
-            terms: list[tuple[int, float]] = []
-            const = np.zeros(2)
-            for idx, w in ((i, wi), (j, wj)):
-                if w == 0.0:
-                    continue
-                c = col.get((key, idx))
-                if c is None:
-                    const += scale * w * f.p[idx]
-                    anchor_var.append(float(f.sigma[idx]) ** 2)
-                else:
-                    terms.append((c, scale * w))
-            return terms, const
-
         # A very weak prior on each free knot keeps a frame without
         # constraints (a new reference) solvable; it never competes with data.
         for (k, i), column in col.items():
@@ -515,8 +507,8 @@ class DriftTrajectory:
         for k in active:
             f = self.frames[k]
             for con in f.constraints:
-                t1, c1 = p_terms(k, con.t_s, 1.0)
-                t2, c2 = p_terms(con.ref_key, con.t_ref_s, -1.0)
+                t1, c1 = self._terms_at(k, con.t_s, 1.0, col, anchor_var)
+                t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0, col, anchor_var)
                 ds = 0.5 * (f.sign - self.frames[con.ref_key].sign)
                 terms = t1 + t2
                 if ds != 0.0:
@@ -549,7 +541,7 @@ class DriftTrajectory:
                 add_row(terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2)))
         # Gauge, and the bias prior.
         if self.origin is not None and self.origin[0] in active:
-            terms, const = p_terms(self.origin[0], self.origin[1], 1.0)
+            terms, const = self._terms_at(self.origin[0], self.origin[1], 1.0, col, anchor_var)
             add_row(terms, -const, GAUGE_SIGMA_NM)
         add_row([(b_col, 1.0)], self.bias, math.sqrt(self.bias_var))
         m = len(rhs)
