@@ -4,12 +4,17 @@ Two images: ``afmdrift measure REF CUR`` prints the drift of CUR relative to
 REF (a feature at u in REF appears at u + d in CUR; x along columns, y along
 rows), in px and nm, with its uncertainty and the valid block count.
 
-One stack or movie: ``afmdrift measure STACK`` measures each frame against the
-last frame that measured well and prints one JSON object per pair (JSON
-lines): the increment and the cumulative drift since frame 0. A frame that
-cannot be registered (blank, too few valid blocks) is reported with
-``"valid": false`` and skipped; the next frame is measured against the same
-reference, so one bad frame does not break the cumulative track.
+One stack or movie: ``afmdrift measure STACK`` streams the frames through
+the daemon's position component (:class:`afmdrift.pipeline.DriftPositions`:
+the keyframe policy of ``[registration] reference``, the drift trajectory with
+each block row placed at its scan time) and prints one JSON object per frame
+(JSON lines): the frame it was measured against, the increment since the
+previous valid frame, the cumulative drift since frame 0 and the frame's
+trajectory samples. A frame that cannot be registered (blank, too few valid
+blocks) is reported with ``"valid": false`` and skipped; the next frame is
+measured against the same reference, so one bad frame does not break the
+track. ``--dewarp DIR`` also writes the frames with each row moved back by
+the drift at its scan time.
 
 Coarse pre-alignment: the block engine only finds shifts up to
 ``(extended_size - block_size) / 2`` px around its prior. Unless
@@ -40,11 +45,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from pydantic import ValidationError
+
 from afmdrift.cli._import import add_file_options, pixel_size_option
+from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.errors import ConfigError, InputError
 
 if TYPE_CHECKING:
-    from afmdrift.config import RegistrationConfig
     from afmdrift.io import AfmImage
     from afmdrift.registration import DriftResult
 
@@ -89,6 +96,12 @@ def register(sub: Any) -> None:
         action="store_true",
         help="skip the whole-image integer pre-alignment (search around zero shift)",
     )
+    p.add_argument(
+        "--dewarp",
+        metavar="DIR",
+        help="stack or movie: also write its frames de-warped by the drift trajectory "
+        "(DIR/frames.npy, NaN where a frame did not scan the first frame's area)",
+    )
     p.set_defaults(handler=_run)
 
 
@@ -97,9 +110,13 @@ def register(sub: Any) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.io import load_image, load_stack, parse_spec
+    from afmdrift.io import load_image
 
     given = (float(args.prior_px[0]), float(args.prior_px[1])) if args.prior_px else None
+    if args.cur is None:
+        return _run_stack(args, load_config(args.config))
+    if args.dewarp:
+        raise ConfigError("--dewarp applies to a stack or movie (one STACK argument)")
     config = measurement_config(
         load_config(args.config).registration,
         block_size=args.block_size,
@@ -110,22 +127,6 @@ def _run(args: argparse.Namespace) -> int:
     pixel = pixel_size_option(args.pixel_size_nm)
     read = {"pixel_size_nm": pixel, "channel": args.channel, "height_unit": args.height_unit}
     coarse = not args.no_coarse
-    if args.cur is None:
-        if parse_spec(args.ref)[1] is not None:
-            raise InputError(f"{args.ref}: one frame; give REF CUR, or the whole stack/movie")
-        frames = load_stack(args.ref, **read)
-        if len(frames) < 2:
-            raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
-        all_valid = True
-        track: list[tuple[int, float, float]] = [(0, 0.0, 0.0)]
-        for doc in track_stack(frames, config, prior_px=given, coarse=coarse):
-            print(json.dumps(doc), flush=True)
-            all_valid = all_valid and bool(doc["valid"])
-            if doc["valid"]:
-                track.append((doc["cur_frame"], doc["cumulative_dx_px"], doc["cumulative_dy_px"]))
-        if args.plot:
-            _plot_track(track, frames[0], Path(args.plot))
-        return 0 if all_valid else 1
     ref = load_image(args.ref, **read)
     cur = load_image(args.cur, **read)
     pair = measure_pair(ref, cur, config, prior_px=given, coarse=coarse)
@@ -277,51 +278,135 @@ def _describe(doc: dict[str, Any]) -> str:
 # --------------------------------------------------------------------------- stacks
 
 
+def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
+    """One STACK argument: track it through the daemon's position component."""
+    from afmdrift.io import load_stack, parse_spec
+
+    if parse_spec(args.ref)[1] is not None:
+        raise InputError(f"{args.ref}: one frame; give REF CUR, or the whole stack/movie")
+    if args.prior_px:
+        raise ConfigError(
+            "--prior-px applies to a pair (REF CUR); a stack is tracked from the coarse "
+            "alignment of its first pair and the measured motion after it"
+        )
+    overrides: dict[str, Any] = {"coarse": not args.no_coarse}
+    for key in ("block_size", "extended_size"):
+        if getattr(args, key) is not None:
+            overrides[key] = getattr(args, key)
+    if args.search_px is not None:
+        overrides["coarse_search_px"] = args.search_px
+    try:
+        registration = RegistrationConfig.model_validate(
+            {**base.registration.model_dump(), **overrides}
+        )
+    except ValidationError as err:
+        raise ConfigError(f"measure: {err.errors()[0]['msg']}") from None
+    read = {
+        "pixel_size_nm": pixel_size_option(args.pixel_size_nm),
+        "channel": args.channel,
+        "height_unit": args.height_unit,
+    }
+    frames = load_stack(args.ref, **read)
+    if len(frames) < 2:
+        raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
+    all_valid = True
+    track: list[tuple[int, float, float]] = [(0, 0.0, 0.0)]
+    config = base.model_copy(update={"registration": registration})
+    for doc in track_stack(frames, config, dewarp=Path(args.dewarp) if args.dewarp else None):
+        print(json.dumps(doc), flush=True)
+        all_valid = all_valid and bool(doc["valid"])
+        if doc["valid"]:
+            track.append((doc["cur_frame"], doc["cumulative_dx_px"], doc["cumulative_dy_px"]))
+    if args.plot:
+        _plot_track(track, frames[0], Path(args.plot))
+    return 0 if all_valid else 1
+
+
 def track_stack(
     frames: Sequence[AfmImage],
-    config: RegistrationConfig,
+    config: AfmdriftConfig | RegistrationConfig,
     *,
-    prior_px: tuple[float, float] | None = None,
-    coarse: bool = True,
+    dewarp: Path | None = None,
 ) -> Iterator[dict[str, Any]]:
-    """Measure each frame against the last one that measured well.
+    """Track a stack or movie through the daemon's position component
+    (:class:`afmdrift.pipeline.DriftPositions`: the keyframe policy of
+    ``[registration] reference``, the drift trajectory with each block row
+    placed at its scan time), frame by frame.
 
-    Yields one JSON-ready dict per frame ``i >= 1``: ``ref_frame``,
-    ``cur_frame``, ``ref_t_s``/``cur_t_s`` (scan starts since frame 0's, when
-    the file has timestamps), the increment (:meth:`PairMeasurement.to_dict`) and, when
-    valid, ``cumulative_{dx,dy}_{px,nm}`` since frame 0. A frame the engine
-    refuses (blank, NaN) gives ``{"valid": false, "error": ...}``; an invalid
-    or refused frame does not become the reference.
+    Frames are timed as ``afmdrift import`` times them
+    (:func:`afmdrift.session.session_from_images`, in time order); a file
+    without any timing is taken as frames 1 s apart, back to back (positions
+    do not depend on it; trajectory times do). Yields one JSON-ready dict per
+    frame ``i >= 1``: ``ref_frame`` (the frame it was measured against),
+    ``cur_frame``, ``t_s`` (mid-scan time; ``ref_t_s``/``cur_t_s``: scan
+    starts since frame 0's, when the file has timestamps), the increment since the previous
+    valid frame (``dx_px`` ... as :meth:`DriftResult.to_dict`), and, when
+    valid, ``cumulative_{dx,dy}_{px,nm}`` since frame 0 (the drift trajectory
+    at the frame's mid-scan time) and ``trajectory`` (its samples: ``t_s``,
+    ``x_nm``, ``y_nm``, ``sigma_x_nm``, ``sigma_y_nm``). A frame the engine
+    refuses (blank, NaN) gives ``{"valid": false, "error": ...}``. With
+    ``dewarp``, the de-warped frames are written there (``frames.npy``,
+    ``frames.csv``) once the stack is done.
     """
-    from afmdrift.errors import AfmdriftError
+    from afmdrift.model import make_predictor
+    from afmdrift.pipeline import FramePipeline, correct_session
+    from afmdrift.session import SessionError, session_from_images
 
-    ref_i = 0
-    pos = (0.0, 0.0)
-    for i in range(1, len(frames)):
-        ref, cur = frames[ref_i], frames[i]
-        doc: dict[str, Any] = {"ref_frame": ref_i, "cur_frame": i}
-        t0 = frames[0].timestamp
-        if t0 is not None and ref.timestamp is not None and cur.timestamp is not None:
-            doc["ref_t_s"] = (ref.timestamp - t0).total_seconds()
-            doc["cur_t_s"] = (cur.timestamp - t0).total_seconds()
-        try:
-            pair = measure_pair(ref, cur, config, prior_px=prior_px, coarse=coarse)
-        except AfmdriftError as err:
-            doc.update(valid=False, error=str(err))
+    cfg = config if isinstance(config, AfmdriftConfig) else AfmdriftConfig(registration=config)
+    try:
+        session = session_from_images(frames)
+    except SessionError as err:
+        if "no frame timing" not in str(err):
+            raise
+        session = session_from_images(frames, frame_time_s=1.0)
+    # Positions do not depend on the model; the cheapest predictor will do.
+    pipeline = FramePipeline(config=cfg, predictor=make_predictor("last_value", cfg.model))
+    px, py = session.meta.pixel_size_nm
+    timed = all(im.timestamp is not None for im in frames)
+    for k, frame in enumerate(session.iter_frames()):
+        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s)
+        if k == 0:
+            continue
+        r, pos = outcome.record, outcome.position
+        ref_frame = None if pos is None else pos.reference_key
+        doc: dict[str, Any] = {"ref_frame": ref_frame, "cur_frame": k, "t_s": r.t_mid_s}
+        if timed:
+            # scan starts since frame 0's, as the file headers give them
+            if ref_frame is not None:
+                doc["ref_t_s"] = float(session.frame_times[ref_frame, 0])
+            doc["cur_t_s"] = r.t_start_s
+        if r.reason.startswith("registration failed"):
+            doc.update(valid=False, error=r.reason.removeprefix("registration failed: "))
             yield doc
             continue
-        doc.update(pair.to_dict())
-        if pair.result.valid:
-            pos = (pos[0] + pair.result.dx_px, pos[1] + pair.result.dy_px)
-            px, py = ref.pixel_size_nm
+        if pos is not None and pos.increment is not None:
+            doc.update(pos.increment.to_dict())
+        valid = r.valid and not r.reason
+        doc["valid"] = bool(valid)
+        doc["reason"] = r.reason or None
+        if valid:
             doc.update(
-                cumulative_dx_px=pos[0],
-                cumulative_dy_px=pos[1],
-                cumulative_dx_nm=pos[0] * px,
-                cumulative_dy_nm=pos[1] * py,
+                cumulative_dx_px=r.image_x_nm / px,
+                cumulative_dy_px=r.image_y_nm / py,
+                cumulative_dx_nm=r.image_x_nm,
+                cumulative_dy_nm=r.image_y_nm,
+                sigma_position_nm=r.sigma_nm,
             )
-            ref_i = i
+            traj = outcome.trajectory
+            if traj is not None:
+                doc["trajectory"] = [
+                    {
+                        "t_s": float(traj.t_s[j]),
+                        "x_nm": float(traj.xy_nm[j, 0]),
+                        "y_nm": float(traj.xy_nm[j, 1]),
+                        "sigma_x_nm": float(traj.sigma_nm[j, 0]),
+                        "sigma_y_nm": float(traj.sigma_nm[j, 1]),
+                    }
+                    for j in range(traj.t_s.size)
+                ]
         yield doc
+    if dewarp is not None:
+        correct_session(session, dewarp, config=cfg, output="npy", fill="nan")
 
 
 # --------------------------------------------------------------------------- plots

@@ -86,6 +86,8 @@ class FrameOutcome:
     trajectory: FrameTrajectory | None = None
     #: The frame de-warped by those samples (``service.archive_corrected``).
     corrected: npt.NDArray[np.float32] | None = None
+    #: Where the frame sits: registration detail, trajectory, reference.
+    position: FramePosition | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -290,6 +292,7 @@ class FramePipeline:
             history=batch,
             trajectory=pos.trajectory,
             corrected=self._corrected(frame, pos),
+            position=pos,
         )
 
     def _corrected(self, frame: Frame, pos: FramePosition) -> npt.NDArray[np.float32] | None:

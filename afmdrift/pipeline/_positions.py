@@ -55,7 +55,7 @@ from afmdrift.model import (
 )
 from afmdrift.pipeline._records import FrameRecord
 from afmdrift.records import Event, EventKind, Frame, ScanDirection, row_times_s
-from afmdrift.registration import DriftTracker, TrackStep
+from afmdrift.registration import DriftResult, DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
 
 __all__ = ["DriftPositions", "FramePosition", "TrackerFactory", "summarise_field"]
@@ -89,6 +89,10 @@ class FramePosition:
     reference_image: npt.NDArray[np.float32] | None = None
     fed: bool = False
     trajectory: FrameTrajectory | None = None
+    #: The registration's increment since the previous accepted frame, and
+    #: the frame (key) the frame was measured against.
+    increment: DriftResult | None = None
+    reference_key: int | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -205,6 +209,9 @@ class DriftPositions:
         t_ref = self.t_ref_s if self.t_ref_s is not None else t
         offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
         pos = FramePosition(offset=offset, reason=reason)
+        if self._tracker is not None:
+            # the frame the tracker measures against (for a refused frame too)
+            pos.reference_key = self._keys.get(self._tracker.keyframe_index)
         if not reason and step is None and tracker is not None:
             self._place_reference(frame, seq, tracker, pos, prediction_nm, n_fed, held, events)
         elif step is not None and tracker is not None:
@@ -409,6 +416,8 @@ class DriftPositions:
         measurement against the reference (keyframe), and the trajectory."""
         inc, meas = step.increment, step.measurement
         accepted = bool(step.accepted)
+        pos.increment = inc
+        pos.reference_key = self._keys.get(step.reference_index)
         pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
         pos.sigma = float(meas.sigma_nm)
         pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)

@@ -158,6 +158,11 @@ class DriftTracker:
         return self._count
 
     @property
+    def keyframe_index(self) -> int:
+        """Index (among the frames given) of the frame new frames are measured against."""
+        return self._ref_index
+
+    @property
     def block_rows_px(self) -> npt.NDArray[np.float64]:
         """Distinct rows of the block centres, px (empty before the first frame)."""
         if self._engine is None:

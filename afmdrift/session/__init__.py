@@ -9,7 +9,7 @@ from afmdrift.session._format import (
     read_session,
     write_session,
 )
-from afmdrift.session._import import import_files
+from afmdrift.session._import import import_files, session_from_images
 
 __all__ = [
     "FORMAT_NAME",
@@ -19,5 +19,6 @@ __all__ = [
     "SessionMeta",
     "import_files",
     "read_session",
+    "session_from_images",
     "write_session",
 ]

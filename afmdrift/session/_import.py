@@ -29,7 +29,7 @@ from afmdrift.io import AfmImage, PixelSize, load_stack
 from afmdrift.records import ScanDirection
 from afmdrift.session._format import Session, SessionError, SessionMeta
 
-__all__ = ["import_files"]
+__all__ = ["import_files", "session_from_images"]
 
 _REL_TOL = 1e-6
 
@@ -72,13 +72,25 @@ def import_files(
     """
     if not paths:
         raise SessionError("import: no input files given")
-    if frame_time_s is not None and not (math.isfinite(frame_time_s) and frame_time_s > 0):
-        raise SessionError(f"import: frame_time_s must be positive, got {frame_time_s}")
     images: list[AfmImage] = []
     for p in paths:
         images.extend(
             load_stack(p, pixel_size_nm=pixel_size_nm, channel=channel, height_unit=height_unit)
         )
+    return session_from_images(images, frame_time_s=frame_time_s)
+
+
+def session_from_images(
+    images: Sequence[AfmImage], *, frame_time_s: float | None = None
+) -> Session:
+    """The in-memory :class:`Session` of images already read, timed as
+    :func:`import_files` times them (it calls this); ``afmdrift measure`` on a
+    stack uses it too."""
+    images = list(images)
+    if not images:
+        raise SessionError("import: no images")
+    if frame_time_s is not None and not (math.isfinite(frame_time_s) and frame_time_s > 0):
+        raise SessionError(f"import: frame_time_s must be positive, got {frame_time_s}")
     _check_consistent(images)
     notes: list[str] = []
     timed = [im.timestamp is not None for im in images]

@@ -101,7 +101,8 @@ def test_stack_json_lines_increments_and_cumulative(
     png = tmp_path / "track.png"
     assert main(["measure", path, "--pixel-size-nm", "2", "--plot", str(png)]) == 0
     lines = _json_lines(capsys.readouterr().out)
-    assert [(d["ref_frame"], d["cur_frame"]) for d in lines] == [(0, 1), (1, 2), (2, 3)]
+    # measured against the keyframe (frame 0), as the daemon does
+    assert [(d["ref_frame"], d["cur_frame"]) for d in lines] == [(0, 1), (0, 2), (0, 3)]
     for k, d in enumerate(lines, start=1):
         step = truth[k] - truth[k - 1]
         assert d["valid"] is True
@@ -128,7 +129,7 @@ def test_stack_blank_frame_is_reported_and_skipped(
     assert lines[1]["cur_frame"] == 2
     assert lines[1]["valid"] is False
     assert "constant" in lines[1]["error"] or "texture" in lines[1]["error"]
-    assert (lines[2]["ref_frame"], lines[2]["cur_frame"]) == (1, 3)
+    assert (lines[2]["ref_frame"], lines[2]["cur_frame"]) == (0, 3)
     assert lines[2]["cumulative_dx_px"] == pytest.approx(1.0, abs=0.08)
     assert lines[2]["cumulative_dy_px"] == pytest.approx(0.5, abs=0.08)
 
@@ -188,3 +189,54 @@ def test_measurement_config_search_width() -> None:
     assert measurement_config(base, search_px=3.0, centred=False).max_shift_px == 3.0
     with pytest.raises(ConfigError, match="extended_size"):
         measurement_config(base, block_size=64, extended_size=32)
+
+
+def test_stack_trajectory_samples_and_dewarped_frames(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A stack goes through the daemon's position component: every valid
+    frame carries its drift trajectory samples (each block row at its scan
+    time), and --dewarp writes the frames moved back into one geometry.
+
+    The stack drifts continuously while it is scanned, as a real one does: a
+    .npy has no timing, so frames are taken as 1 s each, back to back, and
+    row r of frame k is scanned at t = k + (r + 1/2) / rows."""
+    base = _texture(seed=6)
+    rows = base.shape[0]
+    v = np.array([2.4, -1.3])  # px per frame (per second here)
+    stack = np.empty((4, *base.shape))
+    for k in range(4):
+        for r in range(rows):
+            dx, dy = v * (k + (r + 0.5) / rows)
+            stack[k, r] = _shifted(base, dx, dy)[r]
+    path = _save(tmp_path / "stack.npy", stack)
+    out = tmp_path / "dewarped"
+    assert main(["measure", path, "--pixel-size-nm", "2", "--dewarp", str(out)]) == 0
+    lines = _json_lines(capsys.readouterr().out)
+    assert len(lines) == 3
+    for d in lines:
+        samples = d["trajectory"]
+        assert len(samples) >= 2
+        t = np.array([s["t_s"] for s in samples])
+        assert np.all(np.diff(t) > 0)
+        want = 2.0 * v[None, :] * (t[:, None] - 0.5)  # p = 0 at frame 0's mid-scan
+        got = np.array([[s["x_nm"], s["y_nm"]] for s in samples])
+        np.testing.assert_allclose(got, want, atol=0.3)
+    frames = np.load(out / "frames.npy")
+    assert frames.shape == stack.shape
+    inner = (slice(24, -24), slice(24, -24))
+    for k in range(1, len(stack)):
+        diff = frames[k][inner] - frames[0][inner]
+        assert np.nanmax(np.abs(diff)) < 0.1 * np.ptp(base)
+
+
+def test_stack_refuses_options_of_a_pair(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    stack = np.stack([_texture(seed=7)] * 3)
+    path = _save(tmp_path / "stack.npy", stack)
+    assert main(["measure", path, "--pixel-size-nm", "1", "--prior-px", "1", "1"]) == 2
+    assert "--prior-px applies to a pair" in capsys.readouterr().err
+    one = _save(tmp_path / "one.npy", stack[0])
+    assert main(["measure", one, one, "--pixel-size-nm", "1", "--dewarp", "d"]) == 2
+    assert "--dewarp applies to a stack" in capsys.readouterr().err
