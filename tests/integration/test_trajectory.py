@@ -164,3 +164,33 @@ def test_the_run_can_archive_dewarped_frames(creep_session: Path, tmp_path: Path
     image = np.load(kept[-1])
     assert image.dtype == np.float32
     assert np.isfinite(image).mean() > 0.5
+
+
+def test_a_frame_scanned_across_an_offset_move_is_placed_row_by_row(tmp_path: Path) -> None:
+    """Regression: a frame during whose scan the offset moved mixes rows from
+    before and after the move; it was dropped (evaluate) or taken as a jump.
+    Each block row now gets the commanded offset at its own scan time."""
+    text = CREEP.read_text().replace("t_s = 4000.0", "t_s = 3916.0")  # mid-scan of frame 13
+    scenario = tmp_path / "creep-mid.toml"
+    scenario.write_text(text)
+    session = tmp_path / "session"
+    record_session(scenario, session, duration_s=5000.0)
+    s = read_session(session)
+    move = next(e for e in s.events if e.kind.value == "offset_move")
+    assert s.frame_times[13, 0] < move.t_s < s.frame_times[13, 1]
+    summary = replay_session(session, tmp_path / "run", config=AfmdriftConfig())
+    with summary.measurements_csv.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows[13]["reason"] == ""
+    assert s.truth is not None
+    tt, tv = s.truth[:, 0], s.truth[:, 1:3]
+    bias = np.asarray(
+        json.loads((session / "session.json").read_text())["simulator"]["scan_direction_bias_nm"]
+    )
+    sign = np.array([1 if d.value == "up" else -1 for d in s.directions])
+    t = np.array([s.frame(k).t_mid_s for k in range(len(rows))])
+    true = np.column_stack([np.interp(t, tt, tv[:, 0]), np.interp(t, tt, tv[:, 1])])
+    true += -true[0] + 0.5 * (sign - sign[0])[:, None] * bias
+    xy = np.array([[float(r["x_nm"]), float(r["y_nm"])] for r in rows])
+    increments = np.diff(xy, axis=0) - np.diff(true, axis=0)
+    assert np.abs(increments[11:14]).max() < 1.0  # around the frame with the move
