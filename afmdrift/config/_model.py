@@ -110,7 +110,7 @@ class ModelConfig(BaseModel):
         le=1e6,
         description="Drift trajectory: velocity diffusion q of the integrated random-walk "
         "prior, nm^2/s^3 (larger follows faster changes of the drift speed). Default: "
-        "1e-4 x (128 s / scan time of the first frame)^2 (model/_trajectory.py).",
+        "1e-5 x (128 s / scan time of the first frame)^2 (model/_trajectory.py).",
     )
     trajectory_window: int = Field(
         4,
