@@ -1,9 +1,10 @@
-"""Readers for image files: .npy, .tif, NanoScope, Gwyddion, HS-AFM .asd, NetCDF, Nanonis .sxm.
+"""Readers for image files: .npy, .tif, NanoScope, Gwyddion, HS-AFM .asd, NetCDF, Nanonis
+.sxm, Asylum .ibw, JPK .jpk/.h5-jpk, WSxM .stp.
 
 :func:`load_image` reads one height image (``FILE`` or ``FILE:i`` for frame
 ``i`` of a movie or stack) and :func:`load_stack` every frame of a file, as
 :class:`AfmImage` records with heights in nm and the pixel size (x, y) in nm.
-Format readers (AFMReader, tifffile, scipy) are imported only when used.
+Format readers (AFMReader, igor2, tifffile, h5py, scipy) are imported only when used.
 :func:`write_tif` and :func:`write_sxm` save simulator frames as instrument
 software would (for the folder instrument's tests and benchmark).
 """

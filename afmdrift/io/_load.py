@@ -23,6 +23,12 @@ Formats
     HS-AFM movie, see :mod:`afmdrift.io._asd`.
 ``.nc``
     NetCDF-3, see :mod:`afmdrift.io._netcdf`.
+``.ibw``
+    Asylum Research Igor binary wave, see :mod:`afmdrift.io._ibw`.
+``.jpk``, ``.h5-jpk``
+    JPK (Bruker) image scan (TIFF) and HDF5 movie, see :mod:`afmdrift.io._jpk`.
+``.stp``
+    WSxM image, see :mod:`afmdrift.io._wsxm`.
 
 A spec ``FILE:i`` selects frame ``i`` of a multi-frame file.
 
@@ -48,16 +54,32 @@ import numpy.typing as npt
 
 from afmdrift.io._asd import read_asd
 from afmdrift.io._gwyddion import read_gwy
+from afmdrift.io._ibw import read_ibw
 from afmdrift.io._image import AfmImage, ImageFileError, check_calibration, length_unit_to_nm
+from afmdrift.io._jpk import read_h5jpk, read_jpk
 from afmdrift.io._nanoscope import is_nanoscope_suffix, read_nanoscope
 from afmdrift.io._netcdf import read_netcdf
 from afmdrift.io._sxm import read_sxm
+from afmdrift.io._wsxm import read_stp
 from afmdrift.records import ScanDirection
 
 __all__ = ["SUFFIXES", "PixelSize", "load_image", "load_stack", "parse_spec"]
 
 #: Suffixes understood by :func:`load_image` (plus ``.000``–``.999``).
-SUFFIXES = (".npy", ".tif", ".tiff", ".spm", ".gwy", ".asd", ".nc", ".sxm")
+SUFFIXES = (
+    ".npy",
+    ".tif",
+    ".tiff",
+    ".spm",
+    ".gwy",
+    ".asd",
+    ".nc",
+    ".sxm",
+    ".ibw",
+    ".jpk",
+    ".h5-jpk",
+    ".stp",
+)
 
 #: A pixel size in nm: one number for square pixels or ``(x, y)``.
 PixelSize = float | Sequence[float]
@@ -155,6 +177,14 @@ def _dispatch(
         images = read_netcdf(
             path, channel=channel, pixel_size_nm=pixel_size_nm, height_unit=height_unit
         )
+    elif suffix == ".ibw":
+        images = [read_ibw(path, channel=channel, pixel_size_nm=pixel_size_nm)]
+    elif suffix == ".jpk":
+        images = [read_jpk(path, channel=channel)]
+    elif suffix == ".h5-jpk":
+        images = read_h5jpk(path, channel=channel)
+    elif suffix == ".stp":
+        images = [read_stp(path, channel=channel)]
     else:
         known = ", ".join((*SUFFIXES, ".000-.999"))
         raise ImageFileError(f"{path}: unknown image file suffix {path.suffix!r} (known: {known})")
@@ -222,7 +252,7 @@ def load_stack(
     height_unit: str | None = None,
 ) -> list[AfmImage]:
     """Read every frame of a file: an (N, rows, cols) ``.npy``/``.tif``/``.nc``
-    stack or an ``.asd`` movie (a single-image file gives a list of one).
+    stack, an ``.asd`` or ``.h5-jpk`` movie (a single-image file gives a list of one).
 
     Parameters and errors are those of :func:`load_image`.
     """

@@ -106,7 +106,9 @@ def test_asd_with_a_zero_header_field_gives_one_line(real_file, tmp_path: Path) 
 @FUZZ
 @given(
     data=st.binary(max_size=4096),
-    suffix=st.sampled_from([".npy", ".tif", ".asd", ".gwy", ".nc", ".spm", ".001"]),
+    suffix=st.sampled_from(
+        [".npy", ".tif", ".asd", ".gwy", ".nc", ".spm", ".001", ".ibw", ".jpk", ".h5-jpk", ".stp"]
+    ),
 )
 def test_fuzz_image_readers_raise_only_image_file_errors(
     tmp_path: Path, data: bytes, suffix: str
