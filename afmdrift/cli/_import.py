@@ -14,7 +14,8 @@ def register(sub: Any) -> None:
         "import",
         help="Build a session directory (format v1) from AFM image files.",
         description="Read NanoScope (.spm, .000-.999), HS-AFM (.asd), Gwyddion (.gwy), "
-        "NetCDF-3 (.nc), .npy and .tif files and write them as one session directory "
+        "NetCDF (.nc), Nanonis (.sxm), Asylum (.ibw), JPK (.jpk, .h5-jpk), WSxM (.stp), "
+        ".npy and .tif files and write them as one session directory "
         "(docs/session-format.md). Frames are sorted by their header timestamps; "
         "session.json's 'source' says where each timing value came from.",
     )

@@ -64,7 +64,8 @@ def register(sub: Any) -> None:
         "or, with one STACK argument (an (N, rows, cols) .npy/.tif/.nc stack or an .asd "
         "movie), between successive frames (JSON lines with increment and cumulative "
         "drift). Files: .npy, .tif, NanoScope .spm/.000-.999, .gwy, .asd (FILE.asd:i "
-        "selects frame i), .nc. Exit 0: all valid; 1: some result invalid; 2: error.",
+        "selects frame i), .nc, .sxm, .ibw, .jpk, .h5-jpk, .stp. "
+        "Exit 0: all valid; 1: some result invalid; 2: error.",
     )
     p.add_argument("ref", metavar="REF", help="reference image, or a stack/movie")
     p.add_argument("cur", metavar="CUR", nargs="?", help="current image")
