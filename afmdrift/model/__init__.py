@@ -27,6 +27,7 @@ from afmdrift.model._physics import PhysicsPredictor, solve_wls
 from afmdrift.model._positions import (
     commanded_offset_nm,
     drift_from_measurements,
+    offset_change_nm,
     truth_frame_mean,
 )
 from afmdrift.model._reconstruct import (
@@ -86,6 +87,7 @@ __all__ = [
     "load_term_class",
     "make_predictor",
     "make_term",
+    "offset_change_nm",
     "reconstruct_offset",
     "sinc_curve",
     "sinc_reconstruct",

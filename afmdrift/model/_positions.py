@@ -50,6 +50,7 @@ from afmdrift.records import Event, EventKind, Frame
 __all__ = [
     "commanded_offset_nm",
     "drift_from_measurements",
+    "offset_change_nm",
     "truth_frame_mean",
 ]
 
@@ -81,6 +82,21 @@ def commanded_offset_nm(t_s: npt.ArrayLike, events: Sequence[Event]) -> npt.NDAr
     cum = np.vstack([np.zeros((1, 2)), cum])
     k = np.searchsorted(mt, t, side="right")
     return np.asarray(cum[k], dtype=np.float64)
+
+
+def offset_change_nm(
+    t_s: npt.ArrayLike, t_ref_s: npt.ArrayLike, events: Sequence[Event]
+) -> npt.NDArray[np.float64]:
+    """O(t) − O(t_ref): the commanded offset moved between ``t_ref_s`` and
+    ``t_s`` (element by element; either may be a scalar), shape (n, 2), nm.
+
+    The one conversion between image positions and drift positions:
+    p(t) − p(t_ref) = m(t) − m(t_ref) + (O(t) − O(t_ref)).
+    """
+    t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
+    ref = np.atleast_1d(np.asarray(t_ref_s, dtype=np.float64))
+    t, ref = np.broadcast_arrays(t, ref)
+    return commanded_offset_nm(t, events) - commanded_offset_nm(ref, events)
 
 
 def drift_from_measurements(
@@ -124,8 +140,7 @@ def drift_from_measurements(
     if t.size == 0:
         return m.copy()
     ref = float(t[0]) if t_ref_s is None else float(t_ref_s)
-    offset = commanded_offset_nm(t, events) - commanded_offset_nm([ref], events)[0]
-    return np.asarray(m + offset, dtype=np.float64)
+    return np.asarray(m + offset_change_nm(t, ref, events), dtype=np.float64)
 
 
 def truth_frame_mean(

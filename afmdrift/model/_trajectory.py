@@ -471,14 +471,6 @@ class DriftTrajectory:
             key=key, t_s=f.t_s.copy(), xy_nm=xy, sigma_nm=sig, mid_nm=mid, mid_sigma_nm=mid_sigma
         )
 
-    def value_at(self, t_s: float) -> FloatArray:
-        """Bias-free p at ``t_s`` by linear interpolation of all knots (clamped)."""
-        if not self.order:
-            return np.zeros(2)
-        tt = np.concatenate([self.frames[k].t_s for k in self.order])
-        pp = np.vstack([self.frames[k].p for k in self.order])
-        return np.array([np.interp(t_s, tt, pp[:, 0]), np.interp(t_s, tt, pp[:, 1])])
-
     # ------------------------------------------------------------------ solve
 
     def _solve(self, active: list[int]) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 import numpy.typing as npt
 from scipy import ndimage
 
-from afmdrift.model import FrameTrajectory, commanded_offset_nm
+from afmdrift.model import FrameTrajectory, offset_change_nm
 from afmdrift.records import Event, Frame
 
 __all__ = ["dewarp_frame", "image_positions", "interp_linear"]
@@ -116,6 +116,5 @@ def image_positions(
     """Image position m at a frame's trajectory samples, shape (k, 2), nm:
     the drift with the commanded offset change since the reference removed,
     m = p − (O(t) − O(t_ref))."""
-    o_ref = commanded_offset_nm([t_ref_s], events)[0]
-    offset = commanded_offset_nm(trajectory.t_s, events) - o_ref
+    offset = offset_change_nm(trajectory.t_s, t_ref_s, events)
     return np.asarray(trajectory.xy_nm - offset, dtype=np.float64)

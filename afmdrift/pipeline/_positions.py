@@ -50,8 +50,8 @@ from afmdrift.model import (
     BandConstraint,
     DriftTrajectory,
     FrameTrajectory,
-    commanded_offset_nm,
     default_q,
+    offset_change_nm,
 )
 from afmdrift.pipeline._records import FrameRecord
 from afmdrift.records import Event, EventKind, Frame, ScanDirection, row_times_s
@@ -207,7 +207,7 @@ class DriftPositions:
         if self.t_ref_s is None and not reason:
             self.t_ref_s = t
         t_ref = self.t_ref_s if self.t_ref_s is not None else t
-        offset = commanded_offset_nm([t], events)[0] - commanded_offset_nm([t_ref], events)[0]
+        offset = offset_change_nm(t, t_ref, events)[0]
         pos = FramePosition(offset=offset, reason=reason)
         if self._tracker is not None:
             # the frame the tracker measures against (for a refused frame too)
@@ -237,8 +237,7 @@ class DriftPositions:
             tracker = self._tracker_factory(frame.pixel_size_nm)
         elif self._last_t_s is not None:
             # Content moves by −ΔO for a commanded offset move of +ΔO.
-            o = commanded_offset_nm([self._last_t_s, frame.t_mid_s], events)
-            d = o[1] - o[0]
+            d = offset_change_nm(frame.t_mid_s, self._last_t_s, events)[0]
             moved = (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
         try:
             step = tracker.update(frame.heights_nm, moved_px=moved)
@@ -364,39 +363,21 @@ class DriftPositions:
         rows = np.asarray(fld.centres_px, dtype=np.float64)[valid, 1]
         if vec.shape[0] == 0:
             return None
+        levels, inverse, counts = np.unique(rows, return_inverse=True, return_counts=True)
+        means = np.column_stack([np.bincount(inverse, weights=vec[:, a]) / counts for a in (0, 1)])
+        t_cur = _times_at(frame.row_times_s(), levels + means[:, 1])
+        t_ref = _times_at(timing_ref.row_times(), levels)
         px, py = frame.pixel_size_nm
-        rt_cur = frame.row_times_s()
-        rt_ref = timing_ref.row_times()
-        idx_cur = np.arange(rt_cur.size, dtype=np.float64)
-        idx_ref = np.arange(rt_ref.size, dtype=np.float64)
-        n_valid = vec.shape[0]
         sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
-        levels = np.unique(rows)
-        t_cur_all: list[float] = []
-        t_ref_all: list[float] = []
-        means: list[FloatArray] = []
-        sigmas: list[float] = []
-        for level in levels:
-            mine = vec[rows == level]
-            mean = mine.mean(axis=0)
-            t_cur_all.append(
-                float(np.interp(np.clip(level + mean[1], 0, rt_cur.size - 1), idx_cur, rt_cur))
-            )
-            t_ref_all.append(float(np.interp(np.clip(level, 0, rt_ref.size - 1), idx_ref, rt_ref)))
-            means.append(np.array([mean[0] * px, mean[1] * py]))
-            sigmas.append(sigma_frame * math.sqrt(n_valid / mine.shape[0]))
-        o_cur = commanded_offset_nm(t_cur_all, events)
-        o_ref = commanded_offset_nm(t_ref_all, events)
+        sigmas = sigma_frame * np.sqrt(vec.shape[0] / counts)
+        values = means * np.array([px, py]) + offset_change_nm(t_cur, t_ref, events)
         out = [
             BandConstraint(
                 ref_key=ref_key,
-                t_s=t_cur_all[k],
-                t_ref_s=t_ref_all[k],
-                value_nm=(
-                    float(means[k][0] + o_cur[k, 0] - o_ref[k, 0]),
-                    float(means[k][1] + o_cur[k, 1] - o_ref[k, 1]),
-                ),
-                sigma_nm=sigmas[k],
+                t_s=float(t_cur[k]),
+                t_ref_s=float(t_ref[k]),
+                value_nm=(float(values[k, 0]), float(values[k, 1])),
+                sigma_nm=float(sigmas[k]),
             )
             for k in range(levels.size)
         ]
@@ -441,8 +422,7 @@ class DriftPositions:
                     pos.trajectory = traj
                     # p from the trajectory at mid-scan time; m keeps its meaning.
                     t_ref = self.t_ref_s if self.t_ref_s is not None else frame.t_mid_s
-                    o = commanded_offset_nm([frame.t_mid_s, t_ref], events)
-                    pos.m = traj.mid_nm - (o[0] - o[1])
+                    pos.m = traj.mid_nm - offset_change_nm(frame.t_mid_s, t_ref, events)[0]
                     pos.sigma = traj.mid_sigma_nm
         else:
             pos.dx = pos.dy = math.nan
@@ -481,4 +461,12 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
         std_dx_nm=stat(good[:, 0], np.std),
         std_dy_nm=stat(good[:, 1], np.std),
         median_confidence=stat(conf[valid], np.median),
+    )
+
+
+def _times_at(row_times: FloatArray, rows: FloatArray) -> FloatArray:
+    """Scan time of (fractional) rows, clamped to the frame."""
+    idx = np.arange(row_times.size, dtype=np.float64)
+    return np.asarray(
+        np.interp(np.clip(rows, 0, row_times.size - 1), idx, row_times), dtype=np.float64
     )
