@@ -64,7 +64,7 @@ def main() -> None:
     tex = particle_texture((640, 640), pixel_size_nm=PIXEL_NM, rng=rng).astype(np.float32)
     frames = [render(tex, k, rng) for k in range(args.frames)]
     cfg = AfmdriftConfig()
-    positions = DriftPositions(config=cfg)
+    positions = DriftPositions(config=cfg, keep_trajectory=True)
     tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=cfg.registration)
     nan2 = np.full(2, np.nan)
     with_traj: list[float] = []

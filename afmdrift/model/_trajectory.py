@@ -175,15 +175,19 @@ class DriftTrajectory:
         Velocity diffusion of the integrated random-walk prior, nm²/s³.
     window : int
         Frames solved jointly in causal mode (the newest ones).
+    keep_history : bool
+        Keep every frame for :meth:`smoothed`; otherwise frames are forgotten
+        once marginalised (bounded memory for a long-running daemon).
     """
 
-    def __init__(self, *, q_nm2_s3: float, window: int = 4) -> None:
+    def __init__(self, *, q_nm2_s3: float, window: int = 4, keep_history: bool = True) -> None:
         if not (math.isfinite(q_nm2_s3) and q_nm2_s3 > 0):
             raise ValueError(f"q_nm2_s3 must be finite and > 0, got {q_nm2_s3!r}")
         if window < 2:
             raise ValueError(f"window must be >= 2 frames, got {window!r}")
         self.q = float(q_nm2_s3)
         self.window = int(window)
+        self.keep_history = keep_history
         self.frames: dict[int, _Frame] = {}
         self.order: list[int] = []  # keys by time
         self.origin: tuple[int, float] | None = None  # (key, t) where p = 0
@@ -409,6 +413,13 @@ class DriftTrajectory:
         self._idx = {node: remap[c] for node, c in self._idx.items() if c in remap}
         for key in dropped:
             self.frames[key].fixed = True
+        if not self.keep_history:
+            # Marginalised frames are not needed again (the origin's
+            # direction is); only the smoothed estimate would read them.
+            gone = {k for k in dropped if self.origin is None or k != self.origin[0]}
+            for key in gone:
+                del self.frames[key]
+            self.order = [k for k in self.order if k not in gone]
 
     def add_anchor(
         self,
@@ -442,7 +453,15 @@ class DriftTrajectory:
 
     def smoothed(self) -> dict[int, FrameTrajectory]:
         """All frames solved at once; returns every frame's estimate (the
-        causal state is left as it was)."""
+        causal state is left as it was).
+
+        Raises
+        ------
+        ValueError
+            The trajectory was made with ``keep_history=False``.
+        """
+        if not self.keep_history:
+            raise ValueError("a trajectory made with keep_history=False has no smoothed estimate")
         saved = {k: (f.p.copy(), f.sigma.copy(), f.fixed) for k, f in self.frames.items()}
         bias, bias_var = self.bias.copy(), self.bias_var
         try:

@@ -108,6 +108,9 @@ class FramePipeline:
         default :class:`afmdrift.registration.DriftTracker`.
     predictor : Predictor, optional
         Default ``afmdrift.model.make_predictor(config.model.predictor, config.model)``.
+    keep_trajectory : bool
+        Keep every frame of the drift trajectory for its smoothed estimate
+        (replay, de-warping); the daemon forgets what it no longer needs.
 
     Notes
     -----
@@ -120,9 +123,12 @@ class FramePipeline:
         config: AfmdriftConfig,
         tracker_factory: TrackerFactory | None = None,
         predictor: Predictor | None = None,
+        keep_trajectory: bool = False,
     ) -> None:
         self.config = config
-        self.positions = DriftPositions(config=config, tracker_factory=tracker_factory)
+        self.positions = DriftPositions(
+            config=config, tracker_factory=tracker_factory, keep_trajectory=keep_trajectory
+        )
         self.predictor = predictor if predictor is not None else self._make_predictor(config)
         self.feed = HistoryFeed()
         self.observations: deque[Observation] = deque(maxlen=config.service.training_window)

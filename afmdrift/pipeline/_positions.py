@@ -112,10 +112,19 @@ def _sign(direction: ScanDirection) -> int:
 
 class DriftPositions:
     """Frames in, drift positions and trajectory samples out (see the module
-    docstring). Not thread-safe: one thread at a time."""
+    docstring). Not thread-safe: one thread at a time.
+
+    ``keep_trajectory`` keeps every frame of the trajectory for its smoothed
+    estimate (``afmdrift replay``, ``afmdrift correct``); without it, as in
+    the daemon, frames no later frame can refer to are forgotten.
+    """
 
     def __init__(
-        self, *, config: AfmdriftConfig, tracker_factory: TrackerFactory | None = None
+        self,
+        *,
+        config: AfmdriftConfig,
+        tracker_factory: TrackerFactory | None = None,
+        keep_trajectory: bool = False,
     ) -> None:
         self.config = config
         self._tracker_factory = tracker_factory or self._default_tracker_factory
@@ -130,6 +139,7 @@ class DriftPositions:
         self.trajectory = DriftTrajectory(
             q_nm2_s3=q if q is not None else default_q(math.nan),
             window=config.model.trajectory_window,
+            keep_history=keep_trajectory,
         )
         # tracker frame index -> trajectory key, and the timing of those frames
         self._keys: dict[int, int] = {}
@@ -260,18 +270,28 @@ class DriftPositions:
         idx = np.arange(rt.size, dtype=np.float64)
         return np.unique(np.interp(np.clip(rows, 0, rt.size - 1), idx, rt))
 
-    def _remember(self, tracker_index: int, seq: int, frame: Frame) -> None:
+    def _remember(
+        self, tracker_index: int, seq: int, frame: Frame, *, in_use: int | None = None
+    ) -> None:
+        """Map the tracker's frame ``tracker_index`` to ``seq`` and keep its
+        timing; ``in_use``: a tracker index still needed by the caller (the
+        reference of the frame being placed)."""
         self._keys[tracker_index] = seq
         self._timings[seq] = _Timing(
             frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction
         )
-        if len(self._timings) > _TIMINGS_KEPT:
-            keep = set(self._keys.values())
-            for k in list(self._timings):
-                if len(self._timings) <= _TIMINGS_KEPT // 2:
-                    break
-                if k not in keep:
-                    del self._timings[k]
+        if len(self._keys) > _TIMINGS_KEPT:
+            # Later frames are measured against the keyframe or newer frames:
+            # keep those, so a daemon's memory does not grow with its run.
+            newest = sorted(self._keys)[-(_TIMINGS_KEPT // 2) :]
+            kept = set(newest)
+            if self._tracker is not None:
+                kept.add(self._tracker.keyframe_index)
+            if in_use is not None:
+                kept.add(in_use)
+            self._keys = {i: k for i, k in self._keys.items() if i in kept}
+            values = set(self._keys.values())
+            self._timings = {k: v for k, v in self._timings.items() if k in values}
         self._last_t_s = frame.t_mid_s
 
     def _add_to_trajectory(
@@ -412,7 +432,7 @@ class DriftPositions:
             if pos.reanchored or self.config.registration.reference == "consecutive":
                 pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
             # The tracker moved on to this frame (it may be the new keyframe).
-            self._remember(step.frame_index, seq, frame)
+            self._remember(step.frame_index, seq, frame, in_use=step.reference_index)
             made = None if low else self._constraints(frame, step, events)
             if made is not None:
                 constraints, dy_px = made

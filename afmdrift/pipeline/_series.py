@@ -93,7 +93,7 @@ def correct_session(
     or ``DIR/frames.npy`` (N, rows, cols) float32 with ``DIR/frames.csv``
     (frame, t_start_s, t_end_s).
     """
-    pipeline = FramePipeline(config=config)
+    pipeline = FramePipeline(config=config, keep_trajectory=True)
     pipeline.push(session.channel_samples(), session.events)
     causal: dict[int, FrameTrajectory] = {}
     records = []

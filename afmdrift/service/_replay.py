@@ -75,7 +75,7 @@ def replay_session(
                 "config": config.model_dump_json(),
             }
         )
-        pipeline = FramePipeline(config=config)
+        pipeline = FramePipeline(config=config, keep_trajectory=True)
         pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
         fed = 0

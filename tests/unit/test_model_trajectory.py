@@ -156,3 +156,31 @@ def test_a_logged_jump_is_followed_not_smoothed_over() -> None:
                 worst = max(worst, float(np.abs(est.xy_nm - (drift(t) - origin)).max()))
         errors[with_break] = worst
     assert errors[True] < 0.25 < 0.5 < errors[False]
+
+
+def test_without_history_memory_is_bounded_and_estimates_are_the_same() -> None:
+    """The daemon's trajectory (keep_history=False) forgets marginalised
+    frames, so it does not grow with the run, and gives the same causal
+    estimates as one that keeps everything for its smoothed estimate."""
+    rng = np.random.default_rng(9)
+    full = DriftTrajectory(q_nm2_s3=1e-4)
+    lean = DriftTrajectory(q_nm2_s3=1e-4, keep_history=False)
+    for k in range(120):
+        t = _knots(k)
+        constraints = []
+        if k > 0:
+            ref = (k - 1) // 3 * 3
+            t_ref = _knots(ref)
+            true = _drift(t) - _drift(t_ref)
+            for j in range(ROWS):
+                v = true[j] + rng.normal(0, 0.05, 2)
+                constraints.append(
+                    BandConstraint(ref, float(t[j]), float(t_ref[j]), (v[0], v[1]), 0.05)
+                )
+        a = full.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+        b = lean.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+        np.testing.assert_allclose(b.xy_nm, a.xy_nm, atol=1e-9)
+    assert len(full.frames) == 120
+    assert len(lean.frames) <= lean.window + 3
+    with pytest.raises(ValueError, match="keep_history=False"):
+        lean.smoothed()
