@@ -41,7 +41,6 @@ import argparse
 import json
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -123,24 +122,23 @@ def _run(args: argparse.Namespace) -> int:
         block_size=args.block_size,
         extended_size=args.extended_size,
         search_px=args.search_px,
-        centred=given is not None or not args.no_coarse,
     )
     pixel = pixel_size_option(args.pixel_size_nm)
     read = {"pixel_size_nm": pixel, "channel": args.channel, "height_unit": args.height_unit}
     coarse = not args.no_coarse
     ref = load_image(args.ref, **read)
     cur = load_image(args.cur, **read)
-    pair = measure_pair(ref, cur, config, prior_px=given, coarse=coarse)
+    result = measure_pair(ref, cur, config, prior_px=given, coarse=coarse)
     doc = {
         "reference": ref.source,
         "current": cur.source,
         "pixel_size_nm": list(ref.pixel_size_nm),
-        **pair.to_dict(),
+        **result.to_dict(),
     }
     print(json.dumps(doc) if args.json else _describe(doc))
     if args.plot:
-        _plot_field(ref, pair.result, Path(args.plot))
-    return 0 if pair.result.valid else 1
+        _plot_field(ref, result, Path(args.plot))
+    return 0 if result.valid else 1
 
 
 def measurement_config(
@@ -149,32 +147,29 @@ def measurement_config(
     block_size: int | None = None,
     extended_size: int | None = None,
     search_px: float | None = None,
-    centred: bool = True,
 ) -> RegistrationConfig:
-    """``base`` with the command-line overrides applied and validated.
-
-    When the search is ``centred`` on a coarse or given prior and neither
-    ``search_px`` nor ``base.max_shift_px`` is set, the search half-width
-    becomes ``base.coarse_search_px`` (what ``measure_drift`` uses around a
-    trusted coarse prior).
+    """``base`` with the command-line overrides applied and validated:
+    ``--block-size``, ``--extended-size`` and ``--search-px``
+    (``coarse_search_px``, the block search half-width around the coarse
+    prior, and ``max_shift_px``, that around a given prior). Explicit block
+    sizes turn ``auto_block_size`` off.
 
     Raises
     ------
     ConfigError
         An override is out of range; the message names it and the range.
     """
-    from pydantic import ValidationError
 
     from afmdrift.config import RegistrationConfig, describe_validation_error
 
     overrides: dict[str, Any] = {
         k: v for k, v in (("block_size", block_size), ("extended_size", extended_size)) if v
     }
+    if overrides:
+        overrides["auto_block_size"] = False
     if search_px is not None:
+        overrides["coarse_search_px"] = search_px
         overrides["max_shift_px"] = search_px
-    elif base.max_shift_px is None and centred:
-        ext = extended_size or base.extended_size
-        overrides["max_shift_px"] = min(base.coarse_search_px, ext / 2 - 2)
     if not overrides:
         return base
     try:
@@ -187,19 +182,6 @@ def measurement_config(
         ) from None
 
 
-@dataclass(frozen=True)
-class PairMeasurement:
-    """One registration with the prior it was centred on."""
-
-    result: DriftResult
-    prior_px: tuple[float, float]
-    prior: str
-    """How the prior was chosen: ``given``, ``none``, or the coarse peak's z."""
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"prior_px": list(self.prior_px), "prior": self.prior, **self.result.to_dict()}
-
-
 def measure_pair(
     ref: AfmImage,
     cur: AfmImage,
@@ -207,8 +189,10 @@ def measure_pair(
     *,
     prior_px: tuple[float, float] | None = None,
     coarse: bool = True,
-) -> PairMeasurement:
-    """Drift of ``cur`` relative to ``ref`` as ``afmdrift measure`` computes it.
+) -> DriftResult:
+    """Drift of ``cur`` relative to ``ref`` as ``afmdrift measure`` computes it:
+    :func:`afmdrift.registration.measure_drift` (the one registration path),
+    with the files named in its errors.
 
     The block search is centred on ``prior_px`` if given, else on the coarse
     whole-image shift (:func:`afmdrift.registration.coarse_shift`) when
@@ -221,7 +205,7 @@ def measure_pair(
         Pixel sizes differ; or the engine's ``RegistrationError`` /
         ``InvalidFrameError`` (shapes differ, image too small, blank, NaN).
     """
-    from afmdrift.registration import RegistrationError, coarse_shift, measure_drift
+    from afmdrift.registration import RegistrationError, measure_drift
 
     if not all(
         math.isclose(a, b, rel_tol=1e-6)
@@ -231,29 +215,20 @@ def measure_pair(
             f"{cur.source}: pixel size {cur.pixel_size_nm} nm differs from {ref.source} "
             f"{ref.pixel_size_nm} nm (give --pixel-size-nm to override both)"
         )
-    if prior_px is not None:
-        prior, how = prior_px, "given"
-    elif not coarse or ref.shape != cur.shape:
-        prior, how = (0.0, 0.0), "none"
-    else:
-        c = coarse_shift(ref.heights_nm, cur.heights_nm)
-        scores = f"peak z={c.peak_z:.1f}, gradient z={c.gradient_z:.1f}"
-        if c.trusted:
-            prior, how = (c.dx_px, c.dy_px), f"coarse ({scores})"
-        else:
-            prior, how = (0.0, 0.0), f"coarse not used ({scores})"
+    if not coarse and config.coarse:
+        config = config.model_copy(update={"coarse": False})
     try:
         result = measure_drift(
             ref.heights_nm,
             cur.heights_nm,
             pixel_size_nm=ref.pixel_size_nm,
             config=config,
-            prior_px=prior,
+            prior_px=prior_px,
         )
     except RegistrationError as err:
         # Name the files: the engine only knows "reference" and "current".
         raise type(err)(f"reference {ref.source}, current {cur.source}: {err}") from None
-    return PairMeasurement(result=result, prior_px=prior, prior=how)
+    return result
 
 
 def _describe(doc: dict[str, Any]) -> str:
@@ -269,7 +244,13 @@ def _describe(doc: dict[str, Any]) -> str:
         f"sigma      x = {num('sigma_x_nm', '.2f')} nm, y = {num('sigma_y_nm', '.2f')} nm "
         f"(combined {num('sigma_nm', '.2f')} nm)",
         f"blocks     {doc['valid_blocks']} of {doc['total_blocks']} valid",
-        f"prior      {doc['prior_px'][0]:+g}, {doc['prior_px'][1]:+g} px ({doc['prior']})",
+        "prior      "
+        + (
+            "none"
+            if doc["prior_px"] is None
+            else f"{doc['prior_px'][0]:+g}, {doc['prior_px'][1]:+g} px"
+        )
+        + f" ({doc['prior']})",
     ]
     if not doc["valid"]:
         lines.append(f"INVALID    {doc['reason']}")
@@ -290,18 +271,14 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
             "--prior-px applies to a pair (REF CUR); a stack is tracked from the coarse "
             "alignment of its first pair and the measured motion after it"
         )
-    overrides: dict[str, Any] = {"coarse": not args.no_coarse}
-    for key in ("block_size", "extended_size"):
-        if getattr(args, key) is not None:
-            overrides[key] = getattr(args, key)
-    if args.search_px is not None:
-        overrides["coarse_search_px"] = args.search_px
-    try:
-        registration = RegistrationConfig.model_validate(
-            {**base.registration.model_dump(), **overrides}
-        )
-    except ValidationError as err:
-        raise ConfigError(f"measure: {err.errors()[0]['msg']}") from None
+    registration = measurement_config(
+        base.registration,
+        block_size=args.block_size,
+        extended_size=args.extended_size,
+        search_px=args.search_px,
+    )
+    if args.no_coarse:
+        registration = registration.model_copy(update={"coarse": False})
     read = {
         "pixel_size_nm": pixel_size_option(args.pixel_size_nm),
         "channel": args.channel,

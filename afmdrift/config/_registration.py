@@ -8,6 +8,12 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 __all__ = ["RegistrationConfig"]
 
+#: auto_block_size: extended windows the smaller edge must hold, and the smallest block
+#: (smaller blocks hold too little of a particle texture: 0.27 px error on 128² frames
+#: of 30 nm particles at 2 nm/px with 16/32 blocks).
+AUTO_WINDOWS = 2
+AUTO_SMALLEST_BLOCK = 32
+
 
 class RegistrationConfig(BaseModel):
     """Parameters of :func:`afmdrift.registration.measure_drift`.
@@ -20,6 +26,12 @@ class RegistrationConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     block_size: int = Field(64, ge=8, le=1024, description="Block edge in px.")
+    auto_block_size: bool = Field(
+        True,
+        description="Halve block_size and extended_size (down to a 32 px block) until "
+        "the frame's smaller edge holds more than two extended windows: 256², 200² and "
+        "128² frames get 32/64 blocks.",
+    )
     extended_size: int = Field(128, ge=16, le=2048, description="Extended block edge in px.")
     gradient: Literal["x", "y", "both", "none"] = Field(
         "x", description="Gradient image of eq. (2): along x (fast axis), y, both, or none."
@@ -103,6 +115,22 @@ class RegistrationConfig(BaseModel):
         description="FFTW wisdom file; default $AFMDRIFT_FFTW_WISDOM or "
         "$XDG_CACHE_HOME/afmdrift/fftw-wisdom-<pyfftw version>; empty string disables.",
     )
+
+    def for_shape(self, shape: tuple[int, int]) -> RegistrationConfig:
+        """The configuration an image of ``shape`` (rows, cols) is measured with:
+        this one, with the block sizes halved as ``auto_block_size`` says."""
+        if not self.auto_block_size:
+            return self
+        edge = min(shape)
+        block, ext = self.block_size, self.extended_size
+        while edge <= AUTO_WINDOWS * ext and block >= 2 * AUTO_SMALLEST_BLOCK:
+            block, ext = block // 2, max(ext // 2, block // 2)
+        if block == self.block_size:
+            return self
+        update: dict[str, object] = {"block_size": block, "extended_size": ext}
+        if self.max_shift_px is not None:
+            update["max_shift_px"] = min(self.max_shift_px, ext / 2 - 2)
+        return self.model_copy(update=update)
 
     @model_validator(mode="after")
     def _check_sizes(self) -> Self:

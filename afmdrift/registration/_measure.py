@@ -7,6 +7,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 import numpy.typing as npt
@@ -14,7 +15,7 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import FrameStats
-from afmdrift.registration._coarse import coarse_shift
+from afmdrift.registration._coarse import CoarseShift, coarse_shift
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import InvalidFrameError, RegistrationError
 from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
@@ -226,21 +227,7 @@ def combine(
             f"{spread_y:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
         )
     if reason is not None:
-        nan = math.nan
-        return DriftResult(
-            dx_px=nan,
-            dy_px=nan,
-            dx_nm=nan,
-            dy_nm=nan,
-            sigma_x_nm=nan,
-            sigma_y_nm=nan,
-            sigma_nm=nan,
-            valid=False,
-            valid_blocks=n_valid,
-            total_blocks=total,
-            reason=reason,
-            field=field,
-        )
+        return invalid_result(field, reason, valid_blocks=n_valid)
     # Blocks whose inner areas overlap are not independent: count each only
     # by its unshared fraction (never fewer than two blocks).
     root_n = math.sqrt(max(2.0, n_valid * engine.layout.overlap_factor()))
@@ -259,6 +246,149 @@ def combine(
         reason=None,
         field=field,
     )
+
+
+def invalid_result(field: BlockField, reason: str, *, valid_blocks: int = 0) -> DriftResult:
+    """A refused measurement: NaN numbers, ``valid`` False, the ``reason``."""
+    nan = math.nan
+    return DriftResult(
+        dx_px=nan,
+        dy_px=nan,
+        dx_nm=nan,
+        dy_nm=nan,
+        sigma_x_nm=nan,
+        sigma_y_nm=nan,
+        sigma_nm=nan,
+        valid=False,
+        valid_blocks=valid_blocks,
+        total_blocks=int(field.vectors_px.shape[0]),
+        reason=reason,
+        field=field,
+    )
+
+
+def _no_field(engine: BlockEngine, dtype: np.dtype[np.floating]) -> BlockField:
+    """The block field of a frame pair whose blocks were not measured."""
+    n = engine.layout.n_blocks
+    return BlockField(
+        centres_px=engine.centres_px.astype(dtype),
+        vectors_px=np.full((n, 2), np.nan, dtype=dtype),
+        confidence=np.zeros(n, dtype=dtype),
+        mse=np.full(n, np.nan, dtype=dtype),
+        measured=np.zeros(n, dtype=bool),
+        valid=np.zeros(n, dtype=bool),
+    )
+
+
+@dataclass(frozen=True, eq=False)
+class Registration:
+    """What :func:`register` found: the result, the window corners used in the
+    current frame (``top``, ``left``: its spectra can become the next
+    reference) and the coarse alignment, when one was made."""
+
+    result: DriftResult
+    top: npt.NDArray[np.intp]
+    left: npt.NDArray[np.intp]
+    coarse: CoarseShift | None
+
+
+def register(
+    engine: BlockEngine,
+    ref: ReferenceSpectra,
+    grad: npt.NDArray[np.float32],
+    heights: npt.NDArray[np.floating],
+    *,
+    ref_heights: npt.NDArray[np.floating] | None,
+    expected_px: tuple[float, float] | None,
+    source: str,
+    pixel_size_nm: tuple[float, float],
+    check: Callable[[FrameStats], None] | None = None,
+) -> Registration:
+    """The one registration path of :func:`measure_drift`, :class:`DriftTracker`
+    and ``afmdrift measure``: prior → block pass → refine → combine, with the
+    coarse alignment where nothing is expected or the first try fails.
+
+    1. **Prior.** ``expected_px`` (``source``: ``given`` by a caller,
+       ``predicted`` by the tracker) centres the block search. Without it,
+       the coarse alignment :func:`coarse_shift` (``config.coarse``) does,
+       within ±``coarse_search_px`` (less on a lattice: never as far as the
+       next lattice translation); an untrusted one leaves zero and the
+       full search. Shifts the images cannot tell apart and that are equally
+       near the prior are refused as ambiguous.
+    2. **Blocks**, refined once around their median (:func:`measure_blocks`),
+       and combined (:func:`combine`).
+    3. **Retry.** A result that came out invalid is measured once more around
+       the trusted coarse alignment (the lattice translation nearest the
+       expectation), when that differs from the first prior.
+
+    ``grad`` holds the current frame's gradient image, or, with ``check``,
+    is filled from ``heights`` during the first block pass (see
+    :meth:`BlockEngine.measure`) and checked by ``check``.
+    """
+    cfg = engine.config
+    dtype = result_dtype(heights)
+    coarse: CoarseShift | None = None
+    search: float | None = None
+    prior: tuple[float, float] = (0.0, 0.0)
+    how = "none"
+    fresh = check is not None
+    if expected_px is not None:
+        prior, how = expected_px, source
+    elif cfg.coarse and ref_heights is not None:
+        if check is not None:
+            # The coarse alignment needs the frame checked first.
+            check(engine.prepare(heights, out=grad)[1])
+            fresh = False
+        coarse = coarse_shift(ref_heights, heights)
+        if coarse.ambiguous:
+            reason = (
+                f"ambiguous: the images cannot tell apart shifts that differ by "
+                f"{_vectors(coarse.lattice_px)} px (a periodic sample), and two are "
+                "equally near the prior; give the expected drift (prior_px)"
+            )
+            result = invalid_result(_no_field(engine, dtype), reason)
+            result = replace(result, prior=coarse.describe(), lattice_px=coarse.lattice_px)
+            empty = np.zeros(0, dtype=np.intp)
+            return Registration(result, empty, empty, coarse)
+        if coarse.trusted:
+            prior, search = coarse.prior_px, _coarse_search(cfg, coarse)
+            how = f"coarse ({coarse.describe()})"
+        else:
+            how = f"coarse not used ({coarse.describe()})"
+    meas, top, left = measure_blocks(
+        engine,
+        ref,
+        grad,
+        prior_px=prior,
+        search_px=search,
+        heights=heights if fresh else None,
+        check=check if fresh else None,
+    )
+    result = combine(meas, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype)
+    lattice = coarse.lattice_px if coarse is not None and search is not None else ()
+    if not result.valid and cfg.coarse and ref_heights is not None and search is None:
+        if coarse is None or expected_px is not None:
+            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px or (0.0, 0.0))
+        if coarse.trusted:
+            retry, top2, left2 = measure_blocks(
+                engine, ref, grad, prior_px=coarse.prior_px, search_px=_coarse_search(cfg, coarse)
+            )
+            again = combine(retry, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype)
+            if again.valid:
+                result, top, left, prior = again, top2, left2, coarse.prior_px
+                how, lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
+    result = replace(result, prior_px=prior, prior=how, lattice_px=lattice)
+    return Registration(result, top, left, coarse)
+
+
+def _coarse_search(cfg: RegistrationConfig, coarse: CoarseShift) -> float:
+    """Block search half-width around a trusted coarse prior."""
+    limit = coarse.search_limit_px()
+    return cfg.coarse_search_px if limit is None else min(cfg.coarse_search_px, limit)
+
+
+def _vectors(vectors: tuple[tuple[float, float], ...]) -> str:
+    return ", ".join(f"({a:+g}, {b:+g})" for a, b in vectors[:4])
 
 
 def _take_engine(shape: tuple[int, int], config: RegistrationConfig) -> BlockEngine:
@@ -324,7 +454,7 @@ def measure_drift(
     ----------
     Yang, Jagannathan & Bohannan, IEEE Trans. Nanotechnology 7(2), 2008.
     """
-    cfg = config if config is not None else RegistrationConfig()
+    base = config if config is not None else RegistrationConfig()
     pixel = check_pixel_size(pixel_size_nm)
     ref = check_image(reference, "reference")
     cur = check_image(current, "current")
@@ -332,26 +462,75 @@ def measure_drift(
         raise RegistrationError(
             f"reference shape {ref.shape} differs from current shape {cur.shape}"
         )
-    prior = check_prior(prior_px)
+    given = check_prior(prior_px)
     shape = (int(ref.shape[0]), int(ref.shape[1]))
+    cfg = base.for_shape(shape)
     engine = _take_engine(shape, cfg)
     try:
         g_ref, ref_stats = engine.prepare(ref)
         check_frame(ref, g_ref, ref_stats, "reference", gradient=cfg.gradient)
         g_cur, cur_stats = engine.prepare(cur)
         check_frame(cur, g_cur, cur_stats, "current", gradient=cfg.gradient)
-        search = None
-        if prior is None:
-            prior = (0.0, 0.0)
-            if cfg.coarse:
-                coarse = coarse_shift(ref, cur)
-                if coarse.trusted:
-                    prior, search = coarse.prior_px, cfg.coarse_search_px
         ref_spec = engine.reference(g_ref)
-        meas, _, _ = measure_blocks(engine, ref_spec, g_cur, prior_px=prior, search_px=search)
+        found = register(
+            engine, ref_spec, g_cur, cur, ref_heights=ref, expected_px=given,
+            source="given", pixel_size_nm=pixel,
+        )  # fmt: skip
+        coarse = found.coarse
+        if (
+            not found.result.valid
+            and coarse is not None
+            and coarse.trusted
+            and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
+            < cfg.min_valid_blocks
+        ):
+            small = _measure_overlap(ref, cur, coarse, base, pixel)
+            if small is not None:
+                return small
     finally:
         _give_engine(engine)
-    return combine(meas, engine=engine, pixel_size_nm=pixel, dtype=result_dtype(ref, cur))
+    return found.result
+
+
+def _measure_overlap(
+    ref: npt.NDArray[np.floating],
+    cur: npt.NDArray[np.floating],
+    coarse: CoarseShift,
+    config: RegistrationConfig,
+    pixel: tuple[float, float],
+) -> DriftResult | None:
+    """A shift so large that too few block windows fit the overlap: measure
+    the overlapping parts (cut at the coarse integer shift) against each
+    other, with blocks sized for them, and add the shift back. None when the
+    overlap is smaller than :data:`MIN_IMAGE_PX` on an axis."""
+    dx, dy = int(coarse.dx_px), int(coarse.dy_px)
+    rows, cols = ref.shape
+    if rows - abs(dy) < MIN_IMAGE_PX or cols - abs(dx) < MIN_IMAGE_PX:
+        return None
+    ra = slice(max(0, -dy), rows - max(0, dy))
+    ca = slice(max(0, -dx), cols - max(0, dx))
+    rb = slice(max(0, dy), rows - max(0, -dy))
+    cb = slice(max(0, dx), cols - max(0, -dx))
+    inner = measure_drift(
+        ref[ra, ca], cur[rb, cb], pixel_size_nm=pixel, config=config, prior_px=(0.0, 0.0)
+    )
+    f = inner.field
+    offset = np.array([ca.start, ra.start], dtype=f.centres_px.dtype)
+    field = replace(f, centres_px=f.centres_px + offset)
+    how = f"overlap of {rows - abs(dy)}×{cols - abs(dx)} px at the {coarse.describe()}"
+    if not inner.valid:
+        return replace(inner, field=field, prior_px=(float(dx), float(dy)), prior=how)
+    px, py = pixel
+    return replace(
+        inner,
+        dx_px=inner.dx_px + dx,
+        dy_px=inner.dy_px + dy,
+        dx_nm=(inner.dx_px + dx) * px,
+        dy_nm=(inner.dy_px + dy) * py,
+        field=replace(field, vectors_px=f.vectors_px + np.array([dx, dy], f.vectors_px.dtype)),
+        prior_px=(float(dx), float(dy)),
+        prior=how,
+    )
 
 
 def check_prior(prior_px: tuple[float, float] | None) -> tuple[float, float] | None:

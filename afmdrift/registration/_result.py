@@ -72,6 +72,14 @@ class DriftResult:
         Why the result is invalid.
     field : BlockField
         Per-block detail.
+    prior_px : (float, float) or None
+        Where the block search was centred (the expected drift), px.
+    prior : str
+        Where that came from: ``given``, ``predicted``, ``none``, or the
+        coarse alignment with its scores (:meth:`CoarseShift.describe`).
+    lattice_px : tuple of (float, float)
+        Other shifts the images cannot tell apart (a periodic sample), as
+        offsets from the result; the one nearest the prior was taken.
     """
 
     dx_px: float
@@ -86,6 +94,9 @@ class DriftResult:
     total_blocks: int
     reason: str | None
     field: BlockField
+    prior_px: tuple[float, float] | None = None
+    prior: str = ""
+    lattice_px: tuple[tuple[float, float], ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (non-finite numbers become None)."""
@@ -101,4 +112,7 @@ class DriftResult:
             "valid_blocks": self.valid_blocks,
             "total_blocks": self.total_blocks,
             "reason": self.reason,
+            "prior_px": None if self.prior_px is None else list(self.prior_px),
+            "prior": self.prior,
+            "lattice_px": [list(v) for v in self.lattice_px],
         }

@@ -38,7 +38,8 @@ from __future__ import annotations
 
 import functools
 import math
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -46,7 +47,6 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration._blocks import FrameStats
-from afmdrift.registration._coarse import CoarseShift, coarse_shift
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import RegistrationError
 from afmdrift.registration._measure import (
@@ -55,16 +55,23 @@ from afmdrift.registration._measure import (
     check_image,
     check_pixel_size,
     check_prior,
-    combine,
-    measure_blocks,
-    result_dtype,
+    invalid_result,
+    register,
 )
 from afmdrift.registration._result import BlockField, DriftResult
 
 if TYPE_CHECKING:
     from afmdrift.records import Frame
 
-__all__ = ["DriftTracker", "TrackStep"]
+__all__ = ["HOLD_K", "HOLD_MIN_PX", "DriftTracker", "TrackStep"]
+
+#: A step farther than max(HOLD_MIN_PX, HOLD_K · robust spread of the recent
+#: prediction errors) from the predicted position is held until the next frame
+#: confirms it (px).
+HOLD_MIN_PX = 8.0
+HOLD_K = 6.0
+#: Recent prediction errors kept for that spread.
+_INNOVATIONS_KEPT = 8
 
 
 @dataclass(frozen=True, eq=False)
@@ -151,6 +158,10 @@ class DriftTracker:
         self._rel_sigma_nm = (0.0, 0.0)
         self._velocity = (0.0, 0.0)  # last increment per frame, px
         self._last_index = 0
+        self._innovations: deque[float] = deque(maxlen=_INNOVATIONS_KEPT)
+        # a held frame: (index, its measurement against the current reference)
+        # and how far it landed from the prediction
+        self._held: tuple[int, tuple[float, float], tuple[float, float]] | None = None
 
     @property
     def frames_seen(self) -> int:
@@ -259,7 +270,7 @@ class DriftTracker:
 
     def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
         if self._engine is None or self._engine.image_shape != shape:
-            self._engine = BlockEngine(shape, self.config)
+            self._engine = BlockEngine(shape, self.config.for_shape(shape))
         return self._engine
 
     def _step(
@@ -271,7 +282,6 @@ class DriftTracker:
         moved: tuple[float, float],
     ) -> TrackStep:
         cfg = self.config
-        dtype = result_dtype(heights)
         index = self._count
         gap = index - self._last_index
         prior = (
@@ -279,45 +289,31 @@ class DriftTracker:
             self._rel[1] + self._velocity[1] * gap + moved[1],
         )
         motion_known = self._motion_known or moved != (0.0, 0.0)
-        search: float | None = None
-        coarse: CoarseShift | None = None
-        # The frame's gradient image and checks come with the first block
-        # pass (see BlockEngine.measure), except where the coarse alignment
-        # needs the frame checked first.
-        new: npt.NDArray[np.floating] | None = heights
-        if cfg.coarse and not motion_known and self._ref_heights is not None:
-            # No accepted frame yet, so no expected motion: start from the
-            # coarse alignment, as measure_drift does.
-            self._check(heights, grad, engine.prepare(heights, out=grad)[1])
-            new = None
-            coarse = coarse_shift(self._ref_heights, heights)
-            if coarse.trusted:
-                prior, search = coarse.prior_px, cfg.coarse_search_px
-        elif cfg.reference == "consecutive" and max(abs(prior[0]), abs(prior[1])) <= REFINE_PX:
+        expected: tuple[float, float] | None = prior if motion_known else None
+        if (
+            expected is not None
+            and cfg.reference == "consecutive"
+            and max(abs(prior[0]), abs(prior[1])) <= REFINE_PX
+        ):
             # Small expected motion: leave the windows on the grid, so that
             # this frame's spectra can serve as the next reference unchanged.
-            prior = (0.0, 0.0)
-        meas_blocks, top, left = measure_blocks(
+            expected = (0.0, 0.0)
+        found = register(
             engine,
             ref,
             grad,
-            prior_px=prior,
-            search_px=search,
-            heights=new,
+            heights,
+            ref_heights=self._ref_heights if cfg.coarse else None,
+            expected_px=expected,
+            source="predicted",
+            pixel_size_nm=self.pixel_size_nm,
             check=functools.partial(self._check, heights, grad),
         )
-        meas = combine(meas_blocks, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
-        if not meas.valid and cfg.coarse and self._ref_heights is not None:
-            if coarse is None:
-                coarse = coarse_shift(self._ref_heights, heights)
-            cx, cy = coarse.dx_px, coarse.dy_px
-            if coarse.trusted and search is None:
-                retry, top2, left2 = measure_blocks(
-                    engine, ref, grad, prior_px=(cx, cy), search_px=cfg.coarse_search_px
-                )
-                again = combine(retry, engine=engine, pixel_size_nm=self.pixel_size_nm, dtype=dtype)
-                if again.valid:
-                    meas, top, left = again, top2, left2
+        meas, top, left = found.result, found.top, found.left
+        if meas.valid and motion_known and moved == (0.0, 0.0):
+            meas, jump = self._confirm(meas, prior, index)
+            # a confirmed jump is no drift: kept out of the velocity, as a move is
+            moved = (moved[0] + jump[0], moved[1] + jump[1])
         self._count += 1
         ref_index = self._ref_index
         increment = self._increment(meas)
@@ -340,6 +336,52 @@ class DriftTracker:
             accepted=meas.valid,
             reanchored=reanchor and cfg.reference == "keyframe",
         )
+
+    def hold_limit_px(self) -> float:
+        """Farthest a step may land from the predicted position and be accepted
+        at once, px: ``max(HOLD_MIN_PX, HOLD_K · 1.4826 · median |error|)``
+        over the recent prediction errors."""
+        if len(self._innovations) < 3:
+            return HOLD_MIN_PX
+        spread = 1.4826 * float(np.median(np.fromiter(self._innovations, float)))
+        return max(HOLD_MIN_PX, HOLD_K * spread)
+
+    def _confirm(
+        self, meas: DriftResult, prior: tuple[float, float], index: int
+    ) -> tuple[DriftResult, tuple[float, float]]:
+        """Tracker confirmation: a valid measurement far from the predicted
+        position ``prior`` (a registration mis-lock on a streaked frame, or a
+        real jump such as a tip change) is held, returned as invalid, and
+        accepted only when the next frame lands where the jump predicts.
+        Returns the result and the confirmed jump (zero if none)."""
+        limit = self.hold_limit_px()
+        error = math.hypot(meas.dx_px - prior[0], meas.dy_px - prior[1])
+        held, self._held = self._held, None
+        if error <= limit:
+            self._innovations.append(error)
+            return meas, (0.0, 0.0)
+        if held is not None:
+            h_index, (hx, hy), jump_px = held
+            steps = index - h_index
+            jump = (hx + self._velocity[0] * steps, hy + self._velocity[1] * steps)
+            if math.hypot(meas.dx_px - jump[0], meas.dy_px - jump[1]) <= limit:
+                self._innovations.clear()
+                note = f"{meas.prior}; confirms the jump held at frame {h_index}"
+                return replace(meas, prior=note), jump_px
+        jump_now = (meas.dx_px - prior[0], meas.dy_px - prior[1])
+        self._held = (index, (meas.dx_px, meas.dy_px), jump_now)
+        held_result = replace(
+            invalid_result(
+                meas.field,
+                f"held: {error:.1f} px from the predicted position (more than the "
+                f"{limit:.1f} px this track allows); accepted if the next frame confirms it",
+                valid_blocks=meas.valid_blocks,
+            ),
+            prior_px=meas.prior_px,
+            prior=meas.prior,
+            lattice_px=meas.lattice_px,
+        )
+        return held_result, (0.0, 0.0)
 
     def _accept(
         self,

@@ -93,9 +93,9 @@ def test_known_subpixel_shift_of_real_texture_is_recovered(
         _image(_crop(moved), ref, "moved"),
         _config(config),
     )
-    assert pair.result.valid
-    assert pair.result.dx_px == pytest.approx(shift[0], abs=0.05)
-    assert pair.result.dy_px == pytest.approx(shift[1], abs=0.05)
+    assert pair.valid
+    assert pair.dx_px == pytest.approx(shift[0], abs=0.05)
+    assert pair.dy_px == pytest.approx(shift[1], abs=0.05)
 
 
 @pytest.mark.parametrize("config", [RegistrationConfig(), SMALL], ids=["64-128", "32-64"])
@@ -110,9 +110,9 @@ def test_nanoscope_direct_equals_chain_through_synthetic_intermediate(
         _image(_crop(h), a, n) for h, n in ((a.heights_nm, "0"), (mid, "1"), (b.heights_nm, "2"))
     )
     cfg = _config(config)
-    r01 = measure_pair(im0, im1, cfg).result
-    r12 = measure_pair(im1, im2, cfg).result
-    r02 = measure_pair(im0, im2, cfg).result
+    r01 = measure_pair(im0, im1, cfg)
+    r12 = measure_pair(im1, im2, cfg)
+    r02 = measure_pair(im0, im2, cfg)
     assert r01.valid
     assert r12.valid
     assert r02.valid
@@ -190,7 +190,7 @@ def _closures(
             continue
         if not coarse_shift(movie[0].heights_nm, movie[j].heights_nm).trusted:
             continue
-        r = measure_pair(movie[0], movie[j], config).result
+        r = measure_pair(movie[0], movie[j], config)
         if not r.valid:
             continue
         px, py = movie[0].pixel_size_nm

@@ -13,7 +13,7 @@ from scipy.ndimage import fourier_shift, gaussian_filter
 from afmdrift.cli import main
 from afmdrift.cli._measure import measurement_config
 from afmdrift.errors import ConfigError
-from afmdrift.registration import RegistrationConfig
+from afmdrift.registration import RegistrationConfig, measure_drift
 
 SIZE = 256
 
@@ -178,17 +178,35 @@ def test_unrelated_images_are_not_a_confident_drift(
     assert "not used" in doc["prior"]
 
 
-def test_measurement_config_search_width() -> None:
+def test_measurement_config_overrides() -> None:
     base = RegistrationConfig()
-    assert measurement_config(base, centred=False) == base
-    assert measurement_config(base).max_shift_px == 6.0
+    assert measurement_config(base) == base
     small = measurement_config(base, block_size=32, extended_size=48)
-    assert small.max_shift_px == 6.0
-    tiny = measurement_config(base, block_size=8, extended_size=16)
-    assert tiny.max_shift_px == 6.0  # the engine's limit for 16 px is 16 / 2 - 2 = 6
-    assert measurement_config(base, search_px=3.0, centred=False).max_shift_px == 3.0
+    assert (small.block_size, small.extended_size, small.auto_block_size) == (32, 48, False)
+    narrow = measurement_config(base, search_px=3.0)
+    assert (narrow.max_shift_px, narrow.coarse_search_px) == (3.0, 3.0)
     with pytest.raises(ConfigError, match="extended_size"):
         measurement_config(base, block_size=64, extended_size=32)
+
+
+@pytest.mark.parametrize("extra", [[], ["--prior-px", "-38", "10"], ["--no-coarse"]])
+def test_cli_and_api_give_the_same_numbers_for_the_same_pair(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], extra: list[str]
+) -> None:
+    """Regression (issue 13): the CLI once chose its own prior and narrowed the
+    windows differently from measure_drift, 0.9 px apart on the same pair. Both
+    now go through one registration path."""
+    ref, cur = _texture(seed=21), _shifted(_texture(seed=21), -40.4, 12.2)
+    a, b = _save(tmp_path / "a.npy", ref), _save(tmp_path / "b.npy", cur)
+    main(["measure", a, b, "--pixel-size-nm", "1", "--json", *extra])
+    doc = json.loads(capsys.readouterr().out)
+    prior = (-38.0, 10.0) if "--prior-px" in extra else None
+    config = RegistrationConfig(coarse="--no-coarse" not in extra)
+    api = measure_drift(ref, cur, pixel_size_nm=1.0, config=config, prior_px=prior)
+    assert doc["valid"] == api.valid
+    assert doc["prior"] == api.prior
+    if api.valid:
+        assert (doc["dx_px"], doc["dy_px"]) == (api.dx_px, api.dy_px)
 
 
 def test_stack_trajectory_samples_and_dewarped_frames(
