@@ -2,7 +2,8 @@
 
 Runs every case of ``tests/peers/_battery.py`` (the same cases the tests in
 ``tests/peers`` run) through ``afmdrift.registration`` and prints, per peer,
-case | peer asserts | afmdrift result | verdict, error, σ, reason, then the
+case | peer asserts | afmdrift result | verdict, error, σ, reason (or, for
+stacks, the frame that decided the verdict), then the
 totals. Verdicts: pass / refused (needless when the peer meets its own
 assertion) / short (honest σ, misses the peer's tolerance) / fail (a valid
 result more than max(0.5 px, 4σ) from the truth: a confident wrong answer).
@@ -59,6 +60,11 @@ def _reference(case: battery.Case) -> str:
     d = np.subtract(got, data.truth)
     err = float(np.max(np.abs(d - size * np.round(d / size))))
     return f"{_fmt_pair(got, 2)} err {err:.2f}"
+
+
+def _why(r: dict[str, Any], limit: int = 240) -> str:
+    text = "; ".join(t for t in (r["detail"], r["reason"]) if t)
+    return text if len(text) <= limit else text[: limit - 1] + "…"
 
 
 def _row(o: battery.Outcome) -> dict[str, Any]:
@@ -137,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             line = (
                 f"| {r['case']} | {r['peer_asserts']} | {_fmt_pair(r['result_px'])} | "
                 f"{verdict} | {err} | {_fmt_pair(r['sigma_px'])} | "
-                f"{r['reason'] or r['detail'] or ''} |"
+                f"{_why(r)} |"
             )
             if args.reference:
                 line += f" {r['skimage_reference']} |"
@@ -154,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
             print(
                 f"- {r['peer']}:{r['case']}: got {_fmt_pair(r['result_px'])}, error "
                 f"{_fmt_pair(r['error_px'])} px, σ {_fmt_pair(r['sigma_px'])} px"
+                + (f" ({r['detail']})" if r["detail"] else "")
             )
     return 0 if not worst and math.isfinite(elapsed) else 1
 

@@ -91,9 +91,11 @@ class Stack:
     """Frames for a :class:`DriftTracker` and the true cumulative positions (px)."""
 
     frames: list[FloatArray]
-    positions: list[tuple[float, float]]
+    positions: list[tuple[float, float]] | None  # None: truth unknown
     pixel_size_nm: float = 1.0
     config: RegistrationConfig | None = None
+    #: Truth unknown: every accepted increment must be within this many px of zero.
+    bound_step_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -198,28 +200,67 @@ def _run_stack(case: Case, stack: Stack) -> Outcome:
     tracker.update(stack.frames[0])
     var = np.zeros(2)
     worst: tuple[str, tuple[float, float], tuple[float, float], tuple[float, float]] | None = None
-    refusal: str | None = None
+    refusals: list[str] = []
+    bad: list[str] = []  # accepted increments beyond the bound (truth unknown)
     rank = {"pass": 0, "short": 1, "fail": 2}
     for j in range(1, len(stack.frames)):
-        step = tracker.update(stack.frames[j])
+        try:
+            step = tracker.update(stack.frames[j])
+        except InputError as err:
+            refusals.append(f"frame {j}: {type(err).__name__}: {err}")
+            continue
         assert step is not None
         if not step.accepted:
-            if refusal is None:
-                refusal = f"frame {j}: {step.measurement.reason}"
+            refusals.append(f"frame {j}: {step.measurement.reason}")
             continue
         inc = step.increment
-        var += (np.array([inc.sigma_x_nm, inc.sigma_y_nm]) / stack.pixel_size_nm) ** 2
+        inc_sigma = (inc.sigma_x_nm / stack.pixel_size_nm, inc.sigma_y_nm / stack.pixel_size_nm)
+        if stack.positions is None:
+            # Truth unknown: judge each accepted increment against the bound.
+            got = (float(inc.dx_px), float(inc.dy_px))
+            bound = stack.bound_step_px if stack.bound_step_px is not None else math.inf
+            verdict = "pass" if math.hypot(*got) <= bound else "fail"
+            if verdict == "fail":
+                bad.append(f"frame {j}: ({got[0]:.2f}, {got[1]:.2f})")
+            cand = (verdict, got, (math.nan, math.nan), inc_sigma)
+            if worst is None or (rank[verdict], math.hypot(*got)) > (
+                rank[worst[0]],
+                math.hypot(*worst[1]),
+            ):
+                worst = (*cand[:2], cand[2], cand[3])
+                worst_frame = j
+            continue
+        var += np.array(inc_sigma) ** 2
         sigma = (float(np.sqrt(var[0])), float(np.sqrt(var[1])))
         got = (float(step.position_px[0]), float(step.position_px[1]))
         verdict, err = _judge(case, got, stack.positions[j], sigma)
         if worst is None or (rank[verdict], max(err)) > (rank[worst[0]], max(worst[2])):
             worst = (verdict, got, err, sigma)
+            worst_frame = j
+    refused = "; ".join(refusals) if refusals else None
     if worst is not None and worst[0] == "fail":
-        return Outcome(case, "fail", worst[1], worst[2], worst[3], reason=refusal)
-    if refusal is not None:
-        return Outcome(case, "refused", reason=refusal)
+        err_out = None if stack.positions is None else worst[2]
+        what = "increment" if stack.positions is None else "position"
+        return Outcome(
+            case,
+            "fail",
+            worst[1],
+            err_out,
+            worst[3],
+            reason=refused,
+            detail=(
+                "accepted increments beyond the bound: " + ", ".join(bad)
+                if bad
+                else f"frame {worst_frame}: accepted {what} {worst[1]}"
+            ),
+        )
+    if refused is not None and (stack.positions is not None or worst is None):
+        return Outcome(case, "refused", reason=refused)
     assert worst is not None
-    return Outcome(case, worst[0], worst[1], worst[2], worst[3], detail="worst frame")
+    err_out = None if stack.positions is None else worst[2]
+    return Outcome(
+        case, worst[0], worst[1], err_out, worst[3], reason=refused, detail="worst frame"
+    )
 
 
 def run_case(case: Case) -> Outcome:
@@ -776,6 +817,26 @@ def _hsafm_streaked() -> Pair:
     return Pair(a.heights_nm, b.heights_nm, None, float(a.pixel_size_nm[0]), bound_px=5.0)
 
 
+def _hsafm_movie() -> Stack:
+    from afmdrift.io import load_stack
+
+    frames = [f.heights_nm for f in load_stack(str(real_path(HSAFM)))]
+    return Stack(frames, None, 0.5, bound_step_px=5.0)
+
+
+def _hsafm_smooth_snr1(seed: int) -> Callable[[], Pair]:
+    def build() -> Pair:
+        rng = _rng(1000 + seed)
+        tex = rough_texture((256, 256), pixel_size_nm=0.5, rng=rng, correlation_length_nm=5.0)
+        d = rng.uniform(-3.0, 3.0, 2)
+        s = TextureShifter(tex)
+        ref = add_noise(s.crop((200, 200)), snr=1.0, rng=rng)
+        cur = add_noise(s.crop((200, 200), dx_px=d[0], dy_px=d[1]), snr=1.0, rng=rng)
+        return Pair(ref, cur, (float(d[0]), float(d[1])), 0.5)
+
+    return build
+
+
 ISSUE13: list[Case] = [
     Case(
         "issue13",
@@ -832,6 +893,32 @@ ISSUE13: list[Case] = [
         "within 0.5 px",
         0.5,
         _hsafm_smooth,
+    ),
+    *[
+        Case(
+            "issue13",
+            f"hsafm_smooth_snr1_{k:02d}",
+            ISSUE,
+            "smooth rough texture (ℓ = 10 px) 200² at 0.5 nm/px, SNR 1, random shift "
+            "within ±3 px: within 0.5 px, or refused",
+            0.5,
+            _hsafm_smooth_snr1(k),
+            note="no peer meets 0.5 px here (skimage's plain cross-correlation: 0.3–0.9 px)",
+            peer_succeeds=False,
+        )
+        for k in range(12)
+    ],
+    Case(
+        "issue13",
+        "hsafm_movie_tracker",
+        ISSUE,
+        "real HS-AFM movie, 32 frames through DriftTracker (default config; truth "
+        "unknown, a few px per frame at most): every accepted increment ≤ 5 px",
+        5.0,
+        _hsafm_movie,
+        note="the issue saw frames 18/19 accepted as a 35 px jump",
+        peer_succeeds=False,
+        realdata=True,
     ),
     Case(
         "issue13",
