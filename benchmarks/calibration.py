@@ -31,7 +31,7 @@ def _snr(s: float) -> str:
 
 
 def _pct(v: float) -> str:
-    return "—" if math.isnan(v) else f"{100 * v:.0f} %"
+    return "—" if math.isnan(v) else f"{100 * v:.1f} %"
 
 
 def main(argv: list[str] | None = None) -> int:
