@@ -38,6 +38,10 @@ def _fmt_pair(v: tuple[float, float] | None, digits: int = 3) -> str:
     return f"({v[0]:.{digits}f}, {v[1]:.{digits}f})"
 
 
+def _fmt_sigma(v: tuple[float, float] | None) -> str:
+    return "—" if v is None else f"({v[0]:.2g}, {v[1]:.2g})"
+
+
 def _reference(case: battery.Case) -> str:
     """scikit-image's answer on the pair, in afmdrift's sign convention."""
     import numpy as np
@@ -142,12 +146,17 @@ def main(argv: list[str] | None = None) -> int:
             err = "—" if r["error_px"] is None else f"{max(r['error_px']):.3f}"
             line = (
                 f"| {r['case']} | {r['peer_asserts']} | {_fmt_pair(r['result_px'])} | "
-                f"{verdict} | {err} | {_fmt_pair(r['sigma_px'])} | "
+                f"{verdict} | {err} | {_fmt_sigma(r['sigma_px'])} | "
                 f"{_why(r)} |"
             )
             if args.reference:
                 line += f" {r['skimage_reference']} |"
             print(line.replace("\n", " "))
+        notes = dict.fromkeys(r["note"] for r in mine if r["note"])
+        if notes:
+            print("\nNotes: " + " ".join(f"({i}) {n}." for i, n in enumerate(notes, 1)))
+        sources = dict.fromkeys(r["source"] for r in mine)
+        print("Sources: " + "; ".join(sources) + ".")
     print(
         "\nTotals: "
         + ", ".join(f"{k} {v}" for k, v in totals.items())
@@ -159,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         for r in worst:
             print(
                 f"- {r['peer']}:{r['case']}: got {_fmt_pair(r['result_px'])}, error "
-                f"{_fmt_pair(r['error_px'])} px, σ {_fmt_pair(r['sigma_px'])} px"
+                f"{_fmt_pair(r['error_px'])} px, σ {_fmt_sigma(r['sigma_px'])} px"
                 + (f" ({r['detail']})" if r["detail"] else "")
             )
     return 0 if not worst and math.isfinite(elapsed) else 1

@@ -175,10 +175,29 @@ def _run_pair(case: Case, pair: Pair) -> Outcome:
         )
     except InputError as err:
         return Outcome(case, "refused", reason=f"{type(err).__name__}: {err}")
-    if not r.valid:
-        return Outcome(case, "refused", reason=r.reason or "(no reason given)")
-    got = (float(r.dx_px), float(r.dy_px))
-    sigma = (r.sigma_x_nm / pair.pixel_size_nm, r.sigma_y_nm / pair.pixel_size_nm)
+    return judge_pair(
+        case,
+        pair,
+        valid=r.valid,
+        got=(float(r.dx_px), float(r.dy_px)),
+        sigma_nm=(r.sigma_x_nm, r.sigma_y_nm),
+        reason=r.reason,
+    )
+
+
+def judge_pair(
+    case: Case,
+    pair: Pair,
+    *,
+    valid: bool,
+    got: tuple[float, float],
+    sigma_nm: tuple[float, float],
+    reason: str | None,
+) -> Outcome:
+    """Verdict on one measured pair (also used for the CLI's JSON answer)."""
+    if not valid:
+        return Outcome(case, "refused", reason=reason or "(no reason given)")
+    sigma = (sigma_nm[0] / pair.pixel_size_nm, sigma_nm[1] / pair.pixel_size_nm)
     if pair.truth is None:
         # Truth unknown: only a bound on the drift is known.
         bound = pair.bound_px if pair.bound_px is not None else math.inf
@@ -670,11 +689,13 @@ SUITE2P: list[Case] = [
         "suite2p",
         f"line_grid_{i:02d}_{dx:+d}_{dy:+d}",
         S2P,
-        "256² frames of a pure line grid (16 lines per axis), rigid shifts: registered "
-        "frames identical; we require the minimal lattice translation (issue 13)",
+        f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}): the minimal translation",
         0.5,
         _s2p_grid(dx, dy),
-        note="band-limited 1.9-px lines, period 16 px, periodic integer shifts |d| ≤ 7 px",
+        note="suite2p asserts that the registered frames of its 256² pure line grid "
+        "(16 lines per axis, rigid shifts) are identical, which any lattice translation "
+        "would satisfy; we require the minimal one (issue 13). Band-limited 1.9-px lines, "
+        "periodic integer shifts |d| ≤ 7 px",
     )
     for i, (dx, dy) in enumerate(_grid_shifts())
 ]
