@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
             print("\nNotes: " + " ".join(f"({i}) {n}." for i, n in enumerate(notes, 1)))
         sources = dict.fromkeys(r["source"] for r in mine)
         print("Sources: " + "; ".join(sources) + ".")
+        skipped = battery.NOT_APPLICABLE.get(peer, [])
+        if skipped:
+            print("Not re-created: " + "; ".join(skipped) + ".")
     print(
         "\nTotals: "
         + ", ".join(f"{k} {v}" for k, v in totals.items())

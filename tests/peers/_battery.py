@@ -956,6 +956,38 @@ ISSUE13: list[Case] = [
 ]
 
 
+#: Peer tests not re-created, and why (printed by benchmarks/peer_battery.py).
+NOT_APPLICABLE: dict[str, list[str]] = {
+    "skimage": [
+        "test_size_one_dimension_input, test_3d_input, test_4d_input_*: afmdrift registers "
+        "2-D frames of at least 64×64 px",
+        "test_masked_registration_random_masks_non_equal_sizes: afmdrift measures frames "
+        "of equal shape",
+        "test_correlation with space='fourier' input, invalid-argument and warning tests: "
+        "API details, no registration outcome",
+    ],
+    "opencv": [
+        "accuracy_1d_odd_fft: a 129×1 signal (afmdrift needs 64 px on both axes)",
+        "Imgproc_DivSpectrums: a spectrum-division unit test",
+    ],
+    "imreg_dft": [
+        "check-similarity, check-similarity2, check-constraints1/2: rotation and scale "
+        "(afmdrift measures translation only)",
+        "check-tiles: a small image inside a big one (frames of different size)",
+    ],
+    "pystackreg": [
+        "rigid-body, scaled-rotation, affine and bilinear stacks: not translations",
+    ],
+    "suite2p": [
+        "non-rigid and bidirectional-phase regression tests: not a rigid translation",
+    ],
+    "afspm": [
+        "the same test's rotation/scale models and descriptor variants: translation only is "
+        "asserted by afspm (Euclidean RANSAC with SIFT or BRIEF)",
+    ],
+}
+
+
 ALL_CASES: list[Case] = [
     *SKIMAGE,
     *OPENCV,
