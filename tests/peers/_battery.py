@@ -975,7 +975,8 @@ ISSUE13: list[Case] = [
         "at most): valid only with |d| ≤ 5 px, or refused",
         5.0,
         _hsafm_streaked,
-        note="the issue saw a valid 35 px jump",
+        note="the same pair measured directly; the 35 px jump of the issue came through "
+        "DriftTracker (case hsafm_movie_tracker)",
         peer_succeeds=False,
         realdata=True,
     ),
