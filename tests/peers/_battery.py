@@ -1040,17 +1040,16 @@ def cases_of(peer: str) -> list[Case]:
 #: and the entry must be removed. Never list a confident wrong answer here.
 _NEEDLESS = "issue 13: needless refusal, the peer solves it: "
 KNOWN_REFUSALS: dict[str, str] = {
-    **{
-        f"skimage:disambiguate_{s0:+d}_{s1:+d}": _NEEDLESS + "overlap smaller than a window"
-        for s0 in (100, -100, 350, -350)
-        for s1 in (100, -100, 350, -350)
-        if 350 in (abs(s0), abs(s1))
-    },
     "skimage:masked_round_view_+75_+75": _NEEDLESS + "static dark outside a round view",
     "skimage:masked_round_view_+130_+130": _NEEDLESS + "static dark outside a round view",
+    "skimage:masked_padfield_+75_+75": _NEEDLESS + "static invalid region; blocks over its edge",
+    "skimage:masked_padfield_-130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
+    "skimage:masked_padfield_+130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
     "opencv:rectangle_128x129": _NEEDLESS + "one feature on a flat background ('nearly blank')",
-    "opencv:real_image_129": _NEEDLESS + "129² frame with the default blocks",
-    "opencv:float32_large_half_overlap": _NEEDLESS + "smooth (5× enlarged) photo, half overlap",
+    **{
+        f"issue13:rough_noise_free_{k}": _NEEDLESS + "noise-free smooth texture, ~4 px shift"
+        for k in ("0_-3.67_-3.87", "0_+3.90_-3.90", "1_+3.98_+3.85", "1_-3.67_-3.87")
+    },
 }
 
 

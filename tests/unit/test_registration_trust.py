@@ -50,7 +50,8 @@ def test_lattice_shift_halfway_between_translations_is_refused_as_ambiguous() ->
     lat = _lattice()
     r = measure_drift(lat, fourier_shift(lat, dx_px=8.0, dy_px=0.0), pixel_size_nm=1.0)
     assert not r.valid
-    assert r.reason is not None and r.reason.startswith("ambiguous")
+    assert r.reason is not None
+    assert r.reason.startswith("ambiguous")
     assert "(-16, +0)" in r.reason or "(+16, +0)" in r.reason
 
 
@@ -99,7 +100,8 @@ def test_identical_frames_are_not_static_structure() -> None:
     ref = _texture((128, 128), seed=5)
     assert static_pixels(ref, ref.copy()) is None
     r = measure_drift(ref, ref.copy(), pixel_size_nm=1.0)
-    assert r.valid and (r.dx_px, r.dy_px) == pytest.approx((0.0, 0.0), abs=1e-3)
+    assert r.valid
+    assert (r.dx_px, r.dy_px) == pytest.approx((0.0, 0.0), abs=1e-3)
 
 
 @pytest.mark.parametrize("dx", [350, -350])
@@ -163,7 +165,8 @@ def test_a_lone_jump_is_held_and_never_accepted() -> None:
     held = steps[5]
     assert held is not None
     assert not held.accepted
-    assert held.measurement.reason is not None and held.measurement.reason.startswith("held")
+    assert held.measurement.reason is not None
+    assert held.measurement.reason.startswith("held")
     assert not held.reanchored
     after = steps[6]
     assert after.accepted
