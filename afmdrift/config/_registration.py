@@ -81,7 +81,11 @@ class RegistrationConfig(BaseModel):
         0.25, gt=0, le=1, description="dft method: frequencies used, as a fraction of Nyquist."
     )
     eps_rel: float = Field(
-        1e-6, gt=0, le=1, description="Spectrum magnitude floor relative to each block's max."
+        1e-4,
+        gt=0,
+        le=1,
+        description="Spectrum magnitude floor relative to each block's max (above the "
+        "rounding noise of float32 FFTs, which whitening would otherwise amplify).",
     )
     coarse: bool = Field(
         True, description="Whole-frame coarse alignment when no expected drift is known."

@@ -83,6 +83,8 @@ LATTICE_CANDIDATES = 6
 MIN_OVERLAP_PX = 16
 #: NCC margin by which a wrapped alternative must beat the minimal-image shift.
 UNWRAP_MARGIN = 0.1
+#: Masked correlation: smallest normalised correlation that is trusted.
+MASKED_MIN_NCC = 0.5
 #: Masked correlation: smallest share of the valid pixels that must overlap.
 MASKED_MIN_OVERLAP = 0.1
 #: Share of static pixels above which the frames are taken as identical rather
@@ -113,15 +115,21 @@ class CoarseShift(NamedTuple):
     """Two indistinguishable shifts were equally near the prior: no choice is defensible."""
     method: str = "phase"
     """``phase`` (phase correlation) or ``masked`` (static pixels left out)."""
+    peak_ncc: float = math.nan
+    """``masked``: the normalised cross-correlation at the shift (1: identical)."""
 
     @property
     def trusted(self) -> bool:
-        """Both correlations agree that the shift is real, and it is not ambiguous."""
-        return (
-            self.peak_z >= COARSE_MIN_Z
-            and self.gradient_z >= COARSE_MIN_GRADIENT_Z
-            and not self.ambiguous
-        )
+        """Both correlations agree that the shift is real, and it is not ambiguous.
+        For the masked correlation, which is not whitened (its surface is broad,
+        so a z-score says little), the correlation itself must reach
+        :data:`MASKED_MIN_NCC` (true matches 0.70–0.95, unrelated frames with the
+        same static border 0.13–0.15)."""
+        if self.ambiguous:
+            return False
+        if self.method == "masked":
+            return self.peak_ncc >= MASKED_MIN_NCC
+        return self.peak_z >= COARSE_MIN_Z and self.gradient_z >= COARSE_MIN_GRADIENT_Z
 
     @property
     def prior_px(self) -> tuple[float, float]:
@@ -138,7 +146,10 @@ class CoarseShift(NamedTuple):
 
     def describe(self) -> str:
         """One line for ``afmdrift measure`` and the result's ``prior``."""
-        text = f"{self.method} peak z={self.peak_z:.1f}, gradient z={self.gradient_z:.1f}"
+        if self.method == "masked":
+            text = f"masked correlation {self.peak_ncc:.2f} (static pixels left out)"
+        else:
+            text = f"{self.method} peak z={self.peak_z:.1f}, gradient z={self.gradient_z:.1f}"
         if self.lattice_px:
             vecs = ", ".join(f"({a:+g}, {b:+g})" for a, b in self.lattice_px[:4])
             text += f"; lattice: also {vecs} px, took the one nearest the prior"
@@ -350,7 +361,7 @@ def coarse_shift(
     if static is None:
         static = static_pixels(reference, current)
     if static is not None:
-        return _masked_shift(a, b, ~static, reference, current)
+        return _masked_shift(a, b, ~static, reference, current, prior_px)
     corr = _phase_correlation(a, b)
     spread = float(corr.std())
     n_rows, n_cols = corr.shape
@@ -441,17 +452,30 @@ def _masked_shift(
     valid: BArr,
     reference: npt.NDArray[np.floating],
     current: npt.NDArray[np.floating],
+    prior_px: tuple[float, float],
 ) -> CoarseShift:
-    """Coarse shift with the static pixels left out (masked NCC)."""
+    """Coarse shift with the static pixels left out (masked NCC); lattice
+    translations among its peaks are resolved as for the phase correlation."""
     corr = _masked_ncc(a, b, valid)
-    r, c = (int(v) for v in np.unravel_index(int(np.argmax(corr)), corr.shape))
     rows2, cols2 = corr.shape
-    dy = r - rows2 if r >= rows2 // 2 else r
-    dx = c - cols2 if c >= cols2 // 2 else c
+    peak_rows, peak_cols = _local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
+    shifts = [
+        (
+            int(c) - cols2 if c >= cols2 // 2 else int(c),
+            int(r) - rows2 if r >= rows2 // 2 else int(r),
+        )
+        for r, c in zip(peak_rows, peak_cols, strict=True)
+    ]
+    near = sorted(shifts, key=lambda s: math.hypot(s[0] - prior_px[0], s[1] - prior_px[1]))
+    pool = list(dict.fromkeys([shifts[0], *near[:LATTICE_CANDIDATES]]))
+    (dx, dy), lattice, ambiguous = _resolve(a, b, pool, prior_px)
+    r, c = dy % rows2, dx % cols2
     spread = float(corr[corr != 0].std()) if np.any(corr != 0) else 0.0
     z = float(corr[r, c]) / spread if spread > 0 else 0.0
     g_ref, g_cur = _gradient(reference), _gradient(current)
     g_corr = _masked_ncc(g_ref, g_cur, valid[:, 1:] & valid[:, :-1])
     g_spread = float(g_corr[g_corr != 0].std()) if np.any(g_corr != 0) else 0.0
     g_z = float(g_corr[dy % rows2, dx % cols2]) / g_spread if g_spread > 0 else 0.0
-    return CoarseShift(float(dx), float(dy), z, g_z, (), False, "masked")
+    return CoarseShift(
+        float(dx), float(dy), z, g_z, lattice, ambiguous, "masked", float(corr[r, c])
+    )

@@ -1046,10 +1046,6 @@ KNOWN_REFUSALS: dict[str, str] = {
     "skimage:masked_padfield_-130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
     "skimage:masked_padfield_+130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
     "opencv:rectangle_128x129": _NEEDLESS + "one feature on a flat background ('nearly blank')",
-    **{
-        f"issue13:rough_noise_free_{k}": _NEEDLESS + "noise-free smooth texture, ~4 px shift"
-        for k in ("0_-3.67_-3.87", "0_+3.90_-3.90", "1_+3.98_+3.85", "1_-3.67_-3.87")
-    },
 }
 
 
