@@ -11,8 +11,18 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
+
+# One OpenBLAS thread for the command's processes, set before NumPy or SciPy
+# load it. The per-frame solves (the drift trajectory's Cholesky factorisation,
+# the predictors' least squares) are small; OpenBLAS splits them over its
+# threads anyway, and on a loaded machine they wait for each other: a frame's
+# trajectory update then took a hundred times longer (benchmarks/RESULTS.md).
+# The registration's own threads (FFTW, Numba) do not use BLAS. A value the
+# user set is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from afmdrift._version import __version__
 from afmdrift.errors import AfmdriftError

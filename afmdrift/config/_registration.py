@@ -10,7 +10,9 @@ __all__ = ["RegistrationConfig"]
 
 #: auto_block_size: extended windows the smaller edge must hold, and the smallest block
 #: (smaller blocks hold too little of a particle texture: 0.27 px error on 128² frames
-#: of 30 nm particles at 2 nm/px with 16/32 blocks).
+#: of 30 nm particles at 2 nm/px with 16/32 blocks). Frames under 192 px keep the
+#: engine's own small-frame layout (windows of two thirds of the frame): with 32/64
+#: blocks a 128² frame scanned across an offset move was placed 9 nm off.
 AUTO_WINDOWS = 2
 AUTO_SMALLEST_BLOCK = 32
 
@@ -28,9 +30,10 @@ class RegistrationConfig(BaseModel):
     block_size: int = Field(64, ge=8, le=1024, description="Block edge in px.")
     auto_block_size: bool = Field(
         True,
-        description="Halve block_size and extended_size (down to a 32 px block) until "
-        "the frame's smaller edge holds more than two extended windows: 256², 200² and "
-        "128² frames get 32/64 blocks.",
+        description="Halve block_size and extended_size (down to a 32 px block) while "
+        "the frame's smaller edge holds no more than two extended windows but at least "
+        "three halved ones: 256² and 200² frames get 32/64 blocks; smaller frames keep "
+        "the windows of two thirds of the frame (see docs/registration.md).",
     )
     extended_size: int = Field(128, ge=16, le=2048, description="Extended block edge in px.")
     gradient: Literal["x", "y", "both", "none"] = Field(
@@ -127,7 +130,11 @@ class RegistrationConfig(BaseModel):
             return self
         edge = min(shape)
         block, ext = self.block_size, self.extended_size
-        while edge <= AUTO_WINDOWS * ext and block >= 2 * AUTO_SMALLEST_BLOCK:
+        while (
+            edge <= AUTO_WINDOWS * ext
+            and edge >= 3 * (ext // 2)
+            and block >= 2 * AUTO_SMALLEST_BLOCK
+        ):
             block, ext = block // 2, max(ext // 2, block // 2)
         if block == self.block_size:
             return self

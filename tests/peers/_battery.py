@@ -1040,11 +1040,6 @@ def cases_of(peer: str) -> list[Case]:
 #: and the entry must be removed. Never list a confident wrong answer here.
 _NEEDLESS = "issue 13: needless refusal, the peer solves it: "
 KNOWN_REFUSALS: dict[str, str] = {
-    "skimage:masked_round_view_+75_+75": _NEEDLESS + "static dark outside a round view",
-    "skimage:masked_round_view_+130_+130": _NEEDLESS + "static dark outside a round view",
-    "skimage:masked_padfield_+75_+75": _NEEDLESS + "static invalid region; blocks over its edge",
-    "skimage:masked_padfield_-130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
-    "skimage:masked_padfield_+130_+130": _NEEDLESS + "static invalid region; blocks over its edge",
     "opencv:rectangle_128x129": _NEEDLESS + "one feature on a flat background ('nearly blank')",
 }
 
