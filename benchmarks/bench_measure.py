@@ -1,0 +1,168 @@
+"""Speed of ``afmdrift measure STACK``, the path users run on recorded stacks.
+
+Run: ``.venv/bin/python benchmarks/bench_measure.py [--frames N] [--movie-frames M]``
+
+Two streams, each timed frame by frame and interleaved so that all figures
+see the same machine load:
+
+* a 512² particle stack (2 nm/px, SNR 10, on a slow closed path of ±40 px), the
+  default 64/128 blocks;
+* a 200² HS-AFM-like movie (smooth texture, 0.5 nm/px, SNR 10), with the
+  automatic block size (32/64 px).
+
+For every frame: the step of :func:`afmdrift.cli._measure.track_stack` (what
+``afmdrift measure STACK`` runs per frame: the daemon's position component,
+the drift trajectory, the record), :meth:`DriftTracker.update` alone on the
+same frame, and the bare FFTW transforms the frame needs (one forward and one
+pruned inverse real FFT of every block, split into the engine's batches and
+taken in turn by the engine's threads; see ``bench_registration.py``).
+Printed: medians, the ratios measure/tracker and measure/FFT floor, and frames
+per second. Then the whole command (``afmdrift measure STACK.npy``, start-up
+and file reading included) is run once on the 512² stack, as a user runs it.
+
+The command-line process runs OpenBLAS on one thread (``afmdrift.cli``); this
+benchmark sets the same before NumPy loads, so the in-process figures are
+those of the command.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from bench_registration import BareFFT
+
+from afmdrift.cli._measure import track_stack
+from afmdrift.config import AfmdriftConfig
+from afmdrift.io import AfmImage
+from afmdrift.registration import DriftTracker
+from afmdrift.registration._engine import BlockEngine
+from afmdrift.testing import TextureShifter, add_noise, particle_texture, rough_texture
+
+
+def stack(kind: str, n: int, rng: np.random.Generator) -> tuple[list[np.ndarray], float]:
+    """``n`` frames of the given kind drifting slowly, and their pixel size (nm)."""
+    if kind == "512":
+        tex = particle_texture((700, 700), pixel_size_nm=2.0, rng=rng)
+        shape, pixel = (512, 512), 2.0
+    else:
+        tex = rough_texture((320, 320), pixel_size_nm=0.5, rng=rng, correlation_length_nm=2.0)
+        shape, pixel = (200, 200), 0.5
+    shifter = TextureShifter(tex)
+    # a slow back-and-forth path, so a long movie stays inside the texture
+    phase = np.linspace(0.0, 2.0 * np.pi, n)
+    amp = 40.0 if kind == "512" else 30.0
+    frames = [
+        add_noise(
+            shifter.crop(
+                shape,
+                dx_px=amp * np.sin(phase[k]),
+                dy_px=0.5 * amp * np.sin(2 * phase[k]),
+            ),
+            snr=10.0,
+            rng=rng,
+        )
+        for k in range(n)
+    ]
+    return frames, pixel
+
+
+def images(frames: list[np.ndarray], pixel: float) -> list[AfmImage]:
+    return [
+        AfmImage(heights_nm=f, pixel_size_nm=(pixel, pixel), path=Path("bench.npy"), frame=k)
+        for k, f in enumerate(frames)
+    ]
+
+
+def run(kind: str, n: int, rng: np.random.Generator) -> dict[str, float]:
+    frames, pixel = stack(kind, n, rng)
+    config = AfmdriftConfig()
+    cfg = config.registration.for_shape(frames[0].shape)
+    bare = BareFFT(BlockEngine(frames[0].shape, cfg), cfg, batched=True)
+    tracker = DriftTracker(pixel_size_nm=pixel, config=config.registration)
+    steps = track_stack(images(frames, pixel), config)
+    measure_ms: list[float] = []
+    tracker_ms: list[float] = []
+    fft_ms: list[float] = []
+    valid = 0
+    tracker.update(frames[0])
+    for k in range(1, n):
+        t0 = time.perf_counter()
+        doc = next(steps)
+        measure_ms.append(1e3 * (time.perf_counter() - t0))
+        valid += bool(doc["valid"])
+        t0 = time.perf_counter()
+        tracker.update(frames[k])
+        tracker_ms.append(1e3 * (time.perf_counter() - t0))
+        fft_ms.append(1e3 * bare.time()[0])
+    # the first frames compile and plan: leave them out
+    skip = min(5, len(measure_ms) // 4)
+    m = statistics.median(measure_ms[skip:])
+    t = statistics.median(tracker_ms[skip:])
+    f = statistics.median(fft_ms[skip:])
+    return {
+        "frames": n,
+        "valid": valid,
+        "measure_ms": m,
+        "tracker_ms": t,
+        "fft_ms": f,
+        "measure_over_tracker": m / t,
+        "measure_over_fft": m / f,
+        "measure_fps": 1e3 / m,
+        "blocks": cfg.block_size,
+    }
+
+
+def command_wall_s(n: int, rng: np.random.Generator) -> tuple[float, int]:
+    """Wall time of ``afmdrift measure STACK.npy`` on an ``n``-frame 512² stack."""
+    frames, pixel = stack("512", n, rng)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "stack.npy"
+        np.save(path, np.stack(frames).astype(np.float32))
+        exe = Path(sys.executable).with_name("afmdrift")
+        t0 = time.perf_counter()
+        out = subprocess.run(
+            [str(exe), "measure", str(path), "--pixel-size-nm", str(pixel)],
+            capture_output=True,
+            text=True,
+            check=False,
+        )
+        wall = time.perf_counter() - t0
+    return wall, out.stdout.count("\n")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=120, help="512² frames (120)")
+    ap.add_argument("--movie-frames", type=int, default=600, help="200² frames (600)")
+    args = ap.parse_args()
+    rng = np.random.default_rng(0)
+    for kind, n in (("512", args.frames), ("200", args.movie_frames)):
+        r = run(kind, n, rng)
+        print(
+            f"{kind}² ({r['blocks']:.0f} px blocks), {r['frames']:.0f} frames, "
+            f"{r['valid']:.0f} valid: measure {r['measure_ms']:.2f} ms/frame "
+            f"({r['measure_fps']:.0f} frames/s), tracker {r['tracker_ms']:.2f} ms, "
+            f"FFT floor {r['fft_ms']:.2f} ms; measure/tracker {r['measure_over_tracker']:.2f}x, "
+            f"measure/FFT floor {r['measure_over_fft']:.2f}x"
+        )
+    wall, lines = command_wall_s(args.frames, rng)
+    print(
+        f"afmdrift measure STACK.npy (512², {args.frames} frames): {wall:.2f} s wall, "
+        f"{lines} JSON lines, {1e3 * wall / max(1, args.frames - 1):.1f} ms per frame "
+        "with start-up and reading"
+    )
+
+
+if __name__ == "__main__":
+    main()
