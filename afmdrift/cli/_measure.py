@@ -16,20 +16,18 @@ measured against the same reference, so one bad frame does not break the
 track. ``--dewarp DIR`` also writes the frames with each row moved back by
 the drift at its scan time.
 
-Coarse pre-alignment: the block engine only finds shifts up to
-``(extended_size - block_size) / 2`` px around its prior. Unless
-``--no-coarse`` is given, the engine's whole-image alignment
-(:func:`afmdrift.registration.coarse_shift`, the one ``measure_drift`` uses
-by default: phase correlation of the line-levelled images, checked against
-the x-gradient images) first finds the integer shift; when it is trusted,
-the block engine measures around it (``prior_px``, ``prior`` in the output)
-within ``--search-px`` (default ``[registration] coarse_search_px``, 6 px),
-else around zero.
-``--prior-px`` sets the prior by hand. A narrow search matters on periodic
-samples: on the real NanoScope pair (a lattice with a period of about 10 px)
-a ±16 or ±32 px search lets blocks lock onto different lattice peaks, so the
-blocks disagree (the result is px off, or invalid), while ±6 px around the
-coarse prior gives a consistent answer.
+A pair is measured by :func:`afmdrift.registration.measure_drift`, the
+registration path the API and the daemon's tracker use (see
+``docs/registration.md``, *One path, and no confident wrong answer*), so the
+command and the API give the same numbers. Unless ``--no-coarse`` is given,
+a whole-image alignment first finds the integer shift (wrap-around, lattice
+translations and static structure handled); when it is trusted, the blocks
+are measured within ``--search-px`` (default ``[registration]
+coarse_search_px``, 6 px) around it, else around zero. ``--prior-px`` sets
+the expected drift by hand (the block search is then the full
+``(extended_size - block_size) / 2``, or ``--search-px``). The output says
+where the prior came from (``prior_px``, ``prior``) and lists lattice
+translations the images cannot tell apart (``lattice_px``).
 
 Exit status: 0 when every measurement is valid, 1 when one is invalid (the
 result is still printed), 2 on an error (unreadable file, unusable image).
@@ -87,9 +85,9 @@ def register(sub: Any) -> None:
         "--search-px",
         type=float,
         metavar="R",
-        help="half-width of the block search around the prior, px (default: "
-        "[registration] coarse_search_px (6) with the coarse pre-alignment or --prior-px "
-        "unless the config sets max_shift_px; else (extended_size - block_size) / 2)",
+        help="half-width of the block search around the prior, px (sets coarse_search_px "
+        "and max_shift_px; default: 6 around the coarse alignment, "
+        "(extended_size - block_size) / 2 around --prior-px)",
     )
     p.add_argument(
         "--no-coarse",
