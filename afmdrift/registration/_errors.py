@@ -14,3 +14,9 @@ class RegistrationError(InputError):
 
 class InvalidFrameError(RegistrationError):
     """One image is unusable: not 2-D, too small, NaN/Inf pixels, or no texture."""
+
+
+class NearlyBlankError(InvalidFrameError):
+    """A frame has almost no texture (few non-zero gradient pixels); it is
+    measured only when the whole-image alignment locks onto it strongly
+    (:func:`afmdrift.registration._measure.allow_nearly_blank`)."""

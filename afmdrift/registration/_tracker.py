@@ -48,9 +48,10 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration._blocks import FrameStats
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
-from afmdrift.registration._errors import RegistrationError
+from afmdrift.registration._errors import NearlyBlankError, RegistrationError
 from afmdrift.registration._measure import (
     REFINE_PX,
+    allow_nearly_blank,
     check_frame,
     check_image,
     check_pixel_size,
@@ -265,8 +266,12 @@ class DriftTracker:
         self, heights: npt.NDArray[np.floating], grad: npt.NDArray[np.float32], stats: FrameStats
     ) -> None:
         """Refuse an unusable frame (:func:`check_frame`); the tracker is
-        unchanged then."""
-        check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
+        unchanged then. A nearly blank frame is kept when it locks strongly
+        onto the reference (:func:`allow_nearly_blank`)."""
+        try:
+            check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
+        except NearlyBlankError as err:
+            allow_nearly_blank(err, self._ref_heights, heights, enabled=self.config.coarse)
 
     def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
         if self._engine is None or self._engine.image_shape != shape:

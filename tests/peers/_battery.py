@@ -1039,9 +1039,7 @@ def cases_of(peer: str) -> list[Case]:
 #: xfail(strict=True): once the engine solves a case the test XPASSes, fails,
 #: and the entry must be removed. Never list a confident wrong answer here.
 _NEEDLESS = "issue 13: needless refusal, the peer solves it: "
-KNOWN_REFUSALS: dict[str, str] = {
-    "opencv:rectangle_128x129": _NEEDLESS + "one feature on a flat background ('nearly blank')",
-}
+KNOWN_REFUSALS: dict[str, str] = {}
 
 
 # --------------------------------------------------------------------------- test helpers

@@ -8,6 +8,7 @@ import pytest
 
 from afmdrift.registration import (
     DriftTracker,
+    InvalidFrameError,
     RegistrationConfig,
     TrackStep,
     coarse_shift,
@@ -182,3 +183,21 @@ def test_a_jump_confirmed_by_the_next_frame_is_accepted() -> None:
     assert "confirms the jump" in steps[6].measurement.prior
     assert steps[6].position_px == pytest.approx((3.0 + jump[0], 1.8 + jump[1]), abs=0.1)
     assert steps[7].accepted
+
+
+def test_one_feature_on_a_flat_frame_is_measured_when_the_frames_lock() -> None:
+    """Regression (issue 13, an OpenCV case): one 11×11 square on a flat 129×128
+    frame was refused as nearly blank (0.13 % non-zero gradient). The frames
+    lock onto each other strongly, so it is measured; scattered isolated steps
+    against a texture still are not."""
+    ref = np.ones((129, 128))
+    cur = np.ones((129, 128))
+    ref[60:71, 60:71] = 0.2
+    cur[40:51, 50:61] = 0.2  # moved by (-10, -20)
+    r = measure_drift(ref, cur, pixel_size_nm=1.0)
+    assert r.valid, r.reason
+    assert (r.dx_px, r.dy_px) == pytest.approx((-10.0, -20.0), abs=0.2)
+    # A tracker has nothing to lock its first frame onto: a nearly blank first
+    # frame is refused, and the stream starts at the next frame.
+    with pytest.raises(InvalidFrameError, match="nearly blank"):
+        DriftTracker(pixel_size_nm=1.0).update(ref)
