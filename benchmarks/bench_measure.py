@@ -46,6 +46,7 @@ from afmdrift.cli._measure import track_stack
 from afmdrift.config import AfmdriftConfig
 from afmdrift.io import AfmImage
 from afmdrift.registration import DriftTracker
+from afmdrift.registration._blocks import config_for_image
 from afmdrift.registration._engine import BlockEngine
 from afmdrift.testing import TextureShifter, add_noise, particle_texture, rough_texture
 
@@ -87,7 +88,7 @@ def images(frames: list[np.ndarray], pixel: float) -> list[AfmImage]:
 def run(kind: str, n: int, rng: np.random.Generator) -> dict[str, float]:
     frames, pixel = stack(kind, n, rng)
     config = AfmdriftConfig()
-    cfg = config.registration.for_shape(frames[0].shape)
+    cfg = config_for_image(config.registration, frames[0])
     bare = BareFFT(BlockEngine(frames[0].shape, cfg), cfg, batched=True)
     tracker = DriftTracker(pixel_size_nm=pixel, config=config.registration)
     steps = track_stack(images(frames, pixel), config)

@@ -239,7 +239,7 @@ def main() -> None:
     proc = psutil.Process()
     runs = []
     for threads in args.threads:
-        cfg = RegistrationConfig(threads=threads)
+        cfg = RegistrationConfig(threads=threads, gradient="x")
         engine = BlockEngine(SHAPE, cfg)
         runs.append(
             StreamTimes(
@@ -284,7 +284,7 @@ def main() -> None:
         for _ in range(args.frames):
             run.fftw_wall.append(run.bare_fftw.time()[0])
 
-    engine = BlockEngine(SHAPE, RegistrationConfig())
+    engine = BlockEngine(SHAPE, RegistrationConfig(gradient="x"))
     lay = engine.layout
     print(
         f"frames: {args.frames} of {SHAPE[1]}x{SHAPE[0]} px, {lay.n_blocks} blocks of "

@@ -40,8 +40,11 @@ class RegistrationConfig(BaseModel):
         "the windows of two thirds of the frame (see docs/registration.md).",
     )
     extended_size: int = Field(128, ge=16, le=2048, description="Extended block edge in px.")
-    gradient: Literal["x", "y", "both", "none"] = Field(
-        "x", description="Gradient image of eq. (2): along x (fast axis), y, both, or none."
+    gradient: Literal["auto", "x", "y", "both", "none", "levelled"] = Field(
+        "auto",
+        description="Pre-filter: the gradient image of eq. (2) along x (fast axis), y, "
+        "both, none (heights), levelled (heights less a line per scan line), or auto: x "
+        "unless the x gradient's signal is below half its noise, then levelled.",
     )
     peaks: int = Field(4, ge=1, le=32, description="Candidate peaks verified by MSE (K).")
     max_shift_px: float | None = Field(

@@ -25,6 +25,7 @@ from typing import Literal, NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 
 __all__ = [
@@ -37,7 +38,11 @@ __all__ = [
     "raised_cosine",
 ]
 
-Gradient = Literal["x", "y", "both", "none"]
+Gradient = Literal["x", "y", "both", "none", "levelled"]
+
+#: ``gradient = "auto"``: the x gradient is kept unless its signal is below this
+#: fraction of its noise (then the levelled heights carry the texture).
+AUTO_GRADIENT_SNR = 0.5
 
 
 def gradient_shape(shape: tuple[int, int], gradient: Gradient) -> tuple[int, int]:
@@ -92,9 +97,59 @@ def gradient_image(
         gx = np.subtract(h[:-1, 1:], h[:-1, :-1])
         gy = np.subtract(h[1:, :-1], h[:-1, :-1])
         np.hypot(gx, gy, out=out, casting="same_kind")
+    elif gradient == "levelled":
+        out[...] = levelled(h)
     else:
         out[...] = h
     return out
+
+
+def levelled(heights: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
+    """Heights with a least-squares line removed from every scan line (first
+    order line levelling): per-line offsets and the tilt along the fast axis
+    cancel, as in the x gradient, without differentiating the noise."""
+    h = np.asarray(heights, dtype=np.float64)
+    x = np.arange(h.shape[1], dtype=np.float64)
+    x -= x.mean()
+    slope = (h @ x) / float(x @ x)
+    out: npt.NDArray[np.float64] = h - h.mean(axis=1, keepdims=True) - slope[:, None] * x
+    return out
+
+
+def config_for_image(
+    config: RegistrationConfig, heights: npt.NDArray[np.floating]
+) -> RegistrationConfig:
+    """The configuration an image is measured with: the block sizes for its
+    shape (:meth:`RegistrationConfig.for_shape`) and ``gradient = "auto"``
+    resolved from its data (:func:`choose_prefilter`). A pair or a stream is
+    measured with the configuration of its reference."""
+    cfg = config.for_shape((int(heights.shape[0]), int(heights.shape[1])))
+    if cfg.gradient != "auto":
+        return cfg
+    return cfg.model_copy(update={"gradient": choose_prefilter(heights)})
+
+
+def choose_prefilter(heights: npt.NDArray[np.floating]) -> Gradient:
+    """The pre-filter for ``gradient = "auto"``: the paper's x gradient, or the
+    levelled heights where the gradient would bury the signal in noise.
+
+    White noise of standard deviation σ gives the x gradient a variance 2σ²
+    and the second difference along x 6σ²; a smooth texture adds little to
+    the second difference, so σ ≈ 1.4826 · MAD(second difference) / √6
+    (a robust estimate, as in Immerkær, CVIU 64(2), 1996, along one axis).
+    The gradient's own signal-to-noise ratio is ``(var(g) − 2σ²) / 2σ²``;
+    below :data:`AUTO_GRADIENT_SNR` (smooth textures at HS-AFM scale, where
+    neighbouring pixels differ mostly by noise) the levelled heights are used.
+    Noise-free frames (σ = 0) keep the x gradient.
+    """
+    h = np.asarray(heights, dtype=np.float64)
+    d2 = h[:, 2:] - 2.0 * h[:, 1:-1] + h[:, :-2]
+    sigma2 = (1.4826 * float(np.median(np.abs(d2 - np.median(d2))))) ** 2 / 6.0
+    if sigma2 <= 0.0:
+        return "x"
+    g = np.diff(h, axis=1)
+    snr = (float(g.var()) - 2.0 * sigma2) / (2.0 * sigma2)
+    return "levelled" if snr < AUTO_GRADIENT_SNR else "x"
 
 
 class FrameStats(NamedTuple):

@@ -29,6 +29,7 @@ from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import (
     BlockLayout,
     FrameStats,
+    Gradient,
     compiled_gradient,
     gradient_and_stats,
     gradient_image,
@@ -199,10 +200,17 @@ class BlockEngine:
     """
 
     def __init__(self, image_shape: tuple[int, int], config: RegistrationConfig) -> None:
+        if config.gradient == "auto":
+            raise ValueError(
+                "BlockEngine needs a concrete gradient; resolve gradient='auto' for the "
+                "reference image with config_for_image"
+            )
         self.image_shape = image_shape
         self.config = config
+        #: The pre-filter of eq. (2) (``config.gradient``, never ``"auto"``).
+        self.prefilter: Gradient = config.gradient
         self.layout = BlockLayout.build(
-            gradient_shape(image_shape, config.gradient),
+            gradient_shape(image_shape, self.prefilter),
             extended_size=config.extended_size,
             block_size=config.block_size,
             max_shift_px=config.max_shift_px,
@@ -265,7 +273,7 @@ class BlockEngine:
         self._inner = np.array([(ey - by) // 2, (ex - bx) // 2], dtype=np.intp)
         # Block centres (x, y) in image pixels: references always have their
         # windows at the grid positions (see reference, current_as_reference).
-        off_x, off_y = gradient_offset_px(config.gradient)
+        off_x, off_y = gradient_offset_px(self.prefilter)
         self._centres: F64 = np.column_stack(
             [lay.left + off_x + (ex - 1) / 2.0, lay.top + off_y + (ey - 1) / 2.0]
         ).astype(np.float64)
@@ -373,7 +381,7 @@ class BlockEngine:
         :class:`~afmdrift.registration._blocks.FrameStats` the frame checks
         need, in one pass where compiled (see
         :func:`~afmdrift.registration._blocks.gradient_and_stats`)."""
-        return gradient_and_stats(heights, self.config.gradient, out=out)
+        return gradient_and_stats(heights, self.prefilter, out=out)
 
     def _gradient_first(
         self,
@@ -387,7 +395,7 @@ class BlockEngine:
         its rows down to the bottom of the first batch's windows (``top``:
         the current frame's window corners) are done here, the rest and the
         check in the returned function; otherwise all of it there."""
-        if self._threads <= 1 or not compiled_gradient(heights, self.config.gradient):
+        if self._threads <= 1 or not compiled_gradient(heights, self.prefilter):
 
             def whole() -> None:
                 check(self.prepare(heights, out=grad)[1])
@@ -417,7 +425,7 @@ class BlockEngine:
     def gradient(self, heights: npt.NDArray[np.floating], *, out: F32 | None = None) -> F32:
         """Gradient image of ``heights`` per the configured mode (float32),
         written into ``out`` if given."""
-        return gradient_image(heights, self.config.gradient, out=out)
+        return gradient_image(heights, self.prefilter, out=out)
 
     def _forward(self, sl: slice, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
         """Window blocks ``sl`` at ``(top, left)`` (full-layout arrays) and FFT

@@ -14,7 +14,7 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
-from afmdrift.registration._blocks import FrameStats
+from afmdrift.registration._blocks import FrameStats, config_for_image
 from afmdrift.registration._coarse import CoarseShift, coarse_shift
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
@@ -493,7 +493,7 @@ def measure_drift(
         )
     given = check_prior(prior_px)
     shape = (int(ref.shape[0]), int(ref.shape[1]))
-    cfg = base.for_shape(shape)
+    cfg = config_for_image(base, ref)
     engine = _take_engine(shape, cfg)
     try:
         g_ref, ref_stats = engine.prepare(ref)

@@ -46,7 +46,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
-from afmdrift.registration._blocks import FrameStats
+from afmdrift.registration._blocks import FrameStats, config_for_image
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import NearlyBlankError, RegistrationError
 from afmdrift.registration._measure import (
@@ -225,7 +225,7 @@ class DriftTracker:
                 f"frame shape {shape} differs from the tracked shape "
                 f"{self._engine.image_shape}; call reset() to start over"
             )
-        engine = self._engine_for(shape)
+        engine = self._engine_for(heights)
         # Reuse the last frame's gradient buffer unless that frame became the
         # reference (which keeps its gradient image).
         spare = self._spare
@@ -269,13 +269,26 @@ class DriftTracker:
         unchanged then. A nearly blank frame is kept when it locks strongly
         onto the reference (:func:`allow_nearly_blank`)."""
         try:
-            check_frame(heights, grad, stats, "frame", gradient=self.config.gradient)
+            gradient = (
+                self.config.gradient if self._engine is None else self._engine.config.gradient
+            )
+            check_frame(heights, grad, stats, "frame", gradient=gradient)
         except NearlyBlankError as err:
             allow_nearly_blank(err, self._ref_heights, heights, enabled=self.config.coarse)
 
-    def _engine_for(self, shape: tuple[int, int]) -> BlockEngine:
-        if self._engine is None or self._engine.image_shape != shape:
-            self._engine = BlockEngine(shape, self.config.for_shape(shape))
+    def _gradient(self) -> str:
+        return self.config.gradient if self._engine is None else self._engine.prefilter
+
+    def _engine_for(self, heights: npt.NDArray[np.floating]) -> BlockEngine:
+        """The engine of the stream: made for its first frame (block sizes for
+        the shape, the pre-filter chosen from its data), and kept, with its FFT
+        plans, while later streams need the same."""
+        shape = (int(heights.shape[0]), int(heights.shape[1]))
+        if self._engine is not None and self._engine.image_shape == shape and self._ref is not None:
+            return self._engine
+        cfg = config_for_image(self.config, heights)
+        if self._engine is None or self._engine.config != cfg:
+            self._engine = BlockEngine(shape, cfg)
         return self._engine
 
     def _step(

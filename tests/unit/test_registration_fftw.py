@@ -77,5 +77,5 @@ def test_config_setting_selects_the_wisdom_file(tmp_path: Path) -> None:
     from afmdrift.registration._engine import BlockEngine
 
     path = tmp_path / "engine.wis"
-    BlockEngine((96, 130), RegistrationConfig(fftw_wisdom=str(path)))
+    BlockEngine((96, 130), RegistrationConfig(gradient="x", fftw_wisdom=str(path)))
     assert path.is_file()

@@ -14,6 +14,7 @@ from afmdrift.registration import (
     coarse_shift,
     measure_drift,
 )
+from afmdrift.registration._blocks import choose_prefilter
 from afmdrift.registration._coarse import static_pixels
 from afmdrift.testing import add_noise, fourier_shift, rough_texture
 
@@ -201,3 +202,29 @@ def test_one_feature_on_a_flat_frame_is_measured_when_the_frames_lock() -> None:
     # frame is refused, and the stream starts at the next frame.
     with pytest.raises(InvalidFrameError, match="nearly blank"):
         DriftTracker(pixel_size_nm=1.0).update(ref)
+
+
+def test_prefilter_is_chosen_from_the_data() -> None:
+    """The paper's x gradient where it carries the texture; the levelled heights
+    where it would bury a smooth texture in noise (HS-AFM scale, SNR 1)."""
+    rng = np.random.default_rng(11)
+    smooth = rough_texture((200, 200), pixel_size_nm=0.5, rng=rng, correlation_length_nm=5.0)
+    sharp = _texture((200, 200), seed=12)
+    assert choose_prefilter(add_noise(smooth, snr=1.0, rng=rng)) == "levelled"
+    assert choose_prefilter(add_noise(sharp, snr=10.0, rng=rng)) == "x"
+    assert choose_prefilter(smooth) == "x"  # noise-free: nothing to bury
+
+
+def test_smooth_low_snr_pair_is_measured_with_levelled_heights() -> None:
+    """Regression (issue 13): every such pair was refused with the x gradient."""
+    rng = np.random.default_rng(13)
+    tex = rough_texture((260, 260), pixel_size_nm=0.5, rng=rng, correlation_length_nm=5.0)
+    ref = add_noise(tex[30:230, 30:230], snr=1.0, rng=rng)
+    cur = add_noise(fourier_shift(tex, dx_px=1.4, dy_px=-2.1)[30:230, 30:230], snr=1.0, rng=rng)
+    r = measure_drift(ref, cur, pixel_size_nm=0.5)
+    assert r.valid, r.reason
+    assert (r.dx_px, r.dy_px) == pytest.approx((1.4, -2.1), abs=0.3)
+    line_offsets = rng.normal(0.0, 3.0, (200, 1))
+    tilted = measure_drift(ref + line_offsets, cur + line_offsets, pixel_size_nm=0.5)
+    assert tilted.valid, tilted.reason
+    assert (tilted.dx_px, tilted.dy_px) == pytest.approx((r.dx_px, r.dy_px), abs=0.05)
