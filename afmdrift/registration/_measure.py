@@ -186,8 +186,13 @@ def combine(
     engine: BlockEngine,
     pixel_size_nm: tuple[float, float],
     dtype: np.dtype[np.floating],
+    textured: npt.NDArray[np.bool_] | None = None,
 ) -> DriftResult:
-    """Reject outlier blocks and reduce the block vectors to one drift."""
+    """Reject outlier blocks and reduce the block vectors to one drift.
+
+    ``textured``: the blocks whose reference content stands out of the noise
+    (:func:`textured_blocks`); when given, only they count towards the
+    blocks a valid result needs (``min_valid_fraction``)."""
     cfg = engine.config
     vec = meas.vectors_px
     measured = meas.measured
@@ -206,6 +211,12 @@ def combine(
                 measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks, usable
             )
         )
+        if textured is not None:
+            # the same blocks usable_blocks counted (placed, or in the overlap
+            # in its fallback for tiny frames), less the featureless ones
+            placed_ok = int(np.count_nonzero(measured & meas.placed)) >= cfg.min_valid_blocks
+            base = meas.placed if placed_ok else meas.in_overlap
+            available = min(available, int(np.count_nonzero(textured & base)))
         n_valid = int(
             _kernels.reject_mad(vec, usable, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, valid)
         )
@@ -245,9 +256,10 @@ def combine(
     reason = None
     need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
     if n_valid < need:
+        counted = "in the overlap" if textured is None else "with texture in the overlap"
         reason = (
-            f"only {n_valid} of {total} blocks valid (need {need}: {available} in the "
-            f"overlap, {int(measured.sum())} with a usable peak)"
+            f"only {n_valid} of {total} blocks valid (need {need}: {available} {counted}, "
+            f"{int(measured.sum())} with a usable peak)"
         )
     elif not max(spread_x, spread_y) <= cfg.max_block_spread_px:
         reason = (
@@ -393,7 +405,14 @@ def register(
         heights=heights if fresh else None,
         check=check if fresh else None,
     )
-    result = combine(meas, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype)
+    # Featureless blocks (flat substrate between particles) neither vote nor
+    # count towards the blocks a valid result needs.
+    textured = textured_blocks(engine, ref)
+    if not textured.all():
+        meas.measured[~textured] = False
+    result = combine(
+        meas, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype, textured=textured
+    )
     lattice = coarse.lattice_px if coarse is not None and search is not None else ()
     if not result.valid and cfg.coarse and ref_heights is not None and search is None:
         if coarse is None or expected_px is not None:
@@ -408,6 +427,68 @@ def register(
                 how, lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
     result = replace(result, prior_px=prior, prior=how, lattice_px=lattice)
     return Registration(result, top, left, coarse)
+
+
+_TEXTURED: dict[int, tuple[ReferenceSpectra, npt.NDArray[np.bool_]]] = {}
+
+#: A block has texture when its reference content's variance is at least this
+#: multiple of the pre-filtered image's noise variance.
+TEXTURE_NOISE_RATIO = 2.0
+#: ... and blocks are told apart only when some block's variance reaches this
+#: multiple (a texture as fine as the noise cannot be told from it in one frame).
+TEXTURE_CONTRAST = 8.0
+
+
+def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[np.bool_]:
+    """Blocks whose reference window (its content under the raised cosine,
+    what the block correlates) stands out of the noise (computed once per
+    reference and kept with it).
+
+    The white-noise level of the pre-filtered reference is estimated robustly
+    from its differences along x (σ² = (1.4826 · MAD)² / 6 of the second
+    difference of the heights, which the x gradient's first difference is;
+    ×2 for the x gradient's own noise), and a block has texture when its
+    window-weighted variance is at least :data:`TEXTURE_NOISE_RATIO` times that, provided
+    some block reaches :data:`TEXTURE_CONTRAST` times it (otherwise every
+    block counts). Flat substrate between particles has none; noise-free
+    frames count every block that is not exactly flat."""
+    cached = _TEXTURED.get(id(ref))
+    if cached is not None and cached[0] is ref:
+        return cached[1]
+    g = ref.grad.astype(np.float64)
+    if engine.prefilter in ("x", "both"):
+        d = np.diff(g[::2], axis=1)
+        noise = 2.0 * (1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2 / 6.0
+    else:
+        d = g[::2, 2:] - 2.0 * g[::2, 1:-1] + g[::2, :-2]
+        noise = (1.4826 * float(np.median(np.abs(d - np.median(d))))) ** 2 / 6.0
+    ey, ex = engine.layout.ext
+    w = engine.window.astype(np.float64)
+    w /= w.sum()
+
+    def weighted_var(block: npt.NDArray[np.float64]) -> float:
+        mean = float(np.sum(w * block))
+        return float(np.sum(w * (block - mean) ** 2))
+
+    # what each window correlates: its content under the raised cosine
+    var = np.array(
+        [
+            weighted_var(g[t : t + ey, lft : lft + ex])
+            for t, lft in zip(ref.top, ref.left, strict=True)
+        ]
+    )
+    if noise > 0:
+        out = var > TEXTURE_NOISE_RATIO * noise
+        if not np.any(var > TEXTURE_CONTRAST * noise):
+            # No block stands clearly out: a texture as fine as the noise (or
+            # noise alone) everywhere. Nothing marks any block as substrate.
+            out[:] = True
+    else:
+        out = var > 0
+    with _cache_lock:
+        _TEXTURED.clear()  # the references in use are few; keep the newest
+        _TEXTURED[id(ref)] = (ref, out)
+    return out
 
 
 def _coarse_search(cfg: RegistrationConfig, coarse: CoarseShift) -> float:

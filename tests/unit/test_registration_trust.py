@@ -228,3 +228,22 @@ def test_smooth_low_snr_pair_is_measured_with_levelled_heights() -> None:
     tilted = measure_drift(ref + line_offsets, cur + line_offsets, pixel_size_nm=0.5)
     assert tilted.valid, tilted.reason
     assert (tilted.dx_px, tilted.dy_px) == pytest.approx((r.dx_px, r.dy_px), abs=0.05)
+
+
+def test_featureless_blocks_neither_vote_nor_count() -> None:
+    """Regression (issue 13): particles on flat mica with part of them swept
+    away. Blocks of bare substrate once voted (noise peaks fitted as a trend
+    over the rows: 0.67 px off, 4σ) or counted towards the blocks a valid
+    result needs (refused with 9 agreeing blocks)."""
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[:560, :560]
+    big = np.zeros((560, 560))
+    for cy, cx in zip(rng.uniform(360, 560, 80), rng.uniform(0, 560, 80), strict=True):
+        big += 5.0 * np.exp(-((x - cx) ** 2 + (y - cy) ** 2) / 72.0)
+    ref = big[24:536, 24:536] + rng.normal(0, 0.05, (512, 512))
+    cur = fourier_shift(big, dx_px=3.3, dy_px=-2.6)[24:536, 24:536].copy()
+    cur[:, :256] = 0.0
+    cur += rng.normal(0, 0.05, (512, 512))
+    r = measure_drift(ref, cur, pixel_size_nm=2.0)
+    assert r.valid, r.reason
+    assert (r.dx_px, r.dy_px) == pytest.approx((3.3, -2.6), abs=0.05)
