@@ -4,7 +4,7 @@ Each :class:`Case` re-creates, in our own code, the facts of one test from
 another project (image type and size, the shift, noise, mask, the peer's
 tolerance) and says where it comes from. Where the peer's image ships with
 a data package we do not have, an equivalent texture stands in (said in the
-case's ``note``). The tests in ``tests/peers/test_peer_*.py`` and
+case's ``note``). The tests in ``tests/peers/test_peers.py`` and
 ``benchmarks/peer_battery.py`` both run the cases defined here (one path).
 
 Verdicts (:func:`run_case`):
@@ -1060,7 +1060,7 @@ def params(cases: list[Case], *, peer_test: bool) -> list[object]:
             marks.append(pytest.mark.slow)
         if peer_test and c.id in KNOWN_REFUSALS:
             marks.append(pytest.mark.xfail(strict=True, reason=KNOWN_REFUSALS[c.id]))
-        out.append(pytest.param(c, id=c.name, marks=marks))
+        out.append(pytest.param(c, id=c.id, marks=marks))
     return out
 
 
