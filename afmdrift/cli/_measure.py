@@ -335,8 +335,10 @@ def track_stack(
         if "no frame timing" not in str(err):
             raise
         session = session_from_images(frames, frame_time_s=1.0)
-    # Positions do not depend on the model; the cheapest predictor will do.
-    pipeline = FramePipeline(config=cfg, predictor=make_predictor("last_value", cfg.model))
+    # Positions do not depend on the model: the model stage is skipped.
+    pipeline = FramePipeline(
+        config=cfg, predictor=make_predictor("last_value", cfg.model), model=False
+    )
     px, py = session.meta.pixel_size_nm
     timed = all(im.timestamp is not None for im in frames)
     for k, frame in enumerate(session.iter_frames()):

@@ -111,6 +111,10 @@ class FramePipeline:
     keep_trajectory : bool
         Keep every frame of the drift trajectory for its smoothed estimate
         (replay, de-warping); the daemon forgets what it no longer needs.
+    model : bool
+        Feed the predictor and build d(t) (default). ``afmdrift measure`` on a
+        stack reports drift positions only and skips this stage: the
+        positions come from the same component either way.
 
     Notes
     -----
@@ -124,8 +128,10 @@ class FramePipeline:
         tracker_factory: TrackerFactory | None = None,
         predictor: Predictor | None = None,
         keep_trajectory: bool = False,
+        model: bool = True,
     ) -> None:
         self.config = config
+        self.model = model
         self.positions = DriftPositions(
             config=config, tracker_factory=tracker_factory, keep_trajectory=keep_trajectory
         )
@@ -339,6 +345,8 @@ class FramePipeline:
                 reason = f"frame time {t:.3f} s is not after the last fed frame"
                 log.warning("frame %d: %s; not fed to the model", seq, reason)
                 fed = False
+            elif not self.model:
+                self.observations.append(obs)
             else:
                 self.predictor.update(obs, self.history)
                 self.observations.append(obs)
