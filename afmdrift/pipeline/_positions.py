@@ -54,7 +54,7 @@ from afmdrift.model import (
     offset_change_nm,
 )
 from afmdrift.pipeline._records import FrameRecord
-from afmdrift.records import Event, EventKind, Frame, ScanDirection, row_times_s
+from afmdrift.records import Event, EventKind, Frame, ScanDirection
 from afmdrift.registration import DriftResult, DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
 
@@ -102,8 +102,15 @@ class _Timing:
     rows: int
     direction: ScanDirection
 
-    def row_times(self) -> FloatArray:
-        return row_times_s(self.t_start_s, self.t_end_s, self.rows, self.direction)
+    def times_at(self, rows_px: FloatArray) -> FloatArray:
+        """Scan time of (fractional) rows, clamped to the frame: the row times
+        of :func:`afmdrift.records.row_times_s` (mid-line, linear in the row)
+        interpolated, computed directly."""
+        r = np.clip(rows_px, 0.0, self.rows - 1.0)
+        if self.direction is ScanDirection.DOWN:
+            r = (self.rows - 1.0) - r
+        line_s = (self.t_end_s - self.t_start_s) / self.rows
+        return np.asarray(self.t_start_s + (r + 0.5) * line_s, dtype=np.float64)
 
 
 def _sign(direction: ScanDirection) -> int:
@@ -265,10 +272,7 @@ class DriftPositions:
     def _knot_times(self, tracker: DriftTracker, timing: _Timing, dy_px: float) -> FloatArray:
         """Scan times of the block rows of a frame whose content sits ``dy_px``
         below the reference grid."""
-        rows = tracker.block_rows_px + dy_px
-        rt = timing.row_times()
-        idx = np.arange(rt.size, dtype=np.float64)
-        return np.unique(np.interp(np.clip(rows, 0, rt.size - 1), idx, rt))
+        return np.unique(timing.times_at(tracker.block_rows_px + dy_px))
 
     def _remember(
         self, tracker_index: int, seq: int, frame: Frame, *, in_use: int | None = None
@@ -385,8 +389,10 @@ class DriftPositions:
             return None
         levels, inverse, counts = np.unique(rows, return_inverse=True, return_counts=True)
         means = np.column_stack([np.bincount(inverse, weights=vec[:, a]) / counts for a in (0, 1)])
-        t_cur = _times_at(frame.row_times_s(), levels + means[:, 1])
-        t_ref = _times_at(timing_ref.row_times(), levels)
+        t_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction).times_at(
+            levels + means[:, 1]
+        )
+        t_ref = timing_ref.times_at(levels)
         px, py = frame.pixel_size_nm
         sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
         sigmas = sigma_frame * np.sqrt(vec.shape[0] / counts)
@@ -441,8 +447,7 @@ class DriftPositions:
                 if traj is not None:
                     pos.trajectory = traj
                     # p from the trajectory at mid-scan time; m keeps its meaning.
-                    t_ref = self.t_ref_s if self.t_ref_s is not None else frame.t_mid_s
-                    pos.m = traj.mid_nm - offset_change_nm(frame.t_mid_s, t_ref, events)[0]
+                    pos.m = traj.mid_nm - pos.offset
                     pos.sigma = traj.mid_sigma_nm
         else:
             pos.dx = pos.dy = math.nan
@@ -460,33 +465,34 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
     fld = getattr(inc, "field", None)
     if fld is None:
         return None
-    vectors = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2) * np.asarray(
+    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
+    good = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2)[valid] * np.asarray(
         pixel_size_nm, dtype=np.float64
     )
-    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
-    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)
-    good = vectors[valid]
+    n = good.shape[0]
+    if n == 0:
+        return FieldSummary(
+            total_blocks=int(valid.size),
+            valid_blocks=0,
+            mean_dx_nm=None,
+            mean_dy_nm=None,
+            std_dx_nm=None,
+            std_dy_nm=None,
+            median_confidence=None,
+        )
+    mean = good.sum(axis=0) / n
+    std = np.sqrt(np.sum((good - mean) ** 2, axis=0) / n)
+    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid]
 
-    def stat(values: npt.NDArray[np.float64], fn: Callable[[Any], Any]) -> float | None:
-        if values.size == 0:
-            return None
-        v = float(fn(values))
+    def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None
 
     return FieldSummary(
         total_blocks=int(valid.size),
-        valid_blocks=int(valid.sum()),
-        mean_dx_nm=stat(good[:, 0], np.mean),
-        mean_dy_nm=stat(good[:, 1], np.mean),
-        std_dx_nm=stat(good[:, 0], np.std),
-        std_dy_nm=stat(good[:, 1], np.std),
-        median_confidence=stat(conf[valid], np.median),
-    )
-
-
-def _times_at(row_times: FloatArray, rows: FloatArray) -> FloatArray:
-    """Scan time of (fractional) rows, clamped to the frame."""
-    idx = np.arange(row_times.size, dtype=np.float64)
-    return np.asarray(
-        np.interp(np.clip(rows, 0, row_times.size - 1), idx, row_times), dtype=np.float64
+        valid_blocks=n,
+        mean_dx_nm=finite(float(mean[0])),
+        mean_dy_nm=finite(float(mean[1])),
+        std_dx_nm=finite(float(std[0])),
+        std_dy_nm=finite(float(std[1])),
+        median_confidence=finite(float(np.median(conf))),
     )
