@@ -382,14 +382,22 @@ class FramePipeline:
 def _observed(frame: Frame, pos: FramePosition) -> tuple[float, FloatArray, float]:
     """What the frame tells the model: the latest sample of its drift
     trajectory (the end of the scan, so the horizon to the next frame is
-    shortest), or its mid-scan position where it has no trajectory."""
+    shortest), or its mid-scan position where it has no trajectory.
+
+    The uncertainty is the frame's (its mid-scan σ) in both cases. The model
+    weights one observation per frame, and the latest sample's own σ is
+    larger by an amount that depends on which edge of the frame was scanned
+    last (the bottom block row of an up frame, the top one of a down frame):
+    fed as weights, it made up and down frames count differently (by up to 3×)
+    in a fit that also carries the scan-direction term, and one-step
+    prediction worse (replayed hidden creep and warm-up sessions).
+    """
+    sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
     traj = pos.trajectory
     if traj is not None and traj.t_s.size:
         k = int(np.argmax(traj.t_s))
         if np.all(np.isfinite(traj.xy_nm[k])):
-            sig = float(np.hypot(*traj.sigma_nm[k]) / math.sqrt(2.0))
-            return float(traj.t_s[k]), np.asarray(traj.xy_nm[k], dtype=np.float64), sig
-    sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
+            return float(traj.t_s[k]), np.asarray(traj.xy_nm[k], dtype=np.float64), sigma
     return frame.t_mid_s, pos.p, sigma
 
 
