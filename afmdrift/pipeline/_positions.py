@@ -16,7 +16,8 @@ what the daemon can do online. For each frame it
 3. **places every block row in time**: its content was scanned at
    t_cur(row + v_y) in this frame and at t_ref(row) in the reference, and the
    commanded offset O is evaluated at both times, so rows scanned before and
-   after a move each get their own offset;
+   after a move each get their own offset (a block row whose lines straddle a
+   move, in either frame, holds content from two offsets and is left out);
 4. **updates the drift trajectory** (:class:`~afmdrift.model.DriftTrajectory`,
    causal mode) with the block rows as constraints; the frame's drift
    position p is the trajectory at its mid-scan time, and its samples are
@@ -371,11 +372,13 @@ class DriftPositions:
     def _constraints(
         self,
         frame: Frame,
+        tracker: DriftTracker,
         step: TrackStep,
         events: Sequence[Event],
     ) -> tuple[list[BandConstraint], float] | None:
         """Block-row constraints of an accepted measurement, and the mean row
-        motion (px); None if its reference is not in the trajectory."""
+        motion (px); None if its reference is not in the trajectory or no
+        block row was scanned at one offset."""
         ref_key = self._keys.get(step.reference_index)
         timing_ref = None if ref_key is None else self._timings.get(ref_key)
         if ref_key is None or timing_ref is None or ref_key not in self.trajectory.frames:
@@ -389,14 +392,26 @@ class DriftPositions:
             return None
         levels, inverse, counts = np.unique(rows, return_inverse=True, return_counts=True)
         means = np.column_stack([np.bincount(inverse, weights=vec[:, a]) / counts for a in (0, 1)])
-        t_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction).times_at(
-            levels + means[:, 1]
-        )
+        timing_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction)
+        t_cur = timing_cur.times_at(levels + means[:, 1])
         t_ref = timing_ref.times_at(levels)
         px, py = frame.pixel_size_nm
         sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
         sigmas = sigma_frame * np.sqrt(vec.shape[0] / counts)
         values = means * np.array([px, py]) + offset_change_nm(t_cur, t_ref, events)
+        # A block row whose lines were scanned partly before and partly after
+        # an offset move (in this frame or in its reference) holds content
+        # from two offsets: its vector is neither, so it is left out.
+        grid = tracker.block_rows_px
+        half = 0.5 * float(np.min(np.diff(grid))) if grid.size > 1 else 0.5 * frame.shape[0]
+        lo = np.concatenate([timing_cur.times_at(levels + means[:, 1] - half),
+                             timing_ref.times_at(levels - half)])  # fmt: skip
+        hi = np.concatenate([timing_cur.times_at(levels + means[:, 1] + half),
+                             timing_ref.times_at(levels + half)])  # fmt: skip
+        moved = np.any(offset_change_nm(hi, lo, events) != 0.0, axis=1)
+        clean = ~(moved[: levels.size] | moved[levels.size :])
+        if not clean.any():
+            return None
         out = [
             BandConstraint(
                 ref_key=ref_key,
@@ -405,7 +420,7 @@ class DriftPositions:
                 value_nm=(float(values[k, 0]), float(values[k, 1])),
                 sigma_nm=float(sigmas[k]),
             )
-            for k in range(levels.size)
+            for k in np.nonzero(clean)[0]
         ]
         return out, float(vec[:, 1].mean())
 
@@ -439,7 +454,7 @@ class DriftPositions:
                 pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
             # The tracker moved on to this frame (it may be the new keyframe).
             self._remember(step.frame_index, seq, frame, in_use=step.reference_index)
-            made = None if low else self._constraints(frame, step, events)
+            made = None if low else self._constraints(frame, tracker, step, events)
             if made is not None:
                 constraints, dy_px = made
                 knots = self._knot_times(tracker, self._timings[seq], dy_px)
