@@ -36,6 +36,7 @@ feed the model.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -154,6 +155,10 @@ class DriftPositions:
         self._timings: dict[int, _Timing] = {}
         self._last_t_s: float | None = None  # mid time of the tracker's last frame
         self._breaks_to_s = -math.inf  # tip changes up to here are breaks already
+        # offset move times seen in the event log (see _moves_during)
+        self._moves_of: Sequence[Event] | None = None
+        self._moves_seen = 0
+        self._move_times: list[float] = []
 
     def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
         return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
@@ -369,6 +374,25 @@ class DriftPositions:
         self._base_nm = pos.m.copy()
         pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
 
+    def _moves_during(self, events: Sequence[Event], *timings: _Timing) -> bool:
+        """Whether an offset move was logged while one of ``timings`` was scanned.
+
+        The move times are kept sorted and extended with the entries appended
+        since the last call (the model's history is append-only), so a long
+        run does not rescan its whole event log every frame.
+        """
+        if events is not self._moves_of or len(events) < self._moves_seen:
+            self._moves_of, self._moves_seen, self._move_times = events, 0, []
+        for e in events[self._moves_seen :]:
+            if e.kind is EventKind.OFFSET_MOVE:
+                bisect.insort(self._move_times, e.t_s)
+        self._moves_seen = len(events)
+        for timing in timings:
+            k = bisect.bisect_left(self._move_times, timing.t_start_s)
+            if k < len(self._move_times) and self._move_times[k] <= timing.t_end_s:
+                return True
+        return False
+
     def _constraints(
         self,
         frame: Frame,
@@ -402,16 +426,18 @@ class DriftPositions:
         # A block row whose lines were scanned partly before and partly after
         # an offset move (in this frame or in its reference) holds content
         # from two offsets: its vector is neither, so it is left out.
-        grid = tracker.block_rows_px
-        half = 0.5 * float(np.min(np.diff(grid))) if grid.size > 1 else 0.5 * frame.shape[0]
-        lo = np.concatenate([timing_cur.times_at(levels + means[:, 1] - half),
-                             timing_ref.times_at(levels - half)])  # fmt: skip
-        hi = np.concatenate([timing_cur.times_at(levels + means[:, 1] + half),
-                             timing_ref.times_at(levels + half)])  # fmt: skip
-        moved = np.any(offset_change_nm(hi, lo, events) != 0.0, axis=1)
-        clean = ~(moved[: levels.size] | moved[levels.size :])
-        if not clean.any():
-            return None
+        clean = np.ones(levels.size, dtype=bool)
+        if self._moves_during(events, timing_ref, timing_cur):
+            grid = tracker.block_rows_px
+            half = 0.5 * float(np.min(np.diff(grid))) if grid.size > 1 else 0.5 * frame.shape[0]
+            lo = np.concatenate([timing_cur.times_at(levels + means[:, 1] - half),
+                                 timing_ref.times_at(levels - half)])  # fmt: skip
+            hi = np.concatenate([timing_cur.times_at(levels + means[:, 1] + half),
+                                 timing_ref.times_at(levels + half)])  # fmt: skip
+            moved = np.any(offset_change_nm(hi, lo, events) != 0.0, axis=1)
+            clean = ~(moved[: levels.size] | moved[levels.size :])
+            if not clean.any():
+                return None
         out = [
             BandConstraint(
                 ref_key=ref_key,
