@@ -396,17 +396,20 @@ class DriftTrajectory:
         """Add the rows ``Σ a·x = value ± sigma`` to the information form, all
         at once (one small dense product); returns the weighted design (rows,
         n) and values (rows, 2)."""
-        n = self._h.shape[0]
-        a = np.zeros((len(rows), n))
-        y = np.empty((len(rows), 2))
-        for k, (terms, value, sigma) in enumerate(rows):
+        n, m = self._h.shape[0], len(rows)
+        flat: list[int] = []
+        weights: list[float] = []
+        for k, (terms, _, sigma) in enumerate(rows):
             for c, w in terms:
-                a[k, c] += w / sigma
-            y[k] = value / sigma
-        used = np.nonzero(np.any(a != 0.0, axis=0))[0]
-        au = a[:, used]
-        self._h[np.ix_(used, used)] += au.T @ au
-        self._g[used] += au.T @ y
+                flat.append(k * n + c)
+                weights.append(w / sigma)
+        a = np.asarray(
+            np.bincount(flat, weights=weights, minlength=m * n), dtype=np.float64
+        ).reshape(m, n)
+        y = np.array([r[1] for r in rows], dtype=np.float64).reshape(m, 2)
+        y /= np.array([r[2] for r in rows])[:, None]
+        self._h += a.T @ a
+        self._g += a.T @ y
         return a, y
 
     def _marginalise(self, gone_keys: list[int]) -> None:
@@ -424,7 +427,8 @@ class DriftTrajectory:
         self._g = self._g[keep] - h_kd @ x[:, keep.size :]
         remap = np.full(n, -1)
         remap[keep] = np.arange(keep.size)
-        self._idx = {node: int(remap[c]) for node, c in self._idx.items() if mask[c]}
+        new_index = remap.tolist()
+        self._idx = {node: new_index[c] for node, c in self._idx.items() if new_index[c] >= 0}
         self._cols = {k: remap[c] for k, c in self._cols.items()}
         for key in gone_keys:
             self.frames[key].fixed = True
