@@ -384,15 +384,17 @@ def _observed(frame: Frame, pos: FramePosition) -> tuple[float, FloatArray, floa
     trajectory (the end of the scan, so the horizon to the next frame is
     shortest), or its mid-scan position where it has no trajectory.
 
-    The uncertainty is the frame's (its mid-scan σ) in both cases. The model
-    weights one observation per frame, and the latest sample's own σ is
-    larger by an amount that depends on which edge of the frame was scanned
-    last (the bottom block row of an up frame, the top one of a down frame):
-    fed as weights, it made up and down frames count differently (by up to 3×)
-    in a fit that also carries the scan-direction term, and one-step
-    prediction worse (replayed hidden creep and warm-up sessions).
+    The uncertainty is that of the frame's own measurement (the registration's
+    σ of its block mean against its reference), as before the trajectory. The
+    trajectory's σ is that of p relative to the session reference: it grows
+    along the keyframe chain and is shared by the frames measured against one
+    keyframe, so as a weight it favoured the frames early in the chain (and a
+    sample's own σ depends on which edge of the frame was scanned last);
+    one-step prediction was worse with it on replayed graphite-paper and
+    hidden-effect sessions.
     """
-    sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
+    sigma = pos.measurement_sigma if math.isfinite(pos.measurement_sigma) else pos.sigma
+    sigma = sigma if math.isfinite(sigma) else 0.0
     traj = pos.trajectory
     if traj is not None and traj.t_s.size:
         k = int(np.argmax(traj.t_s))

@@ -95,6 +95,9 @@ class FramePosition:
     #: the frame (key) the frame was measured against.
     increment: DriftResult | None = None
     reference_key: int | None = None
+    #: The registration's σ of the frame's block mean against its reference,
+    #: nm (``sigma`` is the trajectory's σ of p, which grows along the chain).
+    measurement_sigma: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -467,7 +470,7 @@ class DriftPositions:
         pos.increment = inc
         pos.reference_key = self._keys.get(step.reference_index)
         pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
-        pos.sigma = float(meas.sigma_nm)
+        pos.sigma = pos.measurement_sigma = float(meas.sigma_nm)
         pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
         pos.keyframe_index = int(step.keyframe_index)
         pos.reanchored = bool(step.reanchored)
