@@ -135,6 +135,10 @@ class _Frame:
     sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
     fixed: bool = False
     anchor: bool = False  # known, not measured: never re-solved
+    t_list: list[float] = field(default_factory=list)  # t_s as floats (interpolation)
+
+    def __post_init__(self) -> None:
+        self.t_list = self.t_s.tolist()
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,14 +160,14 @@ class FrameTrajectory:
     mid_sigma_nm: float
 
 
-def _weights(t: float, knots: FloatArray) -> tuple[int, int, float, float]:
+def _weights(t: float, knots: list[float]) -> tuple[int, int, float, float]:
     """Indices and weights of the linear interpolation (or extrapolation) of
-    a frame's knots at ``t``."""
-    n = knots.size
+    a frame's knots (times, increasing) at ``t``."""
+    n = len(knots)
     if n == 1:
         return 0, 0, 1.0, 0.0
-    k = min(max(bisect.bisect_left(knots.tolist(), t) - 1, 0), n - 2)
-    t0, t1 = float(knots[k]), float(knots[k + 1])
+    k = min(max(bisect.bisect_left(knots, t) - 1, 0), n - 2)
+    t0, t1 = knots[k], knots[k + 1]
     h = t1 - t0
     w = (t - t0) / h if h > 0 else 0.0
     return k, k + 1, 1.0 - w, w
@@ -362,7 +366,7 @@ class DriftTrajectory:
         appended to ``fixed_var`` if given."""
         idx_map = self._idx if index is None else index
         f = self.frames[key]
-        i, j, wi, wj = _weights(t, f.t_s)
+        i, j, wi, wj = _weights(t, f.t_list)
         terms: list[tuple[int, float]] = []
         const = np.zeros(2)
         for idx, w in ((i, wi), (j, wj)):
@@ -422,7 +426,10 @@ class DriftTrajectory:
         h_kk = self._h[np.ix_(keep, keep)]
         h_kd = self._h[np.ix_(keep, drop)]
         h_dd = self._h[np.ix_(drop, drop)]
-        x = np.linalg.solve(h_dd, np.column_stack([h_kd.T, self._g[drop]]))
+        rhs = np.column_stack([h_kd.T, self._g[drop]])
+        _, x, info = lapack.dposv(h_dd, rhs, lower=1)
+        if info != 0:  # not numerically positive definite: the general solver
+            x = np.linalg.solve(h_dd, rhs)
         self._h = h_kk - h_kd @ x[:, : keep.size]
         self._g = self._g[keep] - h_kd @ x[:, keep.size :]
         remap = np.full(n, -1)
@@ -507,7 +514,7 @@ class DriftTrajectory:
         shift = self._bias_shift(f) * self.bias
         xy = f.p + shift
         sig = np.column_stack([f.sigma, f.sigma])
-        i, j, wi, wj = _weights(f.t_mid_s, f.t_s)
+        i, j, wi, wj = _weights(f.t_mid_s, f.t_list)
         mid = wi * f.p[i] + wj * f.p[j] + shift
         mid_sigma = float(wi * f.sigma[i] + wj * f.sigma[j])
         return FrameTrajectory(
