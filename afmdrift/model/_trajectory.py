@@ -135,6 +135,10 @@ class _Frame:
     sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
     fixed: bool = False
     anchor: bool = False  # known, not measured: never re-solved
+    t_list: list[float] = field(default_factory=list)  # t_s as floats (interpolation)
+
+    def __post_init__(self) -> None:
+        self.t_list = self.t_s.tolist()
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,7 +146,10 @@ class FrameTrajectory:
     """A frame's drift samples, as the registration sees them (bias included).
 
     ``t_s`` (k,) knot times, ``xy_nm`` (k, 2), ``sigma_nm`` (k, 2); ``mid_nm``
-    and ``mid_sigma_nm`` the same at the frame's mid-scan time.
+    and ``mid_sigma_nm`` the same at the frame's mid-scan time. The
+    uncertainties are those of the reported values p + ds·b (a down frame's
+    p alone is known only up to the bias b; p + ds·b is what its block rows
+    determine). In causal mode they are the frame's when it was added.
     """
 
     key: int
@@ -153,14 +160,14 @@ class FrameTrajectory:
     mid_sigma_nm: float
 
 
-def _weights(t: float, knots: FloatArray) -> tuple[int, int, float, float]:
+def _weights(t: float, knots: list[float]) -> tuple[int, int, float, float]:
     """Indices and weights of the linear interpolation (or extrapolation) of
-    a frame's knots at ``t``."""
-    n = knots.size
+    a frame's knots (times, increasing) at ``t``."""
+    n = len(knots)
     if n == 1:
         return 0, 0, 1.0, 0.0
-    k = min(max(bisect.bisect_left(knots.tolist(), t) - 1, 0), n - 2)
-    t0, t1 = float(knots[k]), float(knots[k + 1])
+    k = min(max(bisect.bisect_left(knots, t) - 1, 0), n - 2)
+    t0, t1 = knots[k], knots[k + 1]
     h = t1 - t0
     w = (t - t0) / h if h > 0 else 0.0
     return k, k + 1, 1.0 - w, w
@@ -199,10 +206,10 @@ class DriftTrajectory:
         self._h = np.array([[1.0 / BIAS_PRIOR_NM**2]])
         self._g = np.zeros((1, 2))
         self._idx: dict[tuple[int, int], int] = {}
+        self._cols: dict[int, npt.NDArray[np.intp]] = {}  # a free frame's knot columns
         self._tail: list[tuple[float, tuple[int, int]]] = []
         self._chi2 = 0.0
         self._chi2_n = 0
-        self._pending: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
 
     def __len__(self) -> int:
         return len(self.order)
@@ -269,15 +276,20 @@ class DriftTrajectory:
         h[:base, :base] = self._h
         g = np.zeros((base + n_new, 2))
         g[:base] = self._g
-        self._h, self._g = h, g
-        # The weak prior of each new knot is centred on the latest estimate.
+        # The weak prior of each new knot, centred on the latest estimate
+        # (a diagonal term: added directly).
         centre = np.zeros(2)
         if self._tail:
             k_last, i_last = self._tail[-1][1]
-            centre = self.frames[k_last].p[i_last].copy()
+            centre = self.frames[k_last].p[i_last]
+        new_cols = np.arange(base, base + n_new)
+        h[new_cols, new_cols] += 1.0 / FREE_KNOT_SIGMA_NM**2
+        g[base:] += centre / FREE_KNOT_SIGMA_NM**2
+        self._h, self._g = h, g
         for i in range(n_new):
             self._idx[(frame.key, i)] = base + i
-            self._pending.append(([(base + i, 1.0)], centre, FREE_KNOT_SIGMA_NM))
+        self._cols[frame.key] = new_cols
+        rows: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
         # smoothness: the last two free knots before the frame, then its own
         previous = [node for node in self._tail if node is not None][-2:]
         chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
@@ -288,54 +300,57 @@ class DriftTrajectory:
             terms, const = self._terms_of_nodes(
                 ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
             )
-            self._pending.append((terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2))))
+            rows.append((terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2))))
         self._tail = chain[-2:]
-        rows: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
+        first_data = len(rows)
         for con in frame.constraints:
             t1, c1 = self._terms_at(frame.key, con.t_s, 1.0)
             t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0)
             ds = 0.5 * (frame.sign - self.frames[con.ref_key].sign)
             terms = t1 + t2 + ([(0, ds)] if ds != 0.0 else [])
             value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
-            sigma = max(con.sigma_nm, MIN_SIGMA_NM)
-            self._pending.append((terms, value, sigma))
-            rows.append((terms, value, sigma))
+            rows.append((terms, value, max(con.sigma_nm, MIN_SIGMA_NM)))
+        n_data = len(rows) - first_data
         if self.origin is not None and self.origin[0] == frame.key:
             terms, const = self._terms_at(frame.key, self.origin[1], 1.0)
-            self._pending.append((terms, -const, GAUGE_SIGMA_NM))
-        self._flush_info()
-        # solve
+            rows.append((terms, -const, GAUGE_SIGMA_NM))
+        a, y = self._add_rows(rows)
+        # Solve, and the variances of what is reported: the bias, and this
+        # frame's knots *with* the frame's bias shift ds·b (a down frame's p
+        # alone is only known up to b; p + ds·b is what the data determine).
+        # Older frames keep the uncertainty they were reported with.
+        n = self._h.shape[0]
+        report = np.zeros((n, n_new + 1))
+        report[0, 0] = 1.0
+        report[new_cols, np.arange(1, n_new + 1)] = 1.0
+        report[0, 1:] = self._bias_shift(frame)
         cho, info = lapack.dpotrf(self._h, lower=1, clean=1)
         if info == 0:
             sol, _ = lapack.dpotrs(cho, self._g, lower=1)
-            inv, _ = lapack.dpotri(cho, lower=1)
-            var = np.diag(inv).copy()
+            z, _ = lapack.dpotrs(cho, report, lower=1)
         else:
             # Numerically not positive definite (constraints far stronger than
             # the priors): the symmetric eigen-solution, which always exists.
             w, v = np.linalg.eigh(self._h)
             inv = (v / np.maximum(w, w.max() * 1e-15)) @ v.T
-            sol, var = inv @ self._g, np.diag(inv).copy()
-        for terms, value, sigma in rows:
-            pred = sol[terms[0][0]] * terms[0][1]
-            for c, a in terms[1:]:
-                pred = pred + a * sol[c]
-            r = (pred - value) / sigma
-            self._chi2 += float(r[0] * r[0] + r[1] * r[1])
-            self._chi2_n += 2
+            sol, z = inv @ self._g, inv @ report
+        var = np.sum(report * z, axis=0)
+        if n_data:
+            r = a[first_data : first_data + n_data] @ sol - y[first_data : first_data + n_data]
+            self._chi2 += float(np.sum(r * r))
+            self._chi2_n += 2 * n_data
         scale = max(1.0, self._chi2 / self._chi2_n) if self._chi2_n else 1.0
-        for (k, i), c in self._idx.items():
-            f = self.frames[k]
-            f.p[i] = sol[c]
-            f.sigma[i] = math.sqrt(max(0.0, float(var[c])) * scale)
+        for k, cols in self._cols.items():
+            self.frames[k].p[:] = sol[cols]
+        frame.sigma[:] = np.sqrt(np.maximum(var[1:], 0.0) * scale)
         self.bias = np.asarray(sol[0], dtype=np.float64)
         self.bias_var = max(float(var[0]) * scale, 1e-12)
         # marginalise what no future frame can refer to
         recent = set(self.order[-self.window :])
         keep = recent | {c.ref_key for c in frame.constraints}
-        drop = [c for (k, _), c in self._idx.items() if k not in keep]
-        if drop:
-            self._marginalise(drop)
+        gone = [k for k in self._cols if k not in keep]
+        if gone:
+            self._marginalise(gone)
 
     def _terms_at(
         self,
@@ -351,7 +366,7 @@ class DriftTrajectory:
         appended to ``fixed_var`` if given."""
         idx_map = self._idx if index is None else index
         f = self.frames[key]
-        i, j, wi, wj = _weights(t, f.t_s)
+        i, j, wi, wj = _weights(t, f.t_list)
         terms: list[tuple[int, float]] = []
         const = np.zeros(2)
         for idx, w in ((i, wi), (j, wj)):
@@ -379,47 +394,58 @@ class DriftTrajectory:
                 terms.append((c, w))
         return terms, const
 
-    def _flush_info(self) -> None:
-        """Add the pending rows ``Σ a·x = value ± sigma`` to the information
-        form, all at once (one small dense product)."""
-        rows = [r for r in self._pending if r[0]]
-        self._pending = []
-        if not rows:
-            return
-        n = self._h.shape[0]
-        a = np.zeros((len(rows), n))
-        y = np.empty((len(rows), 2))
-        for k, (terms, value, sigma) in enumerate(rows):
+    def _add_rows(
+        self, rows: list[tuple[list[tuple[int, float]], FloatArray, float]]
+    ) -> tuple[FloatArray, FloatArray]:
+        """Add the rows ``Σ a·x = value ± sigma`` to the information form, all
+        at once (one small dense product); returns the weighted design (rows,
+        n) and values (rows, 2)."""
+        n, m = self._h.shape[0], len(rows)
+        flat: list[int] = []
+        weights: list[float] = []
+        for k, (terms, _, sigma) in enumerate(rows):
             for c, w in terms:
-                a[k, c] += w / sigma
-            y[k] = np.asarray(value, dtype=np.float64) / sigma
-        used = np.nonzero(np.any(a != 0.0, axis=0))[0]
-        au = a[:, used]
-        self._h[np.ix_(used, used)] += au.T @ au
-        self._g[used] += au.T @ y
+                flat.append(k * n + c)
+                weights.append(w / sigma)
+        a = np.asarray(
+            np.bincount(flat, weights=weights, minlength=m * n), dtype=np.float64
+        ).reshape(m, n)
+        y = np.array([r[1] for r in rows], dtype=np.float64).reshape(m, 2)
+        y /= np.array([r[2] for r in rows])[:, None]
+        self._h += a.T @ a
+        self._g += a.T @ y
+        return a, y
 
-    def _marginalise(self, drop: list[int]) -> None:
+    def _marginalise(self, gone_keys: list[int]) -> None:
+        """Marginalise the knots of frames ``gone_keys`` out (Schur complement)."""
         n = self._h.shape[0]
-        drop_set = set(drop)
-        keep = [c for c in range(n) if c not in drop_set]
+        drop = np.concatenate([self._cols.pop(k) for k in gone_keys])
+        mask = np.ones(n, dtype=bool)
+        mask[drop] = False
+        keep = np.nonzero(mask)[0]
         h_kk = self._h[np.ix_(keep, keep)]
         h_kd = self._h[np.ix_(keep, drop)]
         h_dd = self._h[np.ix_(drop, drop)]
-        x = np.linalg.solve(h_dd, np.column_stack([h_kd.T, self._g[drop]]))
-        self._h = h_kk - h_kd @ x[:, : len(keep)]
-        self._g = self._g[keep] - h_kd @ x[:, len(keep) :]
-        remap = {old: new for new, old in enumerate(keep)}
-        dropped = {node[0] for node, c in self._idx.items() if c not in remap}
-        self._idx = {node: remap[c] for node, c in self._idx.items() if c in remap}
-        for key in dropped:
+        rhs = np.column_stack([h_kd.T, self._g[drop]])
+        _, x, info = lapack.dposv(h_dd, rhs, lower=1)
+        if info != 0:  # not numerically positive definite: the general solver
+            x = np.linalg.solve(h_dd, rhs)
+        self._h = h_kk - h_kd @ x[:, : keep.size]
+        self._g = self._g[keep] - h_kd @ x[:, keep.size :]
+        remap = np.full(n, -1)
+        remap[keep] = np.arange(keep.size)
+        new_index = remap.tolist()
+        self._idx = {node: new_index[c] for node, c in self._idx.items() if new_index[c] >= 0}
+        self._cols = {k: remap[c] for k, c in self._cols.items()}
+        for key in gone_keys:
             self.frames[key].fixed = True
         if not self.keep_history:
             # Marginalised frames are not needed again (the origin's
             # direction is); only the smoothed estimate would read them.
-            gone = {k for k in dropped if self.origin is None or k != self.origin[0]}
-            for key in gone:
+            forget = {k for k in gone_keys if self.origin is None or k != self.origin[0]}
+            for key in forget:
                 del self.frames[key]
-            self.order = [k for k in self.order if k not in gone]
+            self.order = [k for k in self.order if k not in forget]
 
     def add_anchor(
         self,
@@ -476,14 +502,19 @@ class DriftTrajectory:
                 f.p, f.sigma, f.fixed = p, s, fx
             self.bias, self.bias_var = bias, bias_var
 
+    def _bias_shift(self, f: _Frame) -> float:
+        """ds of frame ``f``: its positions are reported as p + ds·b, relative
+        to the session reference's direction."""
+        ref_sign = self.frames[self.origin[0]].sign if self.origin else f.sign
+        return 0.5 * (f.sign - ref_sign)
+
     def estimate(self, key: int) -> FrameTrajectory:
         """The current estimate of frame ``key`` (bias of its direction included)."""
         f = self.frames[key]
-        ref_sign = self.frames[self.origin[0]].sign if self.origin else f.sign
-        shift = 0.5 * (f.sign - ref_sign) * self.bias
+        shift = self._bias_shift(f) * self.bias
         xy = f.p + shift
         sig = np.column_stack([f.sigma, f.sigma])
-        i, j, wi, wj = _weights(f.t_mid_s, f.t_s)
+        i, j, wi, wj = _weights(f.t_mid_s, f.t_list)
         mid = wi * f.p[i] + wj * f.p[j] + shift
         mid_sigma = float(wi * f.sigma[i] + wj * f.sigma[j])
         return FrameTrajectory(
@@ -566,23 +597,30 @@ class DriftTrajectory:
         y = np.vstack(rhs) * row_w[:, None]
         normal = (aw.T @ aw).tocsc()
         rhs_n = aw.T @ y
+        e_bias = np.zeros(n)
+        e_bias[b_col] = 1.0
         if n <= 400:
             dense = normal.toarray()
             sol = np.linalg.solve(dense, rhs_n)
-            cov_diag = np.diag(np.linalg.inv(dense))
+            inv = np.linalg.inv(dense)
+            cov_diag, cov_bias = np.diag(inv), inv[:, b_col]
         else:
             lu = spla.splu(normal)
             sol = lu.solve(np.asarray(rhs_n))
             cov_diag = self._diag_of_inverse(lu, n)
+            cov_bias = lu.solve(e_bias)
         resid = aw @ sol - y
         dof = max(1, m - n)
         scale = max(1.0, float(np.sum(resid**2)) / (2 * dof))
-        var = cov_diag * scale
         anchor = float(np.mean(anchor_var)) if anchor_var else 0.0
         for (k, i), c in col.items():
             f = self.frames[k]
             f.p[i] = sol[c]
-            f.sigma[i] = math.sqrt(max(0.0, float(var[c])) + anchor)
+            # the variance of the reported p + ds·b (see _filter_add)
+            ds = self._bias_shift(f)
+            v = cov_diag[c] + ds * ds * cov_diag[b_col] + 2.0 * ds * cov_bias[c]
+            f.sigma[i] = math.sqrt(max(0.0, float(v) * scale) + anchor)
+        var = cov_diag * scale
         self.bias = np.asarray(sol[b_col], dtype=np.float64)
         self.bias_var = max(float(var[b_col]), 1e-12)
 

@@ -390,14 +390,24 @@ class FramePipeline:
 def _observed(frame: Frame, pos: FramePosition) -> tuple[float, FloatArray, float]:
     """What the frame tells the model: the latest sample of its drift
     trajectory (the end of the scan, so the horizon to the next frame is
-    shortest), or its mid-scan position where it has no trajectory."""
+    shortest), or its mid-scan position where it has no trajectory.
+
+    The uncertainty is that of the frame's own measurement (the registration's
+    σ of its block mean against its reference), as before the trajectory. The
+    trajectory's σ is that of p relative to the session reference: it grows
+    along the keyframe chain and is shared by the frames measured against one
+    keyframe, so as a weight it favoured the frames early in the chain (and a
+    sample's own σ depends on which edge of the frame was scanned last);
+    one-step prediction was worse with it on replayed graphite-paper and
+    hidden-effect sessions.
+    """
+    sigma = pos.measurement_sigma if math.isfinite(pos.measurement_sigma) else pos.sigma
+    sigma = sigma if math.isfinite(sigma) else 0.0
     traj = pos.trajectory
     if traj is not None and traj.t_s.size:
         k = int(np.argmax(traj.t_s))
         if np.all(np.isfinite(traj.xy_nm[k])):
-            sig = float(np.hypot(*traj.sigma_nm[k]) / math.sqrt(2.0))
-            return float(traj.t_s[k]), np.asarray(traj.xy_nm[k], dtype=np.float64), sig
-    sigma = pos.sigma if math.isfinite(pos.sigma) else 0.0
+            return float(traj.t_s[k]), np.asarray(traj.xy_nm[k], dtype=np.float64), sigma
     return frame.t_mid_s, pos.p, sigma
 
 

@@ -16,7 +16,8 @@ what the daemon can do online. For each frame it
 3. **places every block row in time**: its content was scanned at
    t_cur(row + v_y) in this frame and at t_ref(row) in the reference, and the
    commanded offset O is evaluated at both times, so rows scanned before and
-   after a move each get their own offset;
+   after a move each get their own offset (a block row whose lines straddle a
+   move, in either frame, holds content from two offsets and is left out);
 4. **updates the drift trajectory** (:class:`~afmdrift.model.DriftTrajectory`,
    causal mode) with the block rows as constraints; the frame's drift
    position p is the trajectory at its mid-scan time, and its samples are
@@ -35,6 +36,7 @@ feed the model.
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -54,7 +56,7 @@ from afmdrift.model import (
     offset_change_nm,
 )
 from afmdrift.pipeline._records import FrameRecord
-from afmdrift.records import Event, EventKind, Frame, ScanDirection, row_times_s
+from afmdrift.records import Event, EventKind, Frame, ScanDirection
 from afmdrift.registration import DriftResult, DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
 
@@ -93,6 +95,9 @@ class FramePosition:
     #: the frame (key) the frame was measured against.
     increment: DriftResult | None = None
     reference_key: int | None = None
+    #: The registration's σ of the frame's block mean against its reference,
+    #: nm (``sigma`` is the trajectory's σ of p, which grows along the chain).
+    measurement_sigma: float = math.nan
 
 
 @dataclass(frozen=True, slots=True)
@@ -102,8 +107,15 @@ class _Timing:
     rows: int
     direction: ScanDirection
 
-    def row_times(self) -> FloatArray:
-        return row_times_s(self.t_start_s, self.t_end_s, self.rows, self.direction)
+    def times_at(self, rows_px: FloatArray) -> FloatArray:
+        """Scan time of (fractional) rows, clamped to the frame: the row times
+        of :func:`afmdrift.records.row_times_s` (mid-line, linear in the row)
+        interpolated, computed directly."""
+        r = np.clip(rows_px, 0.0, self.rows - 1.0)
+        if self.direction is ScanDirection.DOWN:
+            r = (self.rows - 1.0) - r
+        line_s = (self.t_end_s - self.t_start_s) / self.rows
+        return np.asarray(self.t_start_s + (r + 0.5) * line_s, dtype=np.float64)
 
 
 def _sign(direction: ScanDirection) -> int:
@@ -146,6 +158,10 @@ class DriftPositions:
         self._timings: dict[int, _Timing] = {}
         self._last_t_s: float | None = None  # mid time of the tracker's last frame
         self._breaks_to_s = -math.inf  # tip changes up to here are breaks already
+        # offset move times seen in the event log (see _moves_during)
+        self._moves_of: Sequence[Event] | None = None
+        self._moves_seen = 0
+        self._move_times: list[float] = []
 
     def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
         return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
@@ -265,10 +281,7 @@ class DriftPositions:
     def _knot_times(self, tracker: DriftTracker, timing: _Timing, dy_px: float) -> FloatArray:
         """Scan times of the block rows of a frame whose content sits ``dy_px``
         below the reference grid."""
-        rows = tracker.block_rows_px + dy_px
-        rt = timing.row_times()
-        idx = np.arange(rt.size, dtype=np.float64)
-        return np.unique(np.interp(np.clip(rows, 0, rt.size - 1), idx, rt))
+        return np.unique(timing.times_at(tracker.block_rows_px + dy_px))
 
     def _remember(
         self, tracker_index: int, seq: int, frame: Frame, *, in_use: int | None = None
@@ -364,14 +377,35 @@ class DriftPositions:
         self._base_nm = pos.m.copy()
         pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
 
+    def _moves_during(self, events: Sequence[Event], *timings: _Timing) -> bool:
+        """Whether an offset move was logged while one of ``timings`` was scanned.
+
+        The move times are kept sorted and extended with the entries appended
+        since the last call (the model's history is append-only), so a long
+        run does not rescan its whole event log every frame.
+        """
+        if events is not self._moves_of or len(events) < self._moves_seen:
+            self._moves_of, self._moves_seen, self._move_times = events, 0, []
+        for e in events[self._moves_seen :]:
+            if e.kind is EventKind.OFFSET_MOVE:
+                bisect.insort(self._move_times, e.t_s)
+        self._moves_seen = len(events)
+        for timing in timings:
+            k = bisect.bisect_left(self._move_times, timing.t_start_s)
+            if k < len(self._move_times) and self._move_times[k] <= timing.t_end_s:
+                return True
+        return False
+
     def _constraints(
         self,
         frame: Frame,
+        tracker: DriftTracker,
         step: TrackStep,
         events: Sequence[Event],
     ) -> tuple[list[BandConstraint], float] | None:
         """Block-row constraints of an accepted measurement, and the mean row
-        motion (px); None if its reference is not in the trajectory."""
+        motion (px); None if its reference is not in the trajectory or no
+        block row was scanned at one offset."""
         ref_key = self._keys.get(step.reference_index)
         timing_ref = None if ref_key is None else self._timings.get(ref_key)
         if ref_key is None or timing_ref is None or ref_key not in self.trajectory.frames:
@@ -385,12 +419,28 @@ class DriftPositions:
             return None
         levels, inverse, counts = np.unique(rows, return_inverse=True, return_counts=True)
         means = np.column_stack([np.bincount(inverse, weights=vec[:, a]) / counts for a in (0, 1)])
-        t_cur = _times_at(frame.row_times_s(), levels + means[:, 1])
-        t_ref = _times_at(timing_ref.row_times(), levels)
+        timing_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction)
+        t_cur = timing_cur.times_at(levels + means[:, 1])
+        t_ref = timing_ref.times_at(levels)
         px, py = frame.pixel_size_nm
         sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
         sigmas = sigma_frame * np.sqrt(vec.shape[0] / counts)
         values = means * np.array([px, py]) + offset_change_nm(t_cur, t_ref, events)
+        # A block row whose lines were scanned partly before and partly after
+        # an offset move (in this frame or in its reference) holds content
+        # from two offsets: its vector is neither, so it is left out.
+        clean = np.ones(levels.size, dtype=bool)
+        if self._moves_during(events, timing_ref, timing_cur):
+            grid = tracker.block_rows_px
+            half = 0.5 * float(np.min(np.diff(grid))) if grid.size > 1 else 0.5 * frame.shape[0]
+            lo = np.concatenate([timing_cur.times_at(levels + means[:, 1] - half),
+                                 timing_ref.times_at(levels - half)])  # fmt: skip
+            hi = np.concatenate([timing_cur.times_at(levels + means[:, 1] + half),
+                                 timing_ref.times_at(levels + half)])  # fmt: skip
+            moved = np.any(offset_change_nm(hi, lo, events) != 0.0, axis=1)
+            clean = ~(moved[: levels.size] | moved[levels.size :])
+            if not clean.any():
+                return None
         out = [
             BandConstraint(
                 ref_key=ref_key,
@@ -399,7 +449,7 @@ class DriftPositions:
                 value_nm=(float(values[k, 0]), float(values[k, 1])),
                 sigma_nm=float(sigmas[k]),
             )
-            for k in range(levels.size)
+            for k in np.nonzero(clean)[0]
         ]
         return out, float(vec[:, 1].mean())
 
@@ -420,7 +470,7 @@ class DriftPositions:
         pos.increment = inc
         pos.reference_key = self._keys.get(step.reference_index)
         pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
-        pos.sigma = float(meas.sigma_nm)
+        pos.sigma = pos.measurement_sigma = float(meas.sigma_nm)
         pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
         pos.keyframe_index = int(step.keyframe_index)
         pos.reanchored = bool(step.reanchored)
@@ -433,7 +483,7 @@ class DriftPositions:
                 pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
             # The tracker moved on to this frame (it may be the new keyframe).
             self._remember(step.frame_index, seq, frame, in_use=step.reference_index)
-            made = None if low else self._constraints(frame, step, events)
+            made = None if low else self._constraints(frame, tracker, step, events)
             if made is not None:
                 constraints, dy_px = made
                 knots = self._knot_times(tracker, self._timings[seq], dy_px)
@@ -441,8 +491,7 @@ class DriftPositions:
                 if traj is not None:
                     pos.trajectory = traj
                     # p from the trajectory at mid-scan time; m keeps its meaning.
-                    t_ref = self.t_ref_s if self.t_ref_s is not None else frame.t_mid_s
-                    pos.m = traj.mid_nm - offset_change_nm(frame.t_mid_s, t_ref, events)[0]
+                    pos.m = traj.mid_nm - pos.offset
                     pos.sigma = traj.mid_sigma_nm
         else:
             pos.dx = pos.dy = math.nan
@@ -460,33 +509,34 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
     fld = getattr(inc, "field", None)
     if fld is None:
         return None
-    vectors = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2) * np.asarray(
+    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
+    good = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2)[valid] * np.asarray(
         pixel_size_nm, dtype=np.float64
     )
-    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
-    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)
-    good = vectors[valid]
+    n = good.shape[0]
+    if n == 0:
+        return FieldSummary(
+            total_blocks=int(valid.size),
+            valid_blocks=0,
+            mean_dx_nm=None,
+            mean_dy_nm=None,
+            std_dx_nm=None,
+            std_dy_nm=None,
+            median_confidence=None,
+        )
+    mean = good.sum(axis=0) / n
+    std = np.sqrt(np.sum((good - mean) ** 2, axis=0) / n)
+    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid]
 
-    def stat(values: npt.NDArray[np.float64], fn: Callable[[Any], Any]) -> float | None:
-        if values.size == 0:
-            return None
-        v = float(fn(values))
+    def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None
 
     return FieldSummary(
         total_blocks=int(valid.size),
-        valid_blocks=int(valid.sum()),
-        mean_dx_nm=stat(good[:, 0], np.mean),
-        mean_dy_nm=stat(good[:, 1], np.mean),
-        std_dx_nm=stat(good[:, 0], np.std),
-        std_dy_nm=stat(good[:, 1], np.std),
-        median_confidence=stat(conf[valid], np.median),
-    )
-
-
-def _times_at(row_times: FloatArray, rows: FloatArray) -> FloatArray:
-    """Scan time of (fractional) rows, clamped to the frame."""
-    idx = np.arange(row_times.size, dtype=np.float64)
-    return np.asarray(
-        np.interp(np.clip(rows, 0, row_times.size - 1), idx, row_times), dtype=np.float64
+        valid_blocks=n,
+        mean_dx_nm=finite(float(mean[0])),
+        mean_dy_nm=finite(float(mean[1])),
+        std_dx_nm=finite(float(std[0])),
+        std_dy_nm=finite(float(std[1])),
+        median_confidence=finite(float(np.median(conf))),
     )

@@ -184,3 +184,46 @@ def test_without_history_memory_is_bounded_and_estimates_are_the_same() -> None:
     assert len(lean.frames) <= lean.window + 3
     with pytest.raises(ValueError, match="keep_history=False"):
         lean.smoothed()
+
+
+def test_a_down_frames_uncertainty_is_that_of_its_reported_position_not_of_p_alone() -> None:
+    """Regression: with alternating scan directions a down frame's p alone is
+    known only up to the scan-direction bias (prior 10 nm), and its reported
+    σ was that of p alone (several nm) although the reported p + bias was
+    within 0.2 nm; fed to the model as a weight, it made down frames count
+    ~100× less than up frames."""
+    rng = np.random.default_rng(3)
+    bias = np.array([3.0, 2.0])
+    noise = 0.05
+    traj = DriftTrajectory(q_nm2_s3=1e-4, window=4)
+    origin = _drift(np.array([_knots(0).mean()]))[0]
+    causal = []
+    for k in range(12):
+        t = _knots(k)
+        sign = 1 if k % 2 == 0 else -1
+        constraints = []
+        if k > 0:
+            ref = k - 1
+            t_ref = _knots(ref)
+            ds = 0.5 * (sign - (1 if ref % 2 == 0 else -1))
+            true = _drift(t) - _drift(t_ref) + ds * bias
+            for j in range(ROWS):
+                v = true[j] + rng.normal(0, noise, 2)
+                constraints.append(
+                    BandConstraint(
+                        ref, float(t[j]), float(t_ref[j]), (float(v[0]), float(v[1])), noise
+                    )
+                )
+        est = traj.add_frame(k, t, sign=sign, t_mid_s=float(t.mean()), constraints=constraints)
+        causal.append((sign, est))
+    for k, (sign, est) in enumerate(causal[1:], start=1):
+        reported_true = _drift(_knots(k)) - origin + 0.5 * (sign - 1) * bias
+        # the σ describes the reported value's error, and is not the bias prior's
+        assert np.all(np.abs(est.xy_nm - reported_true) < 4.0 * est.sigma_nm), (k, sign)
+        if k >= 3 and sign < 0:
+            # as well known as the up frame before it (frames 0-2 alone leave
+            # the bias and the curve's bend confounded)
+            assert est.mid_sigma_nm < 2.0 * causal[k - 1][1].mid_sigma_nm, (k, est.mid_sigma_nm)
+    smooth = traj.smoothed()
+    mids = [smooth[k].mid_sigma_nm for k in range(2, 12)]
+    assert max(mids) < 2.0 * min(mids)

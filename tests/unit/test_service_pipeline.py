@@ -194,3 +194,27 @@ def test_replay_survives_a_nan_frame_in_the_session(tmp_path: Path) -> None:
     with RunStore(tmp_path / "run") as store:
         rec = store.frames()[2]
     assert rec.reason.startswith("registration failed")
+
+
+def test_the_model_is_fed_the_latest_sample_weighted_by_the_frames_own_registration(
+    tmp_path: Path, sim: SimulatedAFM
+) -> None:
+    """Regression: the observation carried the trajectory's σ of p, which grows
+    along the keyframe chain (and was the bias prior's for down frames), so
+    as a weight it favoured early frames and one-step prediction got worse
+    than before the trajectory. It now carries the registration's σ of the
+    frame's block mean, at the time of the frame's latest trajectory sample."""
+    pipe = FramePipeline(config=service_config(tmp_path))
+    checked = 0
+    for k, f in enumerate(_frames(sim, 5)):
+        out = pipe.process(f, seq=k)
+        rec, pos = out.record, out.position
+        if k == 0 or out.trajectory is None:
+            continue
+        checked += 1
+        assert pos is not None
+        assert rec.fed_model
+        assert rec.obs_t_s == pytest.approx(float(out.trajectory.t_s.max()))
+        assert rec.obs_sigma_nm == pytest.approx(pos.measurement_sigma)
+        assert rec.obs_sigma_nm != pytest.approx(rec.sigma_nm)
+    assert checked >= 3
