@@ -32,7 +32,8 @@ Options:
   differs in size or direction.
 * ``tau_s=<lo>..<hi>`` or ``t0_s=<lo>..<hi>``: search range of the time
   constant (s); ``tau_s=<value>`` fixes it (no search).
-* ``#<label>``: a second instance of the same driver, e.g. a fast and a slow
+* ``#<label>`` (lower-case letters, digits, ``_``): a second instance of the
+  same driver, e.g. a fast and a slow
   thermal path ``channel:stage_c:tau_s=1..600#fast`` and
   ``channel:stage_c:tau_s=600..20000#slow``. Two identical specs in one model
   are rejected as duplicates.
@@ -200,14 +201,6 @@ def _range(spec: str, part: str, value: str) -> tuple[float, float]:
     return lo, hi
 
 
-def _check_name(spec: str, what: str, name: str) -> None:
-    if not name or not name[0].isalpha() or not set(name) <= _NAME_CHARS:
-        raise ConfigError(
-            f"term spec {spec!r}: {what} {name!r} must be a lower-case name of letters, "
-            "digits and '_' starting with a letter"
-        )
-
-
 @functools.lru_cache(maxsize=512)
 def parse_term_spec(spec: str) -> type[GenericTerm]:
     """The term class of a generic term spec (syntax in the module docstring).
@@ -221,8 +214,10 @@ def parse_term_spec(spec: str) -> type[GenericTerm]:
     """
     text = spec.strip()
     body, hash_, label = text.partition("#")
-    if hash_:
-        _check_name(text, "label", label)
+    if hash_ and (not label or not set(label) <= _NAME_CHARS):
+        raise ConfigError(
+            f"term spec {spec!r}: label {label!r} must be lower-case letters, digits or '_'"
+        )
     parts = body.split(":")
     family = parts[0]
     if family not in ("channel", "event") or len(parts) < 2 or not parts[1]:
