@@ -67,6 +67,7 @@ __all__ = [
     "base_basis",
     "cv_folds",
     "evaluate_candidate",
+    "family_candidates",
     "ml_phi",
 ]
 
@@ -93,6 +94,13 @@ class Thresholds:
         When a term cannot be cross-validated, ΔAICc must exceed
         ``no_cv_factor × min_delta_aicc`` and the Wald p-value
         ``alpha / no_cv_factor``.
+    named_margin_aicc : float
+        A significant library (named) effect ranks above a significant
+        generic term (``channel:``, ``event:``) unless the generic term's
+        ΔAICc is higher by more than this (10: the same "essentially no
+        support" margin, Burnham & Anderson 2002). A named effect with
+        physical parameters is worth more to a user than a generic term that
+        fits as well.
     """
 
     min_delta_aicc: float = 10.0
@@ -100,6 +108,7 @@ class Thresholds:
     min_cv_drop: float = 0.05
     folds: int = 5
     no_cv_factor: float = 3.0
+    named_margin_aicc: float = 10.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -145,6 +154,7 @@ class CandidateResult:
     effect: str
     testable: bool
     reason: str = ""
+    driver: dict[str, str] = field(default_factory=dict)
     significant: bool = False
     score: float = math.nan
     delta_aicc: float = math.nan
@@ -750,3 +760,47 @@ def _blocked_cv(
             se_base += float(np.sum((ytil_base[a][test] - base_pred) ** 2))
             se_cand += float(np.sum((ytil[a][test] - best_pred[a]) ** 2))
     return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable
+
+
+def family_candidates(history: History, model_terms: Sequence[str]) -> list[str]:
+    """Term specs of the generic families to test on ``history``.
+
+    One ``channel:<name>`` per logged channel that varies (a second instance
+    ``channel:<name>#2``, ``#3``, ... when the model already has that spec,
+    e.g. a slow path next to a fast one), and per logged event kind
+    ``event:<kind>`` (exponential settling) and ``event:<kind>:log``
+    (logarithmic creep), plus their ``:each`` forms (one amplitude per event)
+    when the kind was logged more than once. Every spec not in
+    ``model_terms``.
+    """
+    taken = set(model_terms)
+
+    def free(spec: str) -> str:
+        if spec not in taken:
+            return spec
+        k = 2
+        while f"{spec}#{k}" in taken:
+            k += 1
+        return f"{spec}#{k}"
+
+    specs: list[str] = []
+    for name in sorted(history.channels):
+        if any(c.isspace() or c in ",#=:" for c in name):
+            continue  # not expressible as a term spec
+        v = np.asarray(history.channels[name], dtype=np.float64)
+        v = v[np.isfinite(v)]
+        if v.size < 2 or float(np.ptp(v)) <= 0.0:
+            continue
+        specs.append(free(f"channel:{name}"))
+    counts: dict[str, int] = {}
+    for e in history.events:
+        counts[str(e.kind)] = counts.get(str(e.kind), 0) + 1
+    for kind in sorted(counts):
+        forms = ["", ":log"]
+        if counts[kind] > 1:
+            forms += [":each", ":log:each"]
+        for form in forms:
+            spec = f"event:{kind}{form}"
+            if spec not in taken:
+                specs.append(spec)
+    return specs

@@ -36,6 +36,7 @@ from afmdrift.diagnostics._candidates import (
     Thresholds,
     base_basis,
     evaluate_candidate,
+    family_candidates,
     ml_phi,
 )
 from afmdrift.diagnostics._data import RunData
@@ -51,12 +52,16 @@ from afmdrift.diagnostics._stats import (
 )
 from afmdrift.errors import ConfigError, InputError
 from afmdrift.model import (
+    CHANNEL_TAU_RANGE_S,
     EffectTerm,
+    GenericTerm,
     History,
     HistoryFeed,
     OffsetCurve,
     PhysicsPredictor,
     available_terms,
+    resolve_terms,
+    term_class,
 )
 from afmdrift.records import EventKind
 
@@ -64,6 +69,7 @@ __all__ = [
     "DiagnoseOptions",
     "Diagnosis",
     "ModelRun",
+    "describe_driver",
     "diagnose",
     "model_design",
     "run_from_store",
@@ -89,13 +95,19 @@ class DiagnoseOptions:
         Significance rule of the candidate tests.
     verify : int
         How many testable candidates with the highest ΔAICc are re-run online
-        with the term added, besides every significant one (their
+        with the term added, besides the significant ones (their
         ``rmse_after_nm`` is then measured, not estimated).
+    max_verify : int
+        At most this many online re-runs in all (the significant candidates
+        with the highest ΔAICc first): with the generic families several
+        terms can explain the same residual, and each re-run costs a full
+        online fit.
     """
 
     burn_in_frames: int = 10
     thresholds: Thresholds = field(default_factory=Thresholds)
     verify: int = 2
+    max_verify: int = 5
 
 
 @dataclass(slots=True)
@@ -262,7 +274,7 @@ def model_design(run: ModelRun) -> ModelDesign:
     p = run.predictor
     t = run.t_s
     active = list(p.active)
-    known = available_terms(p.config.plugins)
+    known = {term.name: term for term in p.terms}
 
     def builder(params: dict[str, dict[str, float]]) -> tuple[FloatArray, FloatArray]:
         out = []
@@ -374,6 +386,8 @@ class Diagnosis:
                 {
                     "rank": i + 1,
                     "effect": c.effect,
+                    "term": c.effect,
+                    "family": _family(c),
                     "testable": c.testable,
                     "reason": c.reason or None,
                     "significant": c.significant,
@@ -389,7 +403,7 @@ class Diagnosis:
                     "prequential_drop": None
                     if c.prequential_drop is None
                     else _num(c.prequential_drop),
-                    "params": {k: _num(v) for k, v in c.params.items()},
+                    "params": {**c.driver, **{k: _num(v) for k, v in c.params.items()}},
                     "rmse_after_nm": None if c.rmse_after_nm is None else _num(c.rmse_after_nm),
                     "rmse_after_kind": c.rmse_after_kind,
                     "evidence": c.evidence(),
@@ -403,6 +417,7 @@ class Diagnosis:
                 "min_cv_drop": self.thresholds.min_cv_drop,
                 "folds": self.thresholds.folds,
                 "no_cv_factor": self.thresholds.no_cv_factor,
+                "named_margin_aicc": self.thresholds.named_margin_aicc,
             },
             "finding": self.finding,
             "config": self.config_snippet(),
@@ -510,6 +525,15 @@ def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
     return out
 
 
+def _family(c: CandidateResult) -> str:
+    """``named`` for a library or plugin effect, ``channel`` or ``event`` for a generic term."""
+    if "channel" in c.driver:
+        return "channel"
+    if "event_kind" in c.driver:
+        return "event"
+    return "named"
+
+
 def _num(v: float | int | None) -> float | None:
     if v is None:
         return None
@@ -561,7 +585,7 @@ def diagnose(
     runs = _verify_online(
         results, data, physics, burn=burn, rmse0_nm=summary["rmse_nm"], options=options
     )
-    _rank(results)
+    _rank(results, options.thresholds)
     top = results[0] if results and results[0].significant else None
     after: ModelRun | None = None
     after_summary = None
@@ -609,14 +633,8 @@ def _chosen_physics(
         if not effects:
             raise ConfigError("--effects: give at least one effect term (e.g. trend)")
         physics = physics.model_copy(update={"terms": list(effects)})
-    known = available_terms(physics.plugins)
-    unknown = [t for t in physics.terms if t not in known]
-    if unknown:
-        raise ConfigError(
-            f"effects: unknown term(s) {', '.join(map(repr, unknown))} "
-            f"(known: {', '.join(sorted(known))})"
-        )
-    return physics, known
+    resolve_terms(physics.terms, physics.plugins, key="effects")
+    return physics, available_terms(physics.plugins)
 
 
 def _whiteness(
@@ -653,20 +671,31 @@ def _test_candidates(
     physics: PhysicsConfig,
     options: DiagnoseOptions,
 ) -> tuple[list[CandidateResult], int]:
-    """Added-variable evidence for every known term not in the model, and the test count.
+    """Added-variable evidence for every candidate term, and the test count.
 
-    The count (every θ of every testable candidate) is the Bonferroni factor.
+    Candidates are every known term not in the model and the generic family
+    instances of :func:`~afmdrift.diagnostics._candidates.family_candidates`
+    (every logged channel, every logged event kind). The count (every θ of
+    every testable candidate, over all of them) is the Bonferroni factor, so
+    the family-wise false-alarm level holds however many channels, event
+    kinds, shapes and time constants are searched.
     """
-    terms = {name: cls() for name, cls in known.items() if name not in physics.terms}
+    terms: dict[str, EffectTerm] = {
+        name: cls() for name, cls in known.items() if name not in physics.terms
+    }
+    for spec in family_candidates(history, physics.terms):
+        terms[spec] = term_class(spec, known)()
     testable = [t for t in terms.values() if t.missing(history) is None]
     n_tests = sum(len(t.nonlinear_grid()) for t in testable)
     base = base_basis(design)
-    results = [
-        evaluate_candidate(
+    results = []
+    for term in terms.values():
+        r = evaluate_candidate(
             term, design, history, n_tests=n_tests, thresholds=options.thresholds, base=base
         )
-        for term in terms.values()
-    ]
+        if isinstance(term, GenericTerm):
+            r.driver = term.driver()
+        results.append(r)
     return results, n_tests
 
 
@@ -684,7 +713,9 @@ def _verify_online(
     Sets each candidate's ``rmse_after_nm`` (replayed, or estimated from the
     blocked CV for those not re-run) and ``prequential_drop``; a candidate
     whose in-sample evidence passes becomes significant when its re-run error
-    drops enough. Returns the re-runs and their error summaries by effect.
+    drops enough, and a candidate whose re-run error rises is not significant.
+    At most ``options.max_verify`` re-runs, by ΔAICc. Returns the re-runs and
+    their error summaries by effect.
     """
     th = options.thresholds
     by_score = sorted(
@@ -693,7 +724,7 @@ def _verify_online(
     )
     runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
     for i, c in enumerate(by_score):
-        if i < options.verify or c.significant:
+        if (i < options.verify or c.significant) and len(runs) < options.max_verify:
             # Prequential check (Dawid 1984): the model with the term, re-run online,
             # predicts every frame before seeing it, like the service.
             cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
@@ -706,14 +737,28 @@ def _verify_online(
                 c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
                 if c.in_sample_ok and c.prequential_drop >= th.min_cv_drop:
                     c.significant = True
+                elif c.prequential_drop < 0:
+                    # The model re-run online with the term predicts worse than
+                    # without it: whatever the in-sample and CV evidence, this
+                    # is not a term to recommend.
+                    c.significant = False
         elif c.cv_drop is not None and math.isfinite(rmse0_nm) and c.cv_rmse_base_nm > 0:
             c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
             c.rmse_after_kind = "cv_estimate"
     return runs
 
 
-def _rank(results: list[CandidateResult]) -> None:
-    """Sort in place: significant first, among them the best online re-run, then by ΔAICc."""
+def _rank(results: list[CandidateResult], thresholds: Thresholds) -> None:
+    """Sort in place: significant first, among them the best online re-run, then by ΔAICc.
+
+    Then, if the first is a generic term (it has a ``driver``) and a
+    significant named effect has comparable evidence, the best such named
+    effect moves to the front: it names the physics. Comparable: a ΔAICc
+    within :attr:`Thresholds.named_margin_aicc` of the generic term's, or an
+    online re-run error within :attr:`Thresholds.min_cv_drop` of it (a lag
+    filter also smooths a noisy sensor, which can win a generic term a few
+    AICc units over a direct named term without predicting any better).
+    """
     results.sort(
         key=lambda c: (
             not c.significant,
@@ -722,6 +767,25 @@ def _rank(results: list[CandidateResult]) -> None:
             -(c.score if math.isfinite(c.score) else -math.inf),
         )
     )
+    if not results or not results[0].significant or not results[0].driver:
+        return
+    lead = results[0]
+
+    def comparable(c: CandidateResult) -> bool:
+        if c.delta_aicc >= lead.delta_aicc - thresholds.named_margin_aicc:
+            return True
+        return (
+            c.rmse_after_kind == "replayed"
+            and lead.rmse_after_kind == "replayed"
+            and c.rmse_after_nm is not None
+            and lead.rmse_after_nm is not None
+            and c.rmse_after_nm <= (1.0 + thresholds.min_cv_drop) * lead.rmse_after_nm
+        )
+
+    for i, c in enumerate(results):
+        if c.significant and not c.driver and comparable(c):
+            results.insert(0, results.pop(i))
+            return
 
 
 def _with_jump_caution(finding: str, run: ModelRun) -> str:
@@ -786,6 +850,8 @@ def _finding(
             None,
         )
     terms = [*physics.terms, top.effect]
+    if top.driver:
+        return _generic_finding(top, results, terms, summary, after_summary), terms
     doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
     change = ""
     if after_summary is not None and summary["rmse_nm"] > 0:
@@ -803,5 +869,93 @@ def _finding(
     )
 
 
-def _term_instance(name: str, physics: PhysicsConfig) -> Any:
-    return available_terms(physics.plugins)[name]()
+def _duration(t_s: float) -> str:
+    """A time constant in words: s below 2 min, min below 2 h, else h."""
+    if t_s < 120:
+        return f"{t_s:.0f} s"
+    if t_s < 7200:
+        return f"{t_s / 60:.0f} min"
+    return f"{t_s / 3600:.1f} h"
+
+
+#: How the unit suffixes of channel names read in sentences.
+_UNIT_WORDS = {"c": "K", "k": "K", "hpa": "hPa", "pa": "Pa", "pct": "%", "mw": "mW", "v": "V"}
+
+
+def _gains(c: CandidateResult) -> str:
+    """The linear coefficients of ``c`` per axis in words (``+4.1 nm/hPa in x, ...``)."""
+    parts = []
+    for k, v in c.params.items():
+        if k in c.nonlinear or k.startswith("model.") or not math.isfinite(v):
+            continue
+        base, _, axis = k.rpartition("_")
+        if base.startswith("gain_nm_per_"):
+            suffix = base.removeprefix("gain_nm_per_")
+            unit = f"nm/{_UNIT_WORDS.get(suffix, suffix)}"
+        else:
+            unit = base.replace("amplitude_nm", "nm").replace("nm_per_decade", "nm per decade")
+        parts.append(f"{v:+.3g} {unit} in {axis}")
+    return ", ".join(parts)
+
+
+def describe_driver(c: CandidateResult) -> str:
+    """The driver, shape, lag and gain of a generic candidate in plain language."""
+    d = c.driver
+    if "channel" in d:
+        tau = c.nonlinear.get("tau_s", c.params.get("tau_s", math.nan))
+        lag = (
+            "directly (no lag)"
+            if not math.isfinite(tau) or tau <= CHANNEL_TAU_RANGE_S[0]
+            else f"through a first-order lag of about {_duration(tau)} (tau_s = {tau:.3g})"
+        )
+        return f"the residual follows the logged channel {d['channel']} {lag}, {_gains(c)}"
+    kind = d.get("event_kind", "?")
+    each = "each" in c.effect.split("#")[0].split(":")[2:]
+    per = "each event with its own amplitude" if each else "the same amplitude for every event"
+    if d.get("shape") == "log":
+        t0 = c.nonlinear.get("t0_s", math.nan)
+        return (
+            f"the residual creeps logarithmically after each logged {kind} event "
+            f"(t0 = {t0:.3g} s; {per}), {_gains(c)}"
+        )
+    tau = c.nonlinear.get("tau_s", math.nan)
+    return (
+        f"the residual steps after each logged {kind} event and settles exponentially "
+        f"with a time constant of about {_duration(tau)} (tau_s = {tau:.3g}; {per}), {_gains(c)}"
+    )
+
+
+def _generic_finding(
+    top: CandidateResult,
+    results: list[CandidateResult],
+    terms: list[str],
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+) -> str:
+    """The finding for a generic term: no library effect explains it; driver and shape."""
+    named = [c for c in results if c.testable and not c.driver]
+    closest = (
+        f" (the closest, {named[0].effect}, has ΔAICc = {named[0].delta_aicc:.1f}"
+        f"{', significant but far behind' if named[0].significant else ', not significant'})"
+        if named
+        else ""
+    )
+    change = ""
+    if after_summary is not None and summary["rmse_nm"] > 0:
+        drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
+        change = (
+            f" Re-running the model with it cuts the one-step RMS error from "
+            f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
+            f"({100 * drop:.0f}% lower)."
+        )
+    quoted = ", ".join(f'"{t}"' for t in terms)
+    return (
+        f"Missing effect outside the library: {describe_driver(top)}. No library effect "
+        f"explains it{closest}. Term: {top.effect}. Evidence: {top.evidence()}.{change} "
+        f"To add this term, put in your configuration file: [model.physics] terms = [{quoted}] "
+        f"(or --effects {','.join(terms)})."
+    )
+
+
+def _term_instance(name: str, physics: PhysicsConfig) -> EffectTerm:
+    return term_class(name, available_terms(physics.plugins))()
