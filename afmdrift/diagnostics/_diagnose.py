@@ -742,10 +742,20 @@ def _verify_online(
                     # without it: whatever the in-sample and CV evidence, this
                     # is not a term to recommend.
                     c.significant = False
-        elif c.cv_drop is not None and math.isfinite(rmse0_nm) and c.cv_rmse_base_nm > 0:
+        elif (
+            c.cv_drop is not None
+            and math.isfinite(rmse0_nm)
+            and 0 < c.cv_rmse_nm <= MAX_CV_RATIO * c.cv_rmse_base_nm
+        ):
             c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
             c.rmse_after_kind = "cv_estimate"
     return runs
+
+
+#: No error estimate from blocked CV when the candidate's cross-validated error is
+#: more than this many times the model's: its fit is unstable out of sample
+#: (e.g. one amplitude per event with an event near a fold's edge).
+MAX_CV_RATIO = 3.0
 
 
 def _rank(results: list[CandidateResult], thresholds: Thresholds) -> None:

@@ -499,9 +499,11 @@ def _candidates_section(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
 def _fig_driver(dg: Diagnosis) -> Figure | None:
     """The driver of the leading generic candidate over the one-step errors.
 
-    A channel: its logged trace and the trace through the fitted lag (right
-    axis); an event kind: a vertical mark at each event. None when no
-    testable generic candidate exists.
+    A channel: its logged trace (right axis) and, over the errors, the
+    frame-to-frame change of the fitted response g·ΔC_s (the fitted lag and
+    gain): what the term would have predicted of each error. An event kind:
+    a vertical mark at each event. None when no testable generic candidate
+    exists.
     """
     import matplotlib.pyplot as plt
 
@@ -522,13 +524,17 @@ def _fig_driver(dg: Diagnosis) -> Figure | None:
             hist = run.history
             tt = np.asarray(hist.channel_t_s, dtype=np.float64)
             right = ax.twinx()
-            right.plot(tt / 3600.0, hist.channel_at(name, tt), color="tab:orange", lw=0.8)
+            right.plot(tt / 3600.0, hist.channel_at(name, tt), color="tab:orange", lw=0.6)
+            right.set_ylabel(f"{name} (orange)", fontsize=8, color="tab:orange")
             term = term_class(c.effect, available_terms(run.predictor.config.plugins))()
-            lagged = term.design(
-                run.t_s, hist, scan_sign=run.scan_sign, params=c.nonlinear, axis=a
-            )[:, 0] + float(hist.channel_at(name, tt[:1])[0])
-            right.plot(t_h, lagged, color="tab:red", lw=1.2)
-            right.set_ylabel(f"{name} (orange: logged, red: lagged)", fontsize=8)
+            gain = c.params.get(f"{term.coefficient_units[0]}_{'xy'[a]}", math.nan)
+            if math.isfinite(gain):
+                lagged = term.design(
+                    run.t_s, hist, scan_sign=run.scan_sign, params=c.nonlinear, axis=a
+                )[:, 0]
+                step = np.concatenate([[np.nan], np.diff(lagged)]) * gain
+                ax.plot(t_h, step, color="tab:red", lw=1.2, label="fitted g·ΔC_s per frame")
+                ax.legend(loc="best", fontsize=8)
         else:
             kind = c.driver["event_kind"]
             for e in run.history.events:

@@ -330,6 +330,12 @@ def test_out_of_library_channel_is_named_with_driver_lag_and_gain() -> None:
     assert dg.config_terms == ["trend", "thermal_lag", "channel:pressure_hpa"]
     assert dg.after_summary is not None
     assert dg.after_summary["rmse_nm"] < 0.7 * dg.summary["rmse_nm"]
+    # The report overlays the driver on the errors.
+    from afmdrift.diagnostics._report import render_report
+
+    page = render_report(dg, data)
+    assert 'alt="driver of the leading generic candidate over the errors"' in page
+    assert "channel:pressure_hpa" in page
     # The term is accepted verbatim as a model term (--effects, [model.physics] terms).
     assert [t.name for t in PhysicsPredictor(PhysicsConfig(terms=dg.config_terms)).terms] == [
         "trend",
