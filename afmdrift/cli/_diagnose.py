@@ -128,7 +128,8 @@ def format_text(j: dict[str, Any]) -> str:
         kind = "" if c["rmse_after_kind"] != "cv_estimate" else " (est.)"
         lines.append(
             f"  {c['rank']:2d}. {c['effect']:<{width}} {'YES' if c['significant'] else 'no ':<4} "
-            f"{_f(c['delta_aicc'], '8.1f')} {cv:>7} {_f(c['rmse_after_nm'])} nm{kind}"
+            f"{_f(c['delta_aicc'], '8.1f')} {cv:>7} "
+            f"{'-' if c['rmse_after_nm'] is None else _f(c['rmse_after_nm']) + ' nm'}{kind}"
         )
     lines.append("")
     lines.append(j["finding"])

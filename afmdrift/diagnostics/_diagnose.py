@@ -849,14 +849,16 @@ def _finding(
     )
     if top is None:
         testable = [c for c in results if c.testable]
+        n_generic = sum(1 for c in testable if c.driver)
         best = (
             f" The closest candidate is {testable[0].effect} ({testable[0].evidence()})."
             if testable
             else ""
         )
         return (
-            f"No missing effect found: none of the {len(testable)} testable library effects "
-            f"not in the model passes the test ({rule}).{best}",
+            f"No missing effect found: none of the {len(testable) - n_generic} testable "
+            f"library effects not in the model and none of the {n_generic} generic terms "
+            f"(every logged channel and event kind) passes the test ({rule}).{best}",
             None,
         )
     terms = [*physics.terms, top.effect]
