@@ -146,7 +146,10 @@ class CandidateResult:
 
     ``params`` holds the fitted nonlinear parameters and the linear
     coefficients per axis (``<coefficient>_x``, ``<coefficient>_y``) in the
-    units named by the term. ``profile`` is (θ value, ΔAICc) over the scanned
+    units named by the term. ``driver`` names what drives a generic term
+    (empty for a named one); ``channel`` is the logged channel a term reads
+    (generic or named, e.g. ``humidity_pct`` for ``humidity``), if any.
+    ``profile`` is (θ value, ΔAICc) over the scanned
     grid of the first nonlinear parameter. ``av`` holds the added-variable
     plot data per axis: (partialled candidate column, partialled response).
     """
@@ -155,6 +158,7 @@ class CandidateResult:
     testable: bool
     reason: str = ""
     driver: dict[str, str] = field(default_factory=dict)
+    channel: str | None = None
     significant: bool = False
     score: float = math.nan
     delta_aicc: float = math.nan

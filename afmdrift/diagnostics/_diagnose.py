@@ -585,7 +585,8 @@ def diagnose(
     runs = _verify_online(
         results, data, physics, burn=burn, rmse0_nm=summary["rmse_nm"], options=options
     )
-    _rank(results, options.thresholds)
+    step_s = float(np.median(np.diff(run.t_s))) if run.t_s.size > 1 else math.inf
+    _rank(results, options.thresholds, frame_period_s=step_s)
     top = results[0] if results and results[0].significant else None
     after: ModelRun | None = None
     after_summary = None
@@ -695,6 +696,8 @@ def _test_candidates(
         )
         if isinstance(term, GenericTerm):
             r.driver = term.driver()
+        channel = getattr(term, "channel", None)
+        r.channel = channel if isinstance(channel, str) else None
         results.append(r)
     return results, n_tests
 
@@ -758,7 +761,9 @@ def _verify_online(
 MAX_CV_RATIO = 3.0
 
 
-def _rank(results: list[CandidateResult], thresholds: Thresholds) -> None:
+def _rank(
+    results: list[CandidateResult], thresholds: Thresholds, *, frame_period_s: float = 0.0
+) -> None:
     """Sort in place: significant first, among them the best online re-run, then by ΔAICc.
 
     Then, if the first is a generic term (it has a ``driver``) and a
@@ -767,7 +772,11 @@ def _rank(results: list[CandidateResult], thresholds: Thresholds) -> None:
     within :attr:`Thresholds.named_margin_aicc` of the generic term's, or an
     online re-run error within :attr:`Thresholds.min_cv_drop` of it (a lag
     filter also smooths a noisy sensor, which can win a generic term a few
-    AICc units over a direct named term without predicting any better).
+    AICc units over a direct named term without predicting any better), or,
+    for a generic channel term, the same channel with a fitted lag shorter
+    than the frame period ``frame_period_s``: frames cannot resolve such a
+    lag, so it is the named direct response with the sensor's noise and
+    timing smoothed, not another effect.
     """
     results.sort(
         key=lambda c: (
@@ -783,6 +792,9 @@ def _rank(results: list[CandidateResult], thresholds: Thresholds) -> None:
 
     def comparable(c: CandidateResult) -> bool:
         if c.delta_aicc >= lead.delta_aicc - thresholds.named_margin_aicc:
+            return True
+        same_channel = c.channel is not None and c.channel == lead.driver.get("channel")
+        if same_channel and lead.nonlinear.get("tau_s", math.inf) < frame_period_s:
             return True
         return (
             c.rmse_after_kind == "replayed"

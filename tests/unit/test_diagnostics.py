@@ -286,7 +286,9 @@ def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> N
     from afmdrift.diagnostics._candidates import CandidateResult
     from afmdrift.diagnostics._diagnose import _rank
 
-    def cand(name: str, d_aicc: float, rmse: float, driver: dict[str, str]) -> CandidateResult:
+    def cand(
+        name: str, d_aicc: float, rmse: float, driver: dict[str, str], tau_s: float = 1.0
+    ) -> CandidateResult:
         return CandidateResult(
             effect=name,
             testable=True,
@@ -296,6 +298,8 @@ def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> N
             rmse_after_nm=rmse,
             rmse_after_kind="replayed",
             driver=driver,
+            channel=driver.get("channel", "humidity_pct" if name == "humidity" else None),
+            nonlinear={"tau_s": tau_s} if driver else {},
         )
 
     generic = cand("channel:humidity_pct", 836.0, 1.80, {"channel": "humidity_pct"})
@@ -309,6 +313,17 @@ def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> N
     results = [weak, far]
     _rank(results, Thresholds())
     assert results[0].effect == "channel:pressure_hpa"
+    # A lag shorter than the frame period on the named term's own channel cannot be
+    # resolved by frames: the named direct response ranks first even when the
+    # generic term fits better; a lag of several frames is another effect.
+    short = cand("channel:humidity_pct", 802.0, 1.39, {"channel": "humidity_pct"}, 13.5)
+    results = [short, cand("humidity", 772.0, 1.82, {})]
+    _rank(results, Thresholds(), frame_period_s=300.0)
+    assert results[0].effect == "humidity"
+    long = cand("channel:humidity_pct", 802.0, 1.39, {"channel": "humidity_pct"}, 1800.0)
+    results = [long, cand("humidity", 772.0, 1.82, {})]
+    _rank(results, Thresholds(), frame_period_s=300.0)
+    assert results[0].effect == "channel:humidity_pct"
 
 
 @pytest.mark.slow
