@@ -1,4 +1,8 @@
-"""Which effect is missing: added-variable tests of every library term.
+"""Which effect is missing: added-variable tests of every candidate term.
+
+Candidates are the library terms not in the model and the generic family
+instances of every logged channel and event kind (:func:`family_candidates`);
+the tests below are the same for both.
 
 The model (terms M, nonlinear parameters θ_M fitted on the whole run) leaves
 level residuals r_a(t_k) = p_a(t_k) − X_M(t_k)β̂_a per axis a. Drift residuals

@@ -12,6 +12,7 @@ and a physics model (a list of effect terms) and
    each linked to what was logged then; Ljung–Box, periodogram, CUSUM and
    the up/down frame difference (:mod:`afmdrift.diagnostics._stats`);
 3. **finds the missing effect**: tests every library term not in the model
+   and the generic response to every logged channel and event kind
    (:mod:`afmdrift.diagnostics._candidates`), ranks them, and for the top
    candidates re-runs the model online with the term added to measure the
    new one-step error ("add it and watch the error fall").
