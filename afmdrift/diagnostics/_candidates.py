@@ -770,6 +770,10 @@ def _blocked_cv(
     return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable
 
 
+#: The ``:each`` form (one amplitude per event) is tested up to this many events of a kind.
+MAX_EACH_EVENTS = 10
+
+
 def family_candidates(history: History, model_terms: Sequence[str]) -> list[str]:
     """Term specs of the generic families to test on ``history``.
 
@@ -778,8 +782,10 @@ def family_candidates(history: History, model_terms: Sequence[str]) -> list[str]
     e.g. a slow path next to a fast one), and per logged event kind
     ``event:<kind>`` (exponential settling) and ``event:<kind>:log``
     (logarithmic creep), plus their ``:each`` forms (one amplitude per event)
-    when the kind was logged more than once. Every spec not in
-    ``model_terms``.
+    when the kind was logged more than once and at most
+    :data:`MAX_EACH_EVENTS` times (more free amplitudes than that cannot be
+    told from fitting noise on a session of a hundred frames). Every spec not
+    in ``model_terms``.
     """
     taken = set(model_terms)
 
@@ -805,7 +811,7 @@ def family_candidates(history: History, model_terms: Sequence[str]) -> list[str]
         counts[str(e.kind)] = counts.get(str(e.kind), 0) + 1
     for kind in sorted(counts):
         forms = ["", ":log"]
-        if counts[kind] > 1:
+        if 1 < counts[kind] <= MAX_EACH_EVENTS:
             forms += [":each", ":log:each"]
         for form in forms:
             spec = f"event:{kind}{form}"

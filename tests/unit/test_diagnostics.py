@@ -272,12 +272,15 @@ def test_family_candidates_cover_every_channel_and_event_kind() -> None:
     data = _pressure_case(gain=(0.0, 0.0), seed=21, n=20)
     h = data.history()
     h.add_events([Event(100.0, "door_open"), Event(900.0, "door_open")])
+    h.add_events([Event(50.0 * k, "tip_approach") for k in range(1, 13)])
     specs = family_candidates(h, ["trend", "channel:pressure_hpa"])
     assert "channel:pressure_hpa#2" in specs  # a second path next to the model's
     assert {"channel:temperature_c", "channel:humidity_pct"} <= set(specs)
     assert {"event:power_on", "event:power_on:log"} <= set(specs)
     assert "event:power_on:each" not in specs  # logged once: shared = per event
     assert {"event:door_open:each", "event:door_open:log:each"} <= set(specs)
+    assert "event:tip_approach" in specs
+    assert "event:tip_approach:each" not in specs  # 12 free amplitudes: not tested
 
 
 def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> None:
