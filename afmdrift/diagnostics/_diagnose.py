@@ -418,6 +418,7 @@ class Diagnosis:
                 "min_cv_drop": self.thresholds.min_cv_drop,
                 "folds": self.thresholds.folds,
                 "no_cv_factor": self.thresholds.no_cv_factor,
+                "generic_min_drop": self.thresholds.generic_min_drop,
                 "named_margin_aicc": self.thresholds.named_margin_aicc,
             },
             "finding": self.finding,
@@ -739,7 +740,7 @@ def _verify_online(
             c.rmse_after_kind = "replayed"
             if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
                 c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
-                if c.in_sample_ok and c.prequential_drop >= th.min_cv_drop:
+                if c.in_sample_ok and c.prequential_drop >= th.min_drop(generic=bool(c.driver)):
                     c.significant = True
                 elif c.prequential_drop < 0:
                     # The model re-run online with the term predicts worse than
@@ -858,7 +859,8 @@ def _finding(
     rule = (
         f"ΔAICc > {th.min_delta_aicc:g}, HAC Wald p < {th.alpha:g} after Bonferroni over "
         f"{n_tests} tests, blocked-CV or online re-run error at least "
-        f"{100 * th.min_cv_drop:.0f}% lower"
+        f"{100 * th.min_cv_drop:.0f}% lower ({100 * th.generic_min_drop:.0f}% for a generic "
+        "term), online re-run not worse"
     )
     if top is None:
         testable = [c for c in results if c.testable]
