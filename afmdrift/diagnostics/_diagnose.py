@@ -719,8 +719,12 @@ def _verify_online(
     blocked CV for those not re-run) and ``prequential_drop``; a candidate
     whose in-sample evidence passes becomes significant when its re-run error
     drops enough, and a candidate whose re-run error rises is not significant.
-    At most ``options.max_verify`` re-runs, by ΔAICc. Returns the re-runs and
-    their error summaries by effect.
+    At most ``options.max_verify`` re-runs, by ΔAICc; then every named
+    candidate whose in-sample evidence passes and whose ΔAICc is within
+    :attr:`Thresholds.named_margin_aicc` of a significant generic term is
+    re-run too, so that a named effect is never outranked by its generic
+    twin (``event:power_on`` and ``warmup``) only because the twin had the
+    re-run. Returns the re-runs and their error summaries by effect.
     """
     th = options.thresholds
     by_score = sorted(
@@ -728,26 +732,39 @@ def _verify_online(
         key=lambda c: -(c.score if math.isfinite(c.score) else -math.inf),
     )
     runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
+
+    def rerun(c: CandidateResult) -> None:
+        # Prequential check (Dawid 1984): the model with the term, re-run online,
+        # predicts every frame before seeing it, like the service.
+        cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
+        r = run_model(data, cfg)
+        s = r.summary(burn)
+        runs[c.effect] = (r, s)
+        c.rmse_after_nm = s["rmse_nm"]
+        c.rmse_after_kind = "replayed"
+        if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
+            c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
+            if c.in_sample_ok and c.prequential_drop >= th.min_drop(generic=bool(c.driver)):
+                c.significant = True
+            elif c.prequential_drop < 0:
+                # The model re-run online with the term predicts worse than
+                # without it: whatever the in-sample and CV evidence, this
+                # is not a term to recommend.
+                c.significant = False
+
     for i, c in enumerate(by_score):
         if (i < options.verify or c.significant) and len(runs) < options.max_verify:
-            # Prequential check (Dawid 1984): the model with the term, re-run online,
-            # predicts every frame before seeing it, like the service.
-            cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
-            r = run_model(data, cfg)
-            s = r.summary(burn)
-            runs[c.effect] = (r, s)
-            c.rmse_after_nm = s["rmse_nm"]
-            c.rmse_after_kind = "replayed"
-            if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
-                c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
-                if c.in_sample_ok and c.prequential_drop >= th.min_drop(generic=bool(c.driver)):
-                    c.significant = True
-                elif c.prequential_drop < 0:
-                    # The model re-run online with the term predicts worse than
-                    # without it: whatever the in-sample and CV evidence, this
-                    # is not a term to recommend.
-                    c.significant = False
-        elif (
+            rerun(c)
+    generic = [c for c in by_score if c.significant and c.driver]
+    for c in by_score:
+        if c.driver or c.effect in runs or not c.in_sample_ok:
+            continue
+        if any(c.delta_aicc >= g.delta_aicc - th.named_margin_aicc for g in generic):
+            rerun(c)
+    for c in by_score:
+        if c.effect in runs:
+            continue
+        if (
             c.cv_drop is not None
             and math.isfinite(rmse0_nm)
             and 0 < c.cv_rmse_nm <= MAX_CV_RATIO * c.cv_rmse_base_nm
