@@ -358,6 +358,13 @@ def resolve_terms(
     names = list(names)
     known = available_terms(plugins)
     out: list[type[EffectTerm]] = []
+    unknown = [n for n in names if not is_term_spec(n) and n not in known]
+    if unknown:
+        raise ConfigError(
+            f"{key}: unknown term(s) {', '.join(map(repr, unknown))} "
+            f"(known: {', '.join(sorted(known))}; or a generic term 'channel:<channel>' "
+            "or 'event:<kind>', see docs/model.md)"
+        )
     bad: list[str] = []
     for n in names:
         try:
