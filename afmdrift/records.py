@@ -33,6 +33,7 @@ __all__ = [
     "InstrumentInfo",
     "LoggedEvent",
     "ScanDirection",
+    "event_kind",
     "row_times_s",
 ]
 
@@ -45,12 +46,55 @@ class ScanDirection(StrEnum):
 
 
 class EventKind(StrEnum):
-    """Kinds of logged instrument events (session format v1, ``events.csv``)."""
+    """Kinds of logged instrument events that afmdrift knows the meaning of.
+
+    The event log is open: a lab's own kinds (``door_open``, ``stage_move``,
+    ``tip_approach``, ...) are kept as plain strings (:func:`event_kind`), and
+    the generic ``event:`` terms of the physics model can fit a response to
+    them. These four keep their documented meaning (``docs/session-format.md``).
+    """
 
     OFFSET_MOVE = "offset_move"  # commanded XY offset moved by (x_nm, y_nm)
     MANIPULATION = "manipulation"  # tip push at (x_nm, y_nm)
     TIP_CHANGE = "tip_change"
     POWER_ON = "power_on"
+
+
+_KIND_CHARS = frozenset("abcdefghijklmnopqrstuvwxyz0123456789_")
+#: Longest accepted event-kind name.
+MAX_KIND_LENGTH = 64
+
+
+def event_kind(text: str) -> EventKind | str:
+    """The event kind named by ``text``: a known :class:`EventKind` or the name itself.
+
+    Unknown kinds are kept (the event log of a lab has its own), but the name
+    must be a lower-case identifier (letters, digits, ``_``; starting with a
+    letter; at most :data:`MAX_KIND_LENGTH` characters) so that it survives
+    every format that carries it (CSV, the wire protocol's comma-separated
+    fields, term specs such as ``event:door_open``).
+
+    Raises
+    ------
+    ValueError
+        If ``text`` is not such a name; the message quotes it.
+    """
+    name = text.strip()
+    try:
+        return EventKind(name)
+    except ValueError:
+        pass
+    if (
+        not name
+        or len(name) > MAX_KIND_LENGTH
+        or not name[0].isalpha()
+        or not set(name) <= _KIND_CHARS
+    ):
+        raise ValueError(
+            f"event kind {text[:80]!r} is not a lower-case name of letters, digits and '_' "
+            f"starting with a letter (at most {MAX_KIND_LENGTH} characters)"
+        )
+    return name
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,10 +157,16 @@ def row_times_s(
 
 @dataclass(frozen=True, slots=True)
 class Event:
-    """One entry of the instrument's event log."""
+    """One entry of the instrument's event log.
+
+    ``kind`` is an :class:`EventKind` or, for a kind afmdrift has no meaning
+    for, its name (a string; see :func:`event_kind`). Compare kinds with
+    ``==`` or ``is`` against :class:`EventKind` members; ``str(kind)`` is the
+    name in either case.
+    """
 
     t_s: float
-    kind: EventKind
+    kind: EventKind | str
     x_nm: float = 0.0
     y_nm: float = 0.0
 

@@ -14,16 +14,18 @@ def register(sub: Any) -> None:
         description="Run SESSION through the drift service's pipeline (as `afmdrift replay` "
         "does) or read an existing RUN_DIR, then compare the physics model's one-step "
         "predictions with the measured drift, locate failure episodes, and test every "
-        "library effect the model lacks (added-variable fits with autocorrelation-robust "
-        "errors, AICc and blocked cross-validation). Prints a plain-language finding with "
+        "library effect the model lacks and the response to every logged channel and event "
+        "kind (added-variable fits with autocorrelation-robust errors, AICc, blocked "
+        "cross-validation and an online re-run). Prints a plain-language finding with "
         "the configuration line to add; see docs/tutorial-diagnose.md.",
     )
     p.add_argument("path", metavar="RUN_DIR|SESSION", help="run directory or session directory")
     p.add_argument("--config", help="TOML configuration file (default: config/default.toml)")
     p.add_argument(
         "--effects",
-        help="comma-separated model terms, e.g. trend,thermal_lag,creep "
-        "(default: [model.physics] terms of the configuration)",
+        help="comma-separated model terms, e.g. trend,thermal_lag,creep,channel:pressure_hpa "
+        "(library names or term specs, docs/model.md; default: [model.physics] terms of "
+        "the configuration)",
     )
     p.add_argument(
         "--json", action="store_true", help="print the JSON object (docs/diagnostics.md)"
@@ -117,15 +119,17 @@ def format_text(j: dict[str, Any]) -> str:
         "candidates (rank, effect, significant, ΔAICc, change of the cross-validated "
         "error, one-step RMS with it):"
     )
+    width = max([15, *(len(c["effect"]) for c in j["candidates"])])
     for c in j["candidates"]:
         if not c["testable"]:
-            lines.append(f"  {c['rank']:2d}. {c['effect']:<15} not testable: {c['reason']}")
+            lines.append(f"  {c['rank']:2d}. {c['effect']:<{width}} not testable: {c['reason']}")
             continue
         cv = "-" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%"
         kind = "" if c["rmse_after_kind"] != "cv_estimate" else " (est.)"
         lines.append(
-            f"  {c['rank']:2d}. {c['effect']:<15} {'YES' if c['significant'] else 'no ':<4} "
-            f"{_f(c['delta_aicc'], '8.1f')} {cv:>7} {_f(c['rmse_after_nm'])} nm{kind}"
+            f"  {c['rank']:2d}. {c['effect']:<{width}} {'YES' if c['significant'] else 'no ':<4} "
+            f"{_f(c['delta_aicc'], '8.1f')} {cv:>7} "
+            f"{'-' if c['rmse_after_nm'] is None else _f(c['rmse_after_nm']) + ' nm'}{kind}"
         )
     lines.append("")
     lines.append(j["finding"])

@@ -27,6 +27,18 @@ def register(sub: Any) -> None:
         type=float,
         help="scan time of one frame in s, for files whose headers give no timing",
     )
+    p.add_argument(
+        "--channels",
+        metavar="CSV",
+        help="the lab's channel log to attach (columns t_s and one per channel, t_s = 0 at "
+        "the first frame's start; docs/session-format.md)",
+    )
+    p.add_argument(
+        "--events",
+        metavar="CSV",
+        help="the lab's event log to attach (t_s,kind,x_nm,y_nm; any lower-case kind such as "
+        "door_open or stage_move is kept)",
+    )
     p.add_argument("--force", action="store_true", help="write into DIR even if it is not empty")
     p.set_defaults(handler=_run)
 
@@ -54,7 +66,7 @@ def pixel_size_option(values: list[float] | None) -> tuple[float, float] | None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from afmdrift.session import import_files, write_session
+    from afmdrift.session import attach_logs, import_files, write_session
 
     out = Path(args.out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not args.force:
@@ -66,6 +78,8 @@ def _run(args: argparse.Namespace) -> int:
         height_unit=args.height_unit,
         frame_time_s=args.frame_time_s,
     )
+    if args.channels is not None or args.events is not None:
+        session = attach_logs(session, channels_csv=args.channels, events_csv=args.events)
     write_session(session, out)
     n, rows, cols = session.frames.shape
     px, py = session.meta.pixel_size_nm

@@ -12,6 +12,7 @@ and a physics model (a list of effect terms) and
    each linked to what was logged then; Ljung–Box, periodogram, CUSUM and
    the up/down frame difference (:mod:`afmdrift.diagnostics._stats`);
 3. **finds the missing effect**: tests every library term not in the model
+   and the generic response to every logged channel and event kind
    (:mod:`afmdrift.diagnostics._candidates`), ranks them, and for the top
    candidates re-runs the model online with the term added to measure the
    new one-step error ("add it and watch the error fall").
@@ -36,6 +37,7 @@ from afmdrift.diagnostics._candidates import (
     Thresholds,
     base_basis,
     evaluate_candidate,
+    family_candidates,
     ml_phi,
 )
 from afmdrift.diagnostics._data import RunData
@@ -51,12 +53,16 @@ from afmdrift.diagnostics._stats import (
 )
 from afmdrift.errors import ConfigError, InputError
 from afmdrift.model import (
+    CHANNEL_TAU_RANGE_S,
     EffectTerm,
+    GenericTerm,
     History,
     HistoryFeed,
     OffsetCurve,
     PhysicsPredictor,
     available_terms,
+    resolve_terms,
+    term_class,
 )
 from afmdrift.records import EventKind
 
@@ -64,6 +70,7 @@ __all__ = [
     "DiagnoseOptions",
     "Diagnosis",
     "ModelRun",
+    "describe_driver",
     "diagnose",
     "model_design",
     "run_from_store",
@@ -89,13 +96,19 @@ class DiagnoseOptions:
         Significance rule of the candidate tests.
     verify : int
         How many testable candidates with the highest ΔAICc are re-run online
-        with the term added, besides every significant one (their
+        with the term added, besides the significant ones (their
         ``rmse_after_nm`` is then measured, not estimated).
+    max_verify : int
+        At most this many online re-runs in all (the significant candidates
+        with the highest ΔAICc first): with the generic families several
+        terms can explain the same residual, and each re-run costs a full
+        online fit.
     """
 
     burn_in_frames: int = 10
     thresholds: Thresholds = field(default_factory=Thresholds)
     verify: int = 2
+    max_verify: int = 5
 
 
 @dataclass(slots=True)
@@ -262,7 +275,7 @@ def model_design(run: ModelRun) -> ModelDesign:
     p = run.predictor
     t = run.t_s
     active = list(p.active)
-    known = available_terms(p.config.plugins)
+    known = {term.name: term for term in p.terms}
 
     def builder(params: dict[str, dict[str, float]]) -> tuple[FloatArray, FloatArray]:
         out = []
@@ -374,6 +387,8 @@ class Diagnosis:
                 {
                     "rank": i + 1,
                     "effect": c.effect,
+                    "term": c.effect,
+                    "family": _family(c),
                     "testable": c.testable,
                     "reason": c.reason or None,
                     "significant": c.significant,
@@ -389,7 +404,7 @@ class Diagnosis:
                     "prequential_drop": None
                     if c.prequential_drop is None
                     else _num(c.prequential_drop),
-                    "params": {k: _num(v) for k, v in c.params.items()},
+                    "params": {**c.driver, **{k: _num(v) for k, v in c.params.items()}},
                     "rmse_after_nm": None if c.rmse_after_nm is None else _num(c.rmse_after_nm),
                     "rmse_after_kind": c.rmse_after_kind,
                     "evidence": c.evidence(),
@@ -403,6 +418,8 @@ class Diagnosis:
                 "min_cv_drop": self.thresholds.min_cv_drop,
                 "folds": self.thresholds.folds,
                 "no_cv_factor": self.thresholds.no_cv_factor,
+                "generic_min_drop": self.thresholds.generic_min_drop,
+                "named_margin_aicc": self.thresholds.named_margin_aicc,
             },
             "finding": self.finding,
             "config": self.config_snippet(),
@@ -510,6 +527,15 @@ def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
     return out
 
 
+def _family(c: CandidateResult) -> str:
+    """``named`` for a library or plugin effect, ``channel`` or ``event`` for a generic term."""
+    if "channel" in c.driver:
+        return "channel"
+    if "event_kind" in c.driver:
+        return "event"
+    return "named"
+
+
 def _num(v: float | int | None) -> float | None:
     if v is None:
         return None
@@ -561,7 +587,8 @@ def diagnose(
     runs = _verify_online(
         results, data, physics, burn=burn, rmse0_nm=summary["rmse_nm"], options=options
     )
-    _rank(results)
+    step_s = float(np.median(np.diff(run.t_s))) if run.t_s.size > 1 else math.inf
+    _rank(results, options.thresholds, frame_period_s=step_s)
     top = results[0] if results and results[0].significant else None
     after: ModelRun | None = None
     after_summary = None
@@ -609,14 +636,8 @@ def _chosen_physics(
         if not effects:
             raise ConfigError("--effects: give at least one effect term (e.g. trend)")
         physics = physics.model_copy(update={"terms": list(effects)})
-    known = available_terms(physics.plugins)
-    unknown = [t for t in physics.terms if t not in known]
-    if unknown:
-        raise ConfigError(
-            f"effects: unknown term(s) {', '.join(map(repr, unknown))} "
-            f"(known: {', '.join(sorted(known))})"
-        )
-    return physics, known
+    resolve_terms(physics.terms, physics.plugins, key="effects")
+    return physics, available_terms(physics.plugins)
 
 
 def _whiteness(
@@ -653,20 +674,33 @@ def _test_candidates(
     physics: PhysicsConfig,
     options: DiagnoseOptions,
 ) -> tuple[list[CandidateResult], int]:
-    """Added-variable evidence for every known term not in the model, and the test count.
+    """Added-variable evidence for every candidate term, and the test count.
 
-    The count (every θ of every testable candidate) is the Bonferroni factor.
+    Candidates are every known term not in the model and the generic family
+    instances of :func:`~afmdrift.diagnostics._candidates.family_candidates`
+    (every logged channel, every logged event kind). The count (every θ of
+    every testable candidate, over all of them) is the Bonferroni factor, so
+    the family-wise false-alarm level holds however many channels, event
+    kinds, shapes and time constants are searched.
     """
-    terms = {name: cls() for name, cls in known.items() if name not in physics.terms}
+    terms: dict[str, EffectTerm] = {
+        name: cls() for name, cls in known.items() if name not in physics.terms
+    }
+    for spec in family_candidates(history, physics.terms):
+        terms[spec] = term_class(spec, known)()
     testable = [t for t in terms.values() if t.missing(history) is None]
     n_tests = sum(len(t.nonlinear_grid()) for t in testable)
     base = base_basis(design)
-    results = [
-        evaluate_candidate(
+    results = []
+    for term in terms.values():
+        r = evaluate_candidate(
             term, design, history, n_tests=n_tests, thresholds=options.thresholds, base=base
         )
-        for term in terms.values()
-    ]
+        if isinstance(term, GenericTerm):
+            r.driver = term.driver()
+        channel = getattr(term, "channel", None)
+        r.channel = channel if isinstance(channel, str) else None
+        results.append(r)
     return results, n_tests
 
 
@@ -684,7 +718,13 @@ def _verify_online(
     Sets each candidate's ``rmse_after_nm`` (replayed, or estimated from the
     blocked CV for those not re-run) and ``prequential_drop``; a candidate
     whose in-sample evidence passes becomes significant when its re-run error
-    drops enough. Returns the re-runs and their error summaries by effect.
+    drops enough, and a candidate whose re-run error rises is not significant.
+    At most ``options.max_verify`` re-runs, by ΔAICc; then every named
+    candidate whose in-sample evidence passes and whose ΔAICc is within
+    :attr:`Thresholds.named_margin_aicc` of a significant generic term is
+    re-run too, so that a named effect is never outranked by its generic
+    twin (``event:power_on`` and ``warmup``) only because the twin had the
+    re-run. Returns the re-runs and their error summaries by effect.
     """
     th = options.thresholds
     by_score = sorted(
@@ -692,28 +732,71 @@ def _verify_online(
         key=lambda c: -(c.score if math.isfinite(c.score) else -math.inf),
     )
     runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
+
+    def rerun(c: CandidateResult) -> None:
+        # Prequential check (Dawid 1984): the model with the term, re-run online,
+        # predicts every frame before seeing it, like the service.
+        cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
+        r = run_model(data, cfg)
+        s = r.summary(burn)
+        runs[c.effect] = (r, s)
+        c.rmse_after_nm = s["rmse_nm"]
+        c.rmse_after_kind = "replayed"
+        if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
+            c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
+            if c.in_sample_ok and c.prequential_drop >= th.min_drop(generic=bool(c.driver)):
+                c.significant = True
+            elif c.prequential_drop < 0:
+                # The model re-run online with the term predicts worse than
+                # without it: whatever the in-sample and CV evidence, this
+                # is not a term to recommend.
+                c.significant = False
+
     for i, c in enumerate(by_score):
-        if i < options.verify or c.significant:
-            # Prequential check (Dawid 1984): the model with the term, re-run online,
-            # predicts every frame before seeing it, like the service.
-            cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
-            r = run_model(data, cfg)
-            s = r.summary(burn)
-            runs[c.effect] = (r, s)
-            c.rmse_after_nm = s["rmse_nm"]
-            c.rmse_after_kind = "replayed"
-            if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
-                c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
-                if c.in_sample_ok and c.prequential_drop >= th.min_cv_drop:
-                    c.significant = True
-        elif c.cv_drop is not None and math.isfinite(rmse0_nm) and c.cv_rmse_base_nm > 0:
+        if (i < options.verify or c.significant) and len(runs) < options.max_verify:
+            rerun(c)
+    generic = [c for c in by_score if c.significant and c.driver]
+    for c in by_score:
+        if c.driver or c.effect in runs or not c.in_sample_ok:
+            continue
+        if any(c.delta_aicc >= g.delta_aicc - th.named_margin_aicc for g in generic):
+            rerun(c)
+    for c in by_score:
+        if c.effect in runs:
+            continue
+        if (
+            c.cv_drop is not None
+            and math.isfinite(rmse0_nm)
+            and 0 < c.cv_rmse_nm <= MAX_CV_RATIO * c.cv_rmse_base_nm
+        ):
             c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
             c.rmse_after_kind = "cv_estimate"
     return runs
 
 
-def _rank(results: list[CandidateResult]) -> None:
-    """Sort in place: significant first, among them the best online re-run, then by ΔAICc."""
+#: No error estimate from blocked CV when the candidate's cross-validated error is
+#: more than this many times the model's: its fit is unstable out of sample
+#: (e.g. one amplitude per event with an event near a fold's edge).
+MAX_CV_RATIO = 3.0
+
+
+def _rank(
+    results: list[CandidateResult], thresholds: Thresholds, *, frame_period_s: float = 0.0
+) -> None:
+    """Sort in place: significant first, among them the best online re-run, then by ΔAICc.
+
+    Then, if the first is a generic term (it has a ``driver``) and a
+    significant named effect has comparable evidence, the best such named
+    effect moves to the front: it names the physics. Comparable: a ΔAICc
+    within :attr:`Thresholds.named_margin_aicc` of the generic term's, or an
+    online re-run error within :attr:`Thresholds.min_cv_drop` of it (a lag
+    filter also smooths a noisy sensor, which can win a generic term a few
+    AICc units over a direct named term without predicting any better), or,
+    for a generic channel term, the same channel with a fitted lag shorter
+    than the frame period ``frame_period_s``: frames cannot resolve such a
+    lag, so it is the named direct response with the sensor's noise and
+    timing smoothed, not another effect.
+    """
     results.sort(
         key=lambda c: (
             not c.significant,
@@ -722,6 +805,28 @@ def _rank(results: list[CandidateResult]) -> None:
             -(c.score if math.isfinite(c.score) else -math.inf),
         )
     )
+    if not results or not results[0].significant or not results[0].driver:
+        return
+    lead = results[0]
+
+    def comparable(c: CandidateResult) -> bool:
+        if c.delta_aicc >= lead.delta_aicc - thresholds.named_margin_aicc:
+            return True
+        same_channel = c.channel is not None and c.channel == lead.driver.get("channel")
+        if same_channel and lead.nonlinear.get("tau_s", math.inf) < frame_period_s:
+            return True
+        return (
+            c.rmse_after_kind == "replayed"
+            and lead.rmse_after_kind == "replayed"
+            and c.rmse_after_nm is not None
+            and lead.rmse_after_nm is not None
+            and c.rmse_after_nm <= (1.0 + thresholds.min_cv_drop) * lead.rmse_after_nm
+        )
+
+    for i, c in enumerate(results):
+        if c.significant and not c.driver and comparable(c):
+            results.insert(0, results.pop(i))
+            return
 
 
 def _with_jump_caution(finding: str, run: ModelRun) -> str:
@@ -771,21 +876,26 @@ def _finding(
     rule = (
         f"ΔAICc > {th.min_delta_aicc:g}, HAC Wald p < {th.alpha:g} after Bonferroni over "
         f"{n_tests} tests, blocked-CV or online re-run error at least "
-        f"{100 * th.min_cv_drop:.0f}% lower"
+        f"{100 * th.min_cv_drop:.0f}% lower ({100 * th.generic_min_drop:.0f}% for a generic "
+        "term), online re-run not worse"
     )
     if top is None:
         testable = [c for c in results if c.testable]
+        n_generic = sum(1 for c in testable if c.driver)
         best = (
             f" The closest candidate is {testable[0].effect} ({testable[0].evidence()})."
             if testable
             else ""
         )
         return (
-            f"No missing effect found: none of the {len(testable)} testable library effects "
-            f"not in the model passes the test ({rule}).{best}",
+            f"No missing effect found: none of the {len(testable) - n_generic} testable "
+            f"library effects not in the model and none of the {n_generic} generic terms "
+            f"(every logged channel and event kind) passes the test ({rule}).{best}",
             None,
         )
     terms = [*physics.terms, top.effect]
+    if top.driver:
+        return _generic_finding(top, results, terms, summary, after_summary), terms
     doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
     change = ""
     if after_summary is not None and summary["rmse_nm"] > 0:
@@ -803,5 +913,93 @@ def _finding(
     )
 
 
-def _term_instance(name: str, physics: PhysicsConfig) -> Any:
-    return available_terms(physics.plugins)[name]()
+def _duration(t_s: float) -> str:
+    """A time constant in words: s below 2 min, min below 2 h, else h."""
+    if t_s < 120:
+        return f"{t_s:.0f} s"
+    if t_s < 7200:
+        return f"{t_s / 60:.0f} min"
+    return f"{t_s / 3600:.1f} h"
+
+
+#: How the unit suffixes of channel names read in sentences.
+_UNIT_WORDS = {"c": "K", "k": "K", "hpa": "hPa", "pa": "Pa", "pct": "%", "mw": "mW", "v": "V"}
+
+
+def _gains(c: CandidateResult) -> str:
+    """The linear coefficients of ``c`` per axis in words (``+4.1 nm/hPa in x, ...``)."""
+    parts = []
+    for k, v in c.params.items():
+        if k in c.nonlinear or k.startswith("model.") or not math.isfinite(v):
+            continue
+        base, _, axis = k.rpartition("_")
+        if base.startswith("gain_nm_per_"):
+            suffix = base.removeprefix("gain_nm_per_")
+            unit = f"nm/{_UNIT_WORDS.get(suffix, suffix)}"
+        else:
+            unit = base.replace("amplitude_nm", "nm").replace("nm_per_decade", "nm per decade")
+        parts.append(f"{v:+.3g} {unit} in {axis}")
+    return ", ".join(parts)
+
+
+def describe_driver(c: CandidateResult) -> str:
+    """The driver, shape, lag and gain of a generic candidate in plain language."""
+    d = c.driver
+    if "channel" in d:
+        tau = c.nonlinear.get("tau_s", c.params.get("tau_s", math.nan))
+        lag = (
+            "directly (no lag)"
+            if not math.isfinite(tau) or tau <= CHANNEL_TAU_RANGE_S[0]
+            else f"through a first-order lag of about {_duration(tau)} (tau_s = {tau:.3g})"
+        )
+        return f"the residual follows the logged channel {d['channel']} {lag}, {_gains(c)}"
+    kind = d.get("event_kind", "?")
+    each = "each" in c.effect.split("#")[0].split(":")[2:]
+    per = "each event with its own amplitude" if each else "the same amplitude for every event"
+    if d.get("shape") == "log":
+        t0 = c.nonlinear.get("t0_s", math.nan)
+        return (
+            f"the residual creeps logarithmically after each logged {kind} event "
+            f"(t0 = {t0:.3g} s; {per}), {_gains(c)}"
+        )
+    tau = c.nonlinear.get("tau_s", math.nan)
+    return (
+        f"the residual steps after each logged {kind} event and settles exponentially "
+        f"with a time constant of about {_duration(tau)} (tau_s = {tau:.3g}; {per}), {_gains(c)}"
+    )
+
+
+def _generic_finding(
+    top: CandidateResult,
+    results: list[CandidateResult],
+    terms: list[str],
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+) -> str:
+    """The finding for a generic term: no library effect explains it; driver and shape."""
+    named = [c for c in results if c.testable and not c.driver]
+    closest = (
+        f" (the closest, {named[0].effect}, has ΔAICc = {named[0].delta_aicc:.1f}"
+        f"{', significant but far behind' if named[0].significant else ', not significant'})"
+        if named
+        else ""
+    )
+    change = ""
+    if after_summary is not None and summary["rmse_nm"] > 0:
+        drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
+        change = (
+            f" Re-running the model with it cuts the one-step RMS error from "
+            f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
+            f"({100 * drop:.0f}% lower)."
+        )
+    quoted = ", ".join(f'"{t}"' for t in terms)
+    return (
+        f"Missing effect outside the library: {describe_driver(top)}. No library effect "
+        f"explains it{closest}. Term: {top.effect}. Evidence: {top.evidence()}.{change} "
+        f"To add this term, put in your configuration file: [model.physics] terms = [{quoted}] "
+        f"(or --effects {','.join(terms)})."
+    )
+
+
+def _term_instance(name: str, physics: PhysicsConfig) -> EffectTerm:
+    return term_class(name, available_terms(physics.plugins))()

@@ -8,6 +8,9 @@ PNG embedded as a base64 ``data:`` URI, styles are inline. Figures:
 3. autocorrelation and Lomb–Scargle periodogram of the errors;
 4. cross-correlation of the errors with each logged channel's increments;
 5. added-variable plot of the top candidate (and its ΔAICc profile over θ);
+   when the leading candidate is a generic term (``channel:``, ``event:``),
+   its driver over the one-step errors: the channel trace and its lagged
+   version with the fitted τ, or a mark at each event of the kind;
 6. the registration block vector field of the worst frame (against the
    frame before it), when the frames are available;
 7. before/after one-step errors when a missing effect was found.
@@ -87,6 +90,8 @@ def _h(s: object) -> str:
 def _fmt(v: Any, spec: str = ".2f") -> str:
     if v is None or (isinstance(v, float) and not math.isfinite(v)):
         return "–"
+    if isinstance(v, str):
+        return v
     return format(v, spec)
 
 
@@ -485,7 +490,64 @@ def _candidates_section(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
     av = _fig_added_variable(dg)
     if av is not None:
         parts.append(_img(av, "added-variable plot"))
+    drv = _fig_driver(dg)
+    if drv is not None:
+        parts.append(_img(drv, "driver of the leading generic candidate over the errors"))
     return parts
+
+
+def _fig_driver(dg: Diagnosis) -> Figure | None:
+    """The driver of the leading generic candidate over the one-step errors.
+
+    A channel: its logged trace (right axis) and, over the errors, the
+    frame-to-frame change of the fitted response g·ΔC_s (the fitted lag and
+    gain): what the term would have predicted of each error. An event kind:
+    a vertical mark at each event. None when no testable generic candidate
+    exists.
+    """
+    import matplotlib.pyplot as plt
+
+    from afmdrift.model import available_terms, term_class
+
+    c = next((c for c in dg.candidates if c.testable and c.driver), None)
+    if c is None:
+        return None
+    run = dg.run
+    t_h = run.t_s / 3600.0
+    fig, axes = plt.subplots(2, 1, figsize=(10, 5), sharex=True)
+    for a, ax in enumerate(axes):
+        ax.axhline(0, color="k", lw=0.5)
+        ax.plot(t_h, run.errors_nm[:, a], ".-", lw=0.8, ms=4, color="tab:blue")
+        ax.set_ylabel(f"e_{'xy'[a]} (nm)", color="tab:blue")
+        if "channel" in c.driver:
+            name = c.driver["channel"]
+            hist = run.history
+            tt = np.asarray(hist.channel_t_s, dtype=np.float64)
+            right = ax.twinx()
+            right.plot(tt / 3600.0, hist.channel_at(name, tt), color="tab:orange", lw=0.6)
+            right.set_ylabel(f"{name} (orange)", fontsize=8, color="tab:orange")
+            term = term_class(c.effect, available_terms(run.predictor.config.plugins))()
+            gain = c.params.get(f"{term.coefficient_units[0]}_{'xy'[a]}", math.nan)
+            if math.isfinite(gain):
+                lagged = term.design(
+                    run.t_s, hist, scan_sign=run.scan_sign, params=c.nonlinear, axis=a
+                )[:, 0]
+                step = np.concatenate([[np.nan], np.diff(lagged)]) * gain
+                ax.plot(t_h, step, color="tab:red", lw=1.2, label="fitted g·ΔC_s per frame")
+                ax.legend(loc="best", fontsize=8)
+        else:
+            kind = c.driver["event_kind"]
+            for e in run.history.events:
+                if str(e.kind) == kind:
+                    ax.axvline(e.t_s / 3600.0, color="tab:red", lw=1, alpha=0.7)
+    axes[-1].set_xlabel("time (h)")
+    what = (
+        f"channel {c.driver['channel']}"
+        if "channel" in c.driver
+        else f"{c.driver['event_kind']} events (red marks)"
+    )
+    fig.suptitle(f"One-step errors and the driver of {c.effect}: {what}")
+    return fig
 
 
 def _candidate_row(c: dict[str, Any]) -> list[str]:

@@ -438,7 +438,7 @@ class _Logged:
         parts: list[str] = []
         for ev in self.events:
             if t0_s - 2.0 * self.step_s <= ev.t_s <= t1_s:
-                tag = str(ev.kind.value)
+                tag = str(ev.kind)
                 if tag not in tags:
                     tags.append(tag)
                 dt_s = t0_s - ev.t_s

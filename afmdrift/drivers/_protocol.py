@@ -33,7 +33,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.errors import AfmdriftError
-from afmdrift.records import ChannelSample, Event, EventKind, Frame, ScanDirection
+from afmdrift.records import ChannelSample, Event, Frame, ScanDirection, event_kind
 
 __all__ = [
     "COMMANDS",
@@ -445,9 +445,7 @@ def decode_channels(body: str) -> ChannelSample:
 
 def encode_event(index: int, event: Event, *, tag: int | None = None) -> bytes:
     """``EVENT index,t_s,kind,x_nm,y_nm``: one entry of the event log."""
-    return encode_value(
-        "EVENT", index, event.t_s, event.kind.value, event.x_nm, event.y_nm, tag=tag
-    )
+    return encode_value("EVENT", index, event.t_s, str(event.kind), event.x_nm, event.y_nm, tag=tag)
 
 
 def decode_event(body: str) -> tuple[int, Event]:
@@ -457,9 +455,9 @@ def decode_event(body: str) -> tuple[int, Event]:
         raise ProtocolError(f"event line needs 5 fields, got {body[:80]!r}")
     index = parse_int(parts[0], "event index")
     try:
-        kind = EventKind(parts[2])
-    except ValueError:
-        raise ProtocolError(f"unknown event kind {parts[2][:40]!r}") from None
+        kind = event_kind(parts[2])
+    except ValueError as err:
+        raise ProtocolError(str(err)) from None
     t_s = _parse_float(parts[1], "event t_s")
     x_nm = _parse_float(parts[3], "event x_nm")
     y_nm = _parse_float(parts[4], "event y_nm")

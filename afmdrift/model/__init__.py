@@ -15,12 +15,23 @@ from afmdrift.model._effects import (
     ENTRY_POINT_GROUP,
     LIBRARY,
     EffectTerm,
+    LaggedChannel,
     NonlinearParam,
     available_terms,
     load_term_class,
     make_term,
 )
 from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
+from afmdrift.model._families import (
+    CHANNEL_TAU_RANGE_S,
+    ChannelResponse,
+    EventResponse,
+    GenericTerm,
+    is_term_spec,
+    parse_term_spec,
+    resolve_terms,
+    term_class,
+)
 from afmdrift.model._feed import FeedBatch, HistoryFeed
 from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
 from afmdrift.model._physics import PhysicsPredictor, solve_wls
@@ -50,20 +61,25 @@ if TYPE_CHECKING:
     from afmdrift.model._nn import NNPredictor, NNSeriesModel
 
 __all__ = [
+    "CHANNEL_TAU_RANGE_S",
     "ENTRY_POINT_GROUP",
     "LIBRARY",
     "PREDICTOR_NAMES",
     "BandConstraint",
+    "ChannelResponse",
     "ConstantVelocityPredictor",
     "DriftTrajectory",
     "EffectTerm",
+    "EventResponse",
     "FeedBatch",
     "FrameTrajectory",
+    "GenericTerm",
     "History",
     "HistoryFeed",
     "KalmanCAPredictor",
     "KalmanConfig",
     "KalmanPredictor",
+    "LaggedChannel",
     "LastValuePredictor",
     "MeasuredSeries",
     "ModelConfig",
@@ -84,14 +100,18 @@ __all__ = [
     "drift_from_measurements",
     "evaluate_series",
     "hermite_curve",
+    "is_term_spec",
     "load_term_class",
     "make_predictor",
     "make_term",
     "offset_change_nm",
+    "parse_term_spec",
     "reconstruct_offset",
+    "resolve_terms",
     "sinc_curve",
     "sinc_reconstruct",
     "solve_wls",
+    "term_class",
     "truth_frame_mean",
 ]
 

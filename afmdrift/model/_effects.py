@@ -55,6 +55,7 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "LIBRARY",
     "EffectTerm",
+    "LaggedChannel",
     "NonlinearParam",
     "available_terms",
     "load_term_class",
@@ -229,21 +230,22 @@ class Humidity(_ChannelProportional):
     channel = "humidity_pct"
 
 
-class ThermalLag(EffectTerm):
-    """Thermal expansion of a scanner whose temperature lags the logged one.
+class LaggedChannel(EffectTerm):
+    """Response to a logged channel through a first-order lag (shared code).
 
-    The scanner temperature T_s follows the logged temperature T through a
-    first-order low-pass, τ·dT_s/dt = T − T_s, with T_s(t₀) = T(t₀) at the
-    first log entry; p(t) = k·(T_s(t) − T₀). Parameters: k in nm/K (as for
-    ``thermal``) and the thermal time constant ``tau_s`` in s (how long the
-    scanner takes to follow the room or stage sensor). Beyond the log, T is
-    held at its last value and T_s keeps relaxing towards it.
+    The driven quantity C_s follows the logged channel C through a
+    first-order low-pass, τ·dC_s/dt = C − C_s, with C_s(t₀) = C(t₀) at the
+    first log entry; p(t) = k·(C_s(t) − C₀), C₀ the first logged value.
+    Beyond the log, C is held at its last value and C_s keeps relaxing
+    towards it. A τ at or below :attr:`no_lag_s` is no lag at all
+    (p = k·(C − C₀)): at frame periods of minutes a lag shorter than the
+    channel's sampling cannot be told from none. Subclasses set
+    :attr:`channel` and the ``tau_s`` search range.
     """
 
-    name = "thermal_lag"
-    nonlinear_params = (NonlinearParam("tau_s", 60.0, 20000.0, 1200.0, grid_points=15),)
-    coefficient_units = ("k_nm_per_K",)
-    channel = "temperature_c"
+    channel: ClassVar[str]
+    #: τ (s) at or below which the response is taken as direct (τ = 0).
+    no_lag_s: ClassVar[float] = 0.0
 
     def __init__(self) -> None:
         self._cache: dict[tuple[float, int], tuple[FloatArray, FloatArray]] = {}
@@ -253,7 +255,12 @@ class ThermalLag(EffectTerm):
         return _channel_missing(history, self.channel)
 
     def lagged(self, t_s: FloatArray, history: History, tau_s: float) -> FloatArray:
-        """Low-passed temperature T_s(t) − T₀ at ``t_s`` (K)."""
+        """Low-passed channel C_s(t) − C₀ at ``t_s`` (channel units)."""
+        if tau_s <= self.no_lag_s:
+            return np.asarray(
+                history.channel_at(self.channel, t_s) - _first_finite(history, self.channel),
+                dtype=np.float64,
+            )
         tg, yg = self._filtered(history, tau_s)
         out = np.interp(t_s, tg, yg)
         beyond = t_s > tg[-1]
@@ -264,7 +271,7 @@ class ThermalLag(EffectTerm):
         return out
 
     def _resampled(self, history: History) -> tuple[FloatArray, FloatArray]:
-        """Logged temperature − T₀ on a uniform grid (cached per log length)."""
+        """Logged channel − C₀ on a uniform grid (cached per log length)."""
         key = len(history.channel_t_s)
         if self._grid is not None and self._grid[0] == key:
             return self._grid[1], self._grid[2]
@@ -273,23 +280,23 @@ class ThermalLag(EffectTerm):
         if span <= 0:
             grid = np.array([t[0], t[0] + 1.0])
         else:
-            # At most 20000 points; the smallest τ searched (60 s) spans many of them.
+            # At most 20000 points; the smallest τ searched spans many of them.
             step = max(span / 20000.0, float(np.median(np.diff(t))))
             grid = np.arange(t[0], t[-1] + 0.5 * step, step)
-        temp = history.channel_at(self.channel, grid) - _first_finite(history, self.channel)
-        self._grid = (key, grid, temp)
+        values = history.channel_at(self.channel, grid) - _first_finite(history, self.channel)
+        self._grid = (key, grid, values)
         self._cache.clear()
-        return grid, temp
+        return grid, values
 
     def _filtered(self, history: History, tau_s: float) -> tuple[FloatArray, FloatArray]:
-        grid, temp = self._resampled(history)
+        grid, values = self._resampled(history)
         key = (float(tau_s), len(history.channel_t_s))
         hit = self._cache.get(key)
         if hit is not None:
             return hit
         h = float(grid[1] - grid[0])
         a = np.exp(-h / tau_s)
-        y, _ = lfilter([1.0 - a], [1.0, -a], temp, zi=np.array([a * temp[0]]))
+        y, _ = lfilter([1.0 - a], [1.0, -a], values, zi=np.array([a * values[0]]))
         result = (grid, np.asarray(y, dtype=np.float64))
         if len(self._cache) > 64:
             self._cache.clear()
@@ -306,6 +313,23 @@ class ThermalLag(EffectTerm):
         axis: int,
     ) -> FloatArray:
         return self.lagged(t_s, history, float(params["tau_s"]))[:, None]
+
+
+class ThermalLag(LaggedChannel):
+    """Thermal expansion of a scanner whose temperature lags the logged one.
+
+    The scanner temperature T_s follows the logged temperature T through a
+    first-order low-pass, τ·dT_s/dt = T − T_s, with T_s(t₀) = T(t₀) at the
+    first log entry; p(t) = k·(T_s(t) − T₀). Parameters: k in nm/K (as for
+    ``thermal``) and the thermal time constant ``tau_s`` in s (how long the
+    scanner takes to follow the room or stage sensor). Beyond the log, T is
+    held at its last value and T_s keeps relaxing towards it.
+    """
+
+    name = "thermal_lag"
+    nonlinear_params = (NonlinearParam("tau_s", 60.0, 20000.0, 1200.0, grid_points=15),)
+    coefficient_units = ("k_nm_per_K",)
+    channel = "temperature_c"
 
 
 def _moves(history: History, axis: int) -> tuple[FloatArray, FloatArray]:
@@ -549,8 +573,9 @@ def _add(terms: dict[str, type[EffectTerm]], cls: type[EffectTerm], where: str) 
 
 
 def make_term(name: str, plugins: Iterable[str] = ()) -> EffectTerm:
-    """Instantiate the term called ``name`` (library, entry points or ``plugins``)."""
-    terms = available_terms(plugins)
-    if name not in terms:
-        raise ConfigError(f"unknown effect term {name!r} (known: {', '.join(sorted(terms))})")
-    return terms[name]()
+    """Instantiate the term called ``name`` (library, entry points, ``plugins``, or a
+    generic term spec such as ``channel:pressure_hpa``, see ``docs/model.md``)."""
+    # The generic families build on this module; imported here to avoid a cycle.
+    from afmdrift.model._families import term_class
+
+    return term_class(name, available_terms(plugins))()

@@ -45,10 +45,10 @@ import numpy.typing as npt
 from scipy.optimize import minimize_scalar
 
 from afmdrift.config import NNConfig, PhysicsConfig
-from afmdrift.errors import ConfigError
 from afmdrift.model._base import History, Observation, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
-from afmdrift.model._effects import EffectTerm, available_terms
+from afmdrift.model._effects import EffectTerm
+from afmdrift.model._families import resolve_terms
 
 __all__ = [
     "FitResult",
@@ -173,16 +173,8 @@ class PhysicsPredictor(_LoggingPredictor):
         super().__init__()
         self.config = config or PhysicsConfig()
         self.nn_config = nn_config or NNConfig()
-        known = available_terms(self.config.plugins)
-        unknown = [t for t in self.config.terms if t not in known]
-        if unknown:
-            raise ConfigError(
-                f"model.physics.terms: unknown term(s) {', '.join(map(repr, unknown))} "
-                f"(known: {', '.join(sorted(known))})"
-            )
-        if len(set(self.config.terms)) != len(self.config.terms):
-            raise ConfigError(f"model.physics.terms: duplicate names in {self.config.terms}")
-        self.terms: list[EffectTerm] = [known[name]() for name in self.config.terms]
+        classes = resolve_terms(self.config.terms, self.config.plugins)
+        self.terms: list[EffectTerm] = [cls() for cls in classes]
         self.params: dict[str, dict[str, float]] = {t.name: t.default_params() for t in self.terms}
         self.active: list[str] = []
         self.fits: list[FitResult] = []

@@ -66,8 +66,10 @@ class Acquisition:
         self._events: list[LoggedEvent] = []
         self._event_lock = asyncio.Lock()
         #: Kind, x, y and raw instrument time of the last entry read.
-        self._last_raw_event: tuple[EventKind, float, float, float] | None = None
-        self._log_to_check: tuple[int, tuple[EventKind, float, float, float] | None] | None = None
+        self._last_raw_event: tuple[EventKind | str, float, float, float] | None = None
+        self._log_to_check: (
+            tuple[int, tuple[EventKind | str, float, float, float] | None] | None
+        ) = None
         self._ignored_key: tuple[int, float] | None = None
         link.on_epoch(self._new_epoch)
 

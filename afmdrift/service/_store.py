@@ -38,7 +38,7 @@ from afmdrift.pipeline import (
     measurement_row,
     record_from_row,
 )
-from afmdrift.records import ChannelSample, Event, EventKind, LoggedEvent
+from afmdrift.records import ChannelSample, Event, LoggedEvent, event_kind
 from afmdrift.service._images import load_reference_image, save_image
 
 __all__ = [
@@ -350,7 +350,9 @@ class RunStore:
         cur = self._db.execute(query + " ORDER BY epoch, log_index", args)
         return [
             LoggedEvent(
-                int(e), int(i), Event(t_s=float(t), kind=EventKind(k), x_nm=float(x), y_nm=float(y))
+                int(e),
+                int(i),
+                Event(t_s=float(t), kind=event_kind(k), x_nm=float(x), y_nm=float(y)),
             )
             for e, i, t, k, x, y in cur
         ]
@@ -492,7 +494,7 @@ class RunStore:
             "INSERT OR IGNORE INTO events (epoch, log_index, t_s, kind, x_nm, y_nm) "
             "VALUES (?, ?, ?, ?, ?, ?)",
             [
-                (epoch, idx, e.t_s, e.kind.value, e.x_nm, e.y_nm)
+                (epoch, idx, e.t_s, str(e.kind), e.x_nm, e.y_nm)
                 for epoch, idx, e in self._pending_events
             ],
         )

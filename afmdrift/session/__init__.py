@@ -9,7 +9,7 @@ from afmdrift.session._format import (
     read_session,
     write_session,
 )
-from afmdrift.session._import import import_files, session_from_images
+from afmdrift.session._import import attach_logs, import_files, session_from_images
 
 __all__ = [
     "FORMAT_NAME",
@@ -17,6 +17,7 @@ __all__ = [
     "Session",
     "SessionError",
     "SessionMeta",
+    "attach_logs",
     "import_files",
     "read_session",
     "session_from_images",

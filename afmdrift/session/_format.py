@@ -32,7 +32,7 @@ import numpy.typing as npt
 
 from afmdrift._bounded import loads_json, read_text
 from afmdrift.errors import InputError
-from afmdrift.records import ChannelSample, Event, EventKind, Frame, ScanDirection
+from afmdrift.records import ChannelSample, Event, Frame, ScanDirection, event_kind
 
 __all__ = [
     "FORMAT_NAME",
@@ -283,7 +283,7 @@ def write_session(session: Session, path: str | Path) -> Path:
         ]
         _write_csv(root / "channels.csv", ["t_s", *names], ch_rows)
     if session.events:
-        ev_rows = [[_fmt(e.t_s), e.kind.value, _fmt(e.x_nm), _fmt(e.y_nm)] for e in session.events]
+        ev_rows = [[_fmt(e.t_s), str(e.kind), _fmt(e.x_nm), _fmt(e.y_nm)] for e in session.events]
         _write_csv(root / "events.csv", ["t_s", "kind", "x_nm", "y_nm"], ev_rows)
     if session.truth is not None:
         tr_rows = [[_fmt(t), _fmt(x), _fmt(y)] for t, x, y in session.truth]
@@ -462,12 +462,9 @@ def _read_events(path: Path) -> list[Event]:
     for line, row in _read_csv(path, ["t_s", "kind"]):
         where = f"{path}:{line}"
         try:
-            kind = EventKind(row["kind"].strip())
-        except ValueError:
-            allowed = ", ".join(k.value for k in EventKind)
-            raise SessionError(
-                f"{where}: unknown event kind {row['kind']!r} (allowed: {allowed})"
-            ) from None
+            kind = event_kind(row["kind"])
+        except ValueError as err:
+            raise SessionError(f"{where}: {err}") from None
         x = row.get("x_nm") or "0"
         y = row.get("y_nm") or "0"
         events.append(

@@ -27,9 +27,15 @@ import numpy as np
 
 from afmdrift.io import AfmImage, PixelSize, load_stack
 from afmdrift.records import ScanDirection
-from afmdrift.session._format import Session, SessionError, SessionMeta
+from afmdrift.session._format import (
+    Session,
+    SessionError,
+    SessionMeta,
+    _read_channels,
+    _read_events,
+)
 
-__all__ = ["import_files", "session_from_images"]
+__all__ = ["attach_logs", "import_files", "session_from_images"]
 
 _REL_TOL = 1e-6
 
@@ -184,4 +190,47 @@ def _scan_times(
     raise SessionError(
         f"{untimed.source}: the file gives no frame timing; give the frame scan time "
         "(frame_time_s=..., --frame-time-s)"
+    )
+
+
+def attach_logs(
+    session: Session,
+    *,
+    channels_csv: str | Path | None = None,
+    events_csv: str | Path | None = None,
+) -> Session:
+    """``session`` with a lab's own channel and event logs attached.
+
+    The files have the columns of the session format's ``channels.csv``
+    (``t_s`` and one column per channel) and ``events.csv`` (``t_s, kind,
+    x_nm, y_nm``; any lower-case kind is kept, ``docs/session-format.md``),
+    with ``t_s`` on the session clock (0 = start of the first frame).
+
+    Raises
+    ------
+    SessionError
+        A file that does not exist or does not parse; the message names it
+        (and the line).
+    """
+    channel_t_s, channels = session.channel_t_s, session.channels
+    events = list(session.events)
+    if channels_csv is not None:
+        path = Path(channels_csv)
+        if not path.is_file():
+            raise SessionError(f"{path}: channel log not found")
+        channel_t_s, channels = _read_channels(path)
+    if events_csv is not None:
+        path = Path(events_csv)
+        if not path.is_file():
+            raise SessionError(f"{path}: event log not found")
+        events = _read_events(path)
+    return Session(
+        meta=session.meta,
+        frames=session.frames,
+        frame_times=session.frame_times,
+        directions=session.directions,
+        channel_t_s=channel_t_s,
+        channels=channels,
+        events=events,
+        truth=session.truth,
     )

@@ -5,11 +5,18 @@ simulated instrument that the model is not given (see the comment at the top of
 each file); ``control.toml`` has every effect modelled. Sessions are recorded,
 replayed through the service pipeline (registration included) and diagnosed.
 
-The default run covers every hidden effect with one seed and the control with two;
-``-m soak`` runs the full 10-seed sweep with the acceptance criteria: the hidden
-effect ranked first and significant in at least 8 of 10 seeds, adding it cuts
-the one-step RMS error by at least 30 %, and the control raises no significant
-finding in at least 9 of 10 seeds.
+Three scenarios hide effects that no library term names (``OUTSIDE``: a
+pressure channel through a lag, a stage thermometer with a fast and a slow
+path, settling after a lab's own ``stage_move`` events); diagnose must name
+their driver through the generic ``channel:``/``event:`` terms.
+``control_distractors.toml`` adds logged channels and events that move nothing.
+
+The default run covers every library effect and ``stage_move`` with one seed
+and the two controls with two; ``-m soak`` runs the full 10-seed sweep with the
+acceptance criteria: the hidden effect (or its driver) ranked first and
+significant, with adding it cutting the one-step RMS error by at least 30 %, in
+at least 8 of 10 seeds, and each control raises no significant finding in at
+least 9 of 10 seeds.
 """
 
 from __future__ import annotations
@@ -35,7 +42,20 @@ CASES: dict[str, list[str] | None] = {
     "warmup": ["trend", "thermal_lag", "creep", "scan_direction"],
     "scan_direction": ["trend", "warmup", "thermal_lag", "creep"],
     "control": None,
+    "pressure": None,
+    "stage_thermometer": None,
+    "stage_move": None,
+    "control_distractors": None,
 }
+
+#: Effects outside the library: the driver the top candidate must name.
+OUTSIDE: dict[str, tuple[str, str]] = {
+    "pressure": ("channel", "pressure_hpa"),
+    "stage_thermometer": ("channel", "stage_c"),
+    "stage_move": ("event_kind", "stage_move"),
+}
+CONTROLS = ("control", "control_distractors")
+LIBRARY_CASES = [c for c in CASES if c not in OUTSIDE and c not in CONTROLS]
 
 #: Registration for the small 128×128 px frames of the hidden scenarios.
 SMALL_FRAMES_TOML = "[registration]\nblock_size = 32\nextended_size = 96\n"
@@ -50,6 +70,7 @@ class Outcome:
     case: str
     seed: int
     top: str
+    top_driver: str | None
     top_significant: bool
     any_significant: bool
     rmse_nm: float
@@ -74,6 +95,7 @@ def run_case(case: str, seed: int, workdir: str) -> Outcome:
         case=case,
         seed=seed,
         top=top["effect"],
+        top_driver=top["params"].get("channel") or top["params"].get("event_kind"),
         top_significant=bool(top["significant"]),
         any_significant=any(c["significant"] for c in j["candidates"]),
         rmse_nm=float(j["rmse_nm"]),
@@ -93,17 +115,21 @@ def sweep(cases: list[str], seeds: list[int], workdir: Path) -> dict[tuple[str, 
 DEFAULT_SEEDS = [101]
 CONTROL_SEEDS = [101, 102]
 
+#: Out-of-library cases of the default run (stage_move also carries a lab's own
+#: event kind from the simulator through the session, replay and run store).
+DEFAULT_OUTSIDE = ["stage_move"]
+
 
 @pytest.fixture(scope="module")
 def default_sweep(tmp_path_factory: pytest.TempPathFactory) -> dict[tuple[str, int], Outcome]:
     work = tmp_path_factory.mktemp("hidden")
-    out = sweep([c for c in CASES if c != "control"], DEFAULT_SEEDS, work)
-    out.update(sweep(["control"], CONTROL_SEEDS, work))
+    out = sweep([*LIBRARY_CASES, *DEFAULT_OUTSIDE], DEFAULT_SEEDS, work)
+    out.update(sweep(list(CONTROLS), CONTROL_SEEDS, work))
     return out
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", [c for c in CASES if c != "control"])
+@pytest.mark.parametrize("case", LIBRARY_CASES)
 def test_hidden_effect_is_found_and_adding_it_cuts_the_error(
     case: str, default_sweep: dict[tuple[str, int], Outcome]
 ) -> None:
@@ -116,12 +142,27 @@ def test_hidden_effect_is_found_and_adding_it_cuts_the_error(
 
 
 @pytest.mark.slow
-def test_control_session_raises_no_false_alarm(
-    default_sweep: dict[tuple[str, int], Outcome],
+@pytest.mark.parametrize("case", DEFAULT_OUTSIDE)
+def test_effect_outside_the_library_is_named_by_its_driver(
+    case: str, default_sweep: dict[tuple[str, int], Outcome]
 ) -> None:
-    """Regression guard: a complete model must not be told an effect is missing."""
+    for seed in DEFAULT_SEEDS:
+        o = default_sweep[(case, seed)]
+        assert o.top_driver == OUTSIDE[case][1], o
+        assert o.top_significant, o
+        assert o.rmse_after_nm is not None
+        assert o.rmse_after_nm <= 0.7 * o.rmse_nm, o
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", CONTROLS)
+def test_control_session_raises_no_false_alarm(
+    case: str, default_sweep: dict[tuple[str, int], Outcome]
+) -> None:
+    """Regression guard: a complete model must not be told an effect is missing, also
+    when the lab logs channels and event kinds that do not move the sample."""
     for seed in CONTROL_SEEDS:
-        o = default_sweep[("control", seed)]
+        o = default_sweep[(case, seed)]
         assert not o.any_significant, o
 
 
@@ -205,12 +246,14 @@ def test_full_ten_seed_sweep(case: str, tmp_path: Path) -> None:
     summary = [
         (o.seed, o.top, o.top_significant, round(o.rmse_nm, 2), o.rmse_after_nm) for o in outcomes
     ]
-    if case == "control":
+    if case in CONTROLS:
         alarms = sum(o.any_significant for o in outcomes)
         assert alarms <= 1, summary
         return
-    found = [o for o in outcomes if o.top == case and o.top_significant]
-    assert len(found) >= 8, summary
-    for o in found:
-        assert o.rmse_after_nm is not None, summary
-        assert o.rmse_after_nm <= 0.7 * o.rmse_nm, summary
+    if case in OUTSIDE:
+        found = [o for o in outcomes if o.top_driver == OUTSIDE[case][1] and o.top_significant]
+    else:
+        found = [o for o in outcomes if o.top == case and o.top_significant]
+    # Found and adding it cuts the one-step RMS error by at least 30 %, in 8 of 10 seeds.
+    met = [o for o in found if o.rmse_after_nm is not None and o.rmse_after_nm <= 0.7 * o.rmse_nm]
+    assert len(met) >= 8, summary

@@ -18,7 +18,7 @@ from afmdrift.diagnostics._stats import (
     robust_z,
 )
 from afmdrift.errors import ConfigError, InputError
-from afmdrift.model import PhysicsConfig
+from afmdrift.model import PhysicsConfig, PhysicsPredictor
 from afmdrift.records import ChannelSample, Event, EventKind
 
 
@@ -223,3 +223,161 @@ def test_a_registration_jump_is_called_out_before_the_finding() -> None:
     assert any("t = 7516 s (frame 25)" in p for p in dg.patterns)
     clean = diagnose(data, PhysicsConfig(terms=["trend"]))
     assert not clean.finding.startswith("Caution")
+
+
+# --------------------------------------------------------------------------- generic families
+
+
+def _with_extra(
+    data: RunData,
+    *,
+    name: str,
+    values: np.ndarray,
+    tc: np.ndarray,
+    events: list[Event] | None = None,
+    xy: np.ndarray | None = None,
+) -> RunData:
+    """``data`` with one more logged channel (and events, and positions)."""
+    by_t = {c.t_s: dict(c.values) for c in data.channels}
+    channels = []
+    for t, v in zip(tc, values, strict=True):
+        row = by_t.get(float(t), {})
+        row[name] = float(v)
+        channels.append(ChannelSample(t_s=float(t), values=row))
+    return RunData.from_arrays(
+        t_s=data.t_s,
+        xy_nm=data.xy_nm if xy is None else xy,
+        scan_sign=data.scan_sign,
+        t_end_s=data.t_end_s,
+        channels=channels,
+        events=[*data.events, *(events or [])],
+    )
+
+
+def _pressure_case(*, gain: tuple[float, float], seed: int, n: int = 90) -> RunData:
+    """The thermal-lag series of :func:`_synthetic` plus a pressure channel that
+    moves the sample through a 600 s lag by ``gain`` nm/hPa (built from the equations)."""
+    data, xy = _synthetic(humidity_nm_per_pct=0.0, seed=seed, n=n)
+    tc = np.array([c.t_s for c in data.channels])
+    rng = np.random.default_rng(seed + 100)
+    p = 1013.0 + np.cumsum(rng.normal(0.0, 0.07, tc.size)) + rng.normal(0, 0.02, tc.size)
+    lagged = _lagged(tc, p, 600.0)
+    shift = np.column_stack([np.interp(data.t_s, tc, lagged) * g for g in gain])
+    return _with_extra(data, name="pressure_hpa", values=p, tc=tc, xy=xy + shift - shift[0])
+
+
+def test_family_candidates_cover_every_channel_and_event_kind() -> None:
+    from afmdrift.diagnostics._candidates import family_candidates
+
+    data = _pressure_case(gain=(0.0, 0.0), seed=21, n=20)
+    h = data.history()
+    h.add_events([Event(100.0, "door_open"), Event(900.0, "door_open")])
+    h.add_events([Event(50.0 * k, "tip_approach") for k in range(1, 13)])
+    specs = family_candidates(h, ["trend", "channel:pressure_hpa"])
+    assert "channel:pressure_hpa#2" in specs  # a second path next to the model's
+    assert {"channel:temperature_c", "channel:humidity_pct"} <= set(specs)
+    assert {"event:power_on", "event:power_on:log"} <= set(specs)
+    assert "event:power_on:each" not in specs  # logged once: shared = per event
+    assert {"event:door_open:each", "event:door_open:log:each"} <= set(specs)
+    assert "event:tip_approach" in specs
+    assert "event:tip_approach:each" not in specs  # 12 free amplitudes: not tested
+
+
+def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> None:
+    """Regression guard: channel:humidity_pct (a lag smooths the noisy sensor) must
+    not displace humidity when it fits a few AICc units better but predicts no better."""
+    from afmdrift.diagnostics._candidates import CandidateResult
+    from afmdrift.diagnostics._diagnose import _rank
+
+    def cand(
+        name: str, d_aicc: float, rmse: float, driver: dict[str, str], tau_s: float = 1.0
+    ) -> CandidateResult:
+        return CandidateResult(
+            effect=name,
+            testable=True,
+            significant=True,
+            score=d_aicc,
+            delta_aicc=d_aicc,
+            rmse_after_nm=rmse,
+            rmse_after_kind="replayed",
+            driver=driver,
+            channel=driver.get("channel", "humidity_pct" if name == "humidity" else None),
+            nonlinear={"tau_s": tau_s} if driver else {},
+        )
+
+    generic = cand("channel:humidity_pct", 836.0, 1.80, {"channel": "humidity_pct"})
+    named = cand("humidity", 823.0, 1.85, {})
+    results = [generic, named]
+    _rank(results, Thresholds())
+    assert results[0].effect == "humidity"
+    # Far better evidence and prediction: the generic term stays first.
+    far = cand("channel:pressure_hpa", 400.0, 1.0, {"channel": "pressure_hpa"})
+    weak = cand("thermal", 40.0, 1.9, {})
+    results = [weak, far]
+    _rank(results, Thresholds())
+    assert results[0].effect == "channel:pressure_hpa"
+    # A lag shorter than the frame period on the named term's own channel cannot be
+    # resolved by frames: the named direct response ranks first even when the
+    # generic term fits better; a lag of several frames is another effect.
+    short = cand("channel:humidity_pct", 802.0, 1.39, {"channel": "humidity_pct"}, 13.5)
+    results = [short, cand("humidity", 772.0, 1.82, {})]
+    _rank(results, Thresholds(), frame_period_s=300.0)
+    assert results[0].effect == "humidity"
+    long = cand("channel:humidity_pct", 802.0, 1.39, {"channel": "humidity_pct"}, 1800.0)
+    results = [long, cand("humidity", 772.0, 1.82, {})]
+    _rank(results, Thresholds(), frame_period_s=300.0)
+    assert results[0].effect == "channel:humidity_pct"
+
+
+@pytest.mark.slow
+def test_out_of_library_channel_is_named_with_driver_lag_and_gain() -> None:
+    data = _pressure_case(gain=(8.0, -6.0), seed=22)
+    dg = diagnose(data, PhysicsConfig(terms=["trend", "thermal_lag"]))
+    top = dg.candidates[0]
+    assert top.significant
+    assert top.driver == {"channel": "pressure_hpa"}
+    j = dg.to_json()["candidates"][0]
+    assert j["term"] == "channel:pressure_hpa"
+    assert j["family"] == "channel"
+    assert j["params"]["channel"] == "pressure_hpa"
+    assert j["params"]["tau_s"] == pytest.approx(600.0, rel=0.35)
+    assert j["params"]["gain_nm_per_hpa_x"] == pytest.approx(8.0, rel=0.15)
+    assert j["params"]["gain_nm_per_hpa_y"] == pytest.approx(-6.0, rel=0.15)
+    assert "No library effect explains it" in dg.finding
+    assert "pressure_hpa" in dg.finding
+    assert dg.config_terms == ["trend", "thermal_lag", "channel:pressure_hpa"]
+    assert dg.after_summary is not None
+    assert dg.after_summary["rmse_nm"] < 0.7 * dg.summary["rmse_nm"]
+    # The report overlays the driver on the errors.
+    from afmdrift.diagnostics._report import render_report
+
+    page = render_report(dg, data)
+    assert 'alt="driver of the leading generic candidate over the errors"' in page
+    assert "channel:pressure_hpa" in page
+    # The term is accepted verbatim as a model term (--effects, [model.physics] terms).
+    assert [t.name for t in PhysicsPredictor(PhysicsConfig(terms=dg.config_terms)).terms] == [
+        "trend",
+        "thermal_lag",
+        "channel:pressure_hpa",
+    ]
+
+
+@pytest.mark.slow
+def test_distractor_channel_and_events_raise_no_finding() -> None:
+    """Regression guard: a logged channel and event kind that do not move the sample
+    must not become a finding now that every channel and kind is a candidate."""
+    data = _pressure_case(gain=(0.0, 0.0), seed=23)
+    extra = [Event(6000.0, "door_open"), Event(14000.0, "door_open"), Event(21000.0, "door_open")]
+    data = RunData.from_arrays(
+        t_s=data.t_s,
+        xy_nm=data.xy_nm,
+        scan_sign=data.scan_sign,
+        t_end_s=data.t_end_s,
+        channels=data.channels,
+        events=[*data.events, *extra],
+    )
+    dg = diagnose(data, PhysicsConfig(terms=["trend", "thermal_lag"]))
+    testable = {c.effect for c in dg.candidates if c.testable}
+    assert {"channel:pressure_hpa", "event:door_open", "event:door_open:each"} <= testable
+    assert dg.top is None, dg.finding
+    assert dg.n_tests > 100

@@ -141,3 +141,28 @@ def test_cli_import_error_has_no_traceback(
     assert "a.npy" in err
     assert "pixel_size_nm" in err
     assert "Traceback" not in err
+
+
+def test_cli_import_attaches_a_lab_event_log_with_its_own_kinds(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Regression guard: a lab's event log (door_open, stage_move) and an extra
+    channel (pressure_hpa) reach the session; unknown kinds used to be rejected."""
+    src = tmp_path / "m.nc"
+    _write_nc(src, _stack(3), start="2024-01-01T10:00:00", line_time_s=0.05)
+    ev = tmp_path / "lab-events.csv"
+    ev.write_text("t_s,kind,x_nm,y_nm\n5.5,door_open,,\n2.0,stage_move,10,0\n")
+    ch = tmp_path / "lab-channels.csv"
+    ch.write_text("t_s,pressure_hpa\n0,1013.2\n6,1013.0\n12,1012.9\n")
+    out = tmp_path / "session"
+    args = ["import", str(src), "--out", str(out), "--pixel-size-nm", "2"]
+    assert main([*args, "--events", str(ev), "--channels", str(ch)]) == 0
+    s = read_session(out)
+    assert [(e.t_s, str(e.kind), e.x_nm) for e in s.events] == [
+        (2.0, "stage_move", 10.0),
+        (5.5, "door_open", 0.0),
+    ]
+    np.testing.assert_allclose(s.channels["pressure_hpa"], [1013.2, 1013.0, 1012.9])
+    capsys.readouterr()
+    assert main([*args, "--force", "--events", str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv: event log not found" in capsys.readouterr().err

@@ -22,6 +22,8 @@ from afmdrift.model import (
     PhysicsPredictor,
     available_terms,
     load_term_class,
+    make_term,
+    parse_term_spec,
 )
 from afmdrift.model._synthetic import synthetic_series
 from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
@@ -327,3 +329,123 @@ def test_fit_uses_only_the_most_recent_max_points() -> None:
     model = PhysicsPredictor(cfg)
     _feed(model, t, xy, History())
     assert model.coefficients()["trend"]["x"][1] == pytest.approx(0.02 * 3600, abs=1e-6)
+
+
+# --------------------------------------------------------------------------- generic terms
+
+
+def _lag_series(t: np.ndarray, c: np.ndarray, tau_s: float) -> np.ndarray:
+    """First-order lag of ``c`` sampled at ``t``, minus its start (built independently)."""
+    out = np.empty_like(c)
+    out[0] = c[0]
+    for k in range(1, t.size):
+        a = np.exp(-(t[k] - t[k - 1]) / tau_s)
+        out[k] = a * out[k - 1] + (1 - a) * c[k]
+    return out - c[0]
+
+
+def _channel_history(tc: np.ndarray, name: str, values: np.ndarray) -> History:
+    h = History()
+    for a, b in zip(tc, values, strict=True):
+        h.add_channels(ChannelSample(float(a), {name: float(b)}))
+    return h
+
+
+def _pressure(tc: np.ndarray, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    walk = np.cumsum(rng.normal(0.0, 0.05, tc.size))
+    return 1013.0 + 1.5 * np.sin(2 * np.pi * tc / 9000.0) + walk
+
+
+def test_channel_term_spec_recovers_lag_and_gain_of_any_channel() -> None:
+    tc = np.arange(0.0, 8 * 3600.0 + 600.0, 10.0)
+    p = _pressure(tc, 1)
+    drift = _lag_series(tc, p, 600.0)[:, None] * np.array([8.0, -6.0])
+    t = np.arange(128.0, 8 * 3600.0, PERIOD_S)
+    xy = np.column_stack([np.interp(t, tc, drift[:, a]) for a in (0, 1)])
+    model = PhysicsPredictor(
+        PhysicsConfig(terms=["trend", "channel:pressure_hpa"], residual="none")
+    )
+    _feed(model, t, xy, _channel_history(tc, "pressure_hpa", p))
+    assert model.params["channel:pressure_hpa"]["tau_s"] == pytest.approx(600.0, rel=0.2)
+    g = model.coefficients()["channel:pressure_hpa"]
+    assert g["x"][0] == pytest.approx(8.0, rel=0.05)
+    assert g["y"][0] == pytest.approx(-6.0, rel=0.05)
+
+
+def test_channel_term_without_lag_is_the_direct_response() -> None:
+    """τ at the bottom of the grid (1 s) is computed as no lag: p = g·(C − C₀) exactly."""
+    tc = np.arange(0.0, 4000.0, 10.0)
+    c = np.sin(tc / 300.0)
+    term = parse_term_spec("channel:laser_power_mw")()
+    t = np.array([5.0, 1234.0, 3000.0])
+    col = term.design(
+        t,
+        _channel_history(tc, "laser_power_mw", c),
+        scan_sign=np.ones(3),
+        params={"tau_s": 1.0},
+        axis=0,
+    )
+    np.testing.assert_allclose(col[:, 0], np.interp(t, tc, c) - c[0])
+    assert term.coefficient_units == ("gain_nm_per_mw",)
+
+
+def test_two_instances_of_one_channel_fit_a_fast_and_a_slow_path() -> None:
+    tc = np.arange(0.0, 10 * 3600.0 + 600.0, 10.0)
+    rng = np.random.default_rng(2)
+    stage = 25.0 + 0.4 * np.sin(2 * np.pi * tc / 2400.0) + np.cumsum(rng.normal(0, 0.004, tc.size))
+    drift = _lag_series(tc, stage, 120.0)[:, None] * np.array([25.0, 15.0])
+    drift += _lag_series(tc, stage, 2400.0)[:, None] * np.array([60.0, -45.0])
+    t = np.arange(128.0, 10 * 3600.0, PERIOD_S)
+    xy = np.column_stack([np.interp(t, tc, drift[:, a]) for a in (0, 1)])
+    fast, slow = "channel:stage_c:tau_s=1..600#fast", "channel:stage_c:tau_s=600..20000#slow"
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", fast, slow], residual="none"))
+    _feed(model, t, xy, _channel_history(tc, "stage_c", stage))
+    assert model.params[fast]["tau_s"] == pytest.approx(120.0, rel=0.3)
+    assert model.params[slow]["tau_s"] == pytest.approx(2400.0, rel=0.3)
+    assert model.coefficients()[slow]["y"][0] == pytest.approx(-45.0, rel=0.15)
+
+
+def test_event_term_fits_settling_after_a_kind_the_library_does_not_know() -> None:
+    t = np.arange(128.0, 8 * 3600.0, PERIOD_S)
+    times = [4000.0, 11000.0, 19000.0]
+    h = History()
+    h.add_events([Event(0.0, EventKind.POWER_ON)] + [Event(x, "stage_move") for x in times])
+    resp = sum(np.where(t > x, -np.expm1(-(t - x) / 900.0), 0.0) for x in times)
+    xy = np.asarray(resp)[:, None] * np.array([25.0, -18.0])
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "event:stage_move"], residual="none"))
+    _feed(model, t, xy, h)
+    assert model.params["event:stage_move"]["tau_s"] == pytest.approx(900.0, rel=0.1)
+    assert model.coefficients()["event:stage_move"]["x"][0] == pytest.approx(25.0, rel=0.05)
+    each = parse_term_spec("event:stage_move:each:tau_s=900")()
+    cols = each.design(t, h, scan_sign=np.ones(t.size), params={}, axis=0)
+    assert cols.shape == (t.size, 3)
+    np.testing.assert_allclose(cols.sum(axis=1), resp)
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("channel:", "expected 'channel:<channel>"),
+        ("event:door_open:slow", "unknown option 'slow'"),
+        ("channel:p_hpa:tau_s=0..10", "'tau_s=0..10' must be positive"),
+        ("channel:p_hpa:tau_s=ten", "needs a number or a range"),
+        ("event:door_open:log:tau_s=5", "the log shape has t0_s, not tau_s"),
+        ("event:Door", "event kind 'Door'"),
+        ("channel:p_hpa#Fast", "label 'Fast'"),
+        ("channel:p_hpa:t0_s=3", "unknown parameter 't0_s'"),
+    ],
+)
+def test_malformed_term_spec_names_the_spec_and_the_part(spec: str, message: str) -> None:
+    with pytest.raises(ConfigError, match=message) as err:
+        PhysicsPredictor(PhysicsConfig(terms=["trend", spec]))
+    assert str(err.value).startswith("model.physics.terms:")
+    assert repr(spec) in str(err.value)
+
+
+def test_duplicate_term_specs_are_rejected_and_labels_make_them_distinct() -> None:
+    with pytest.raises(ConfigError, match="duplicate"):
+        PhysicsPredictor(PhysicsConfig(terms=["channel:stage_c", "channel:stage_c"]))
+    model = PhysicsPredictor(PhysicsConfig(terms=["channel:stage_c", "channel:stage_c#2"]))
+    assert [t.name for t in model.terms] == ["channel:stage_c", "channel:stage_c#2"]
+    assert make_term("event:door_open:log").name == "event:door_open:log"

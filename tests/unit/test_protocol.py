@@ -256,3 +256,12 @@ def test_fuzz_corrupted_frame_reply_never_returns_a_wrong_frame(
         _FRAME.t_end_s,
         _FRAME.pixel_size_nm,
     )
+
+
+def test_event_of_a_lab_kind_round_trips_and_a_malformed_kind_is_a_protocol_error() -> None:
+    ev = Event(12.5, "door_open", 0.0, 0.0)
+    index, back = decode_event(parse_reply(encode_event(3, ev)).body)
+    assert (index, back) == (3, ev)
+    assert not isinstance(back.kind, EventKind)
+    with pytest.raises(ProtocolError, match="event kind 'Door Open'"):
+        decode_event("4,1.0,Door Open,0,0")

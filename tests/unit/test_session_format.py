@@ -83,11 +83,27 @@ def test_frame_count_mismatch(tmp_path: Path) -> None:
         read_session(tmp_path / "s")
 
 
-def test_unknown_event_kind(tmp_path: Path) -> None:
+def test_unknown_event_kind_is_kept_through_a_round_trip(tmp_path: Path) -> None:
+    """Regression: a lab's own event kind (door_open) made the whole session unreadable."""
     write_session(_session(), tmp_path / "s")
     p = tmp_path / "s" / "events.csv"
-    p.write_text(p.read_text().replace("tip_change", "coffee_break"))
-    with pytest.raises(SessionError, match="unknown event kind 'coffee_break'"):
+    p.write_text(p.read_text().replace("tip_change", "door_open"))
+    s = read_session(tmp_path / "s")
+    kinds = [e.kind for e in s.events]
+    assert "door_open" in kinds
+    assert EventKind.OFFSET_MOVE in kinds
+    assert not isinstance(kinds[kinds.index("door_open")], EventKind)
+    write_session(s, tmp_path / "s2")
+    assert [e.kind for e in read_session(tmp_path / "s2").events] == kinds
+
+
+@pytest.mark.parametrize("bad", ["Door Open", "2nd_door", "door,open", "x" * 65])
+def test_malformed_event_kind_is_rejected(tmp_path: Path, bad: str) -> None:
+    write_session(_session(), tmp_path / "s")
+    p = tmp_path / "s" / "events.csv"
+    text = p.read_text().replace("tip_change", f'"{bad}"' if "," in bad else bad)
+    p.write_text(text)
+    with pytest.raises(SessionError, match=r"events\.csv:\d+: event kind"):
         read_session(tmp_path / "s")
 
 

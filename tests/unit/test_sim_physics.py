@@ -303,3 +303,91 @@ def test_creep_of_thousands_of_closed_loop_moves_matches_the_exact_sum() -> None
         decades = np.log10(1 + (q - times[past]) / t0)
         exact = -gamma * (deltas[past] * decades[:, None]).sum(axis=0)
         np.testing.assert_allclose(g, exact, rtol=0, atol=1e-7)
+
+
+def _first_order(
+    t: npt.NDArray[np.float64], u: npt.NDArray[np.float64], tau_s: float
+) -> npt.NDArray[np.float64]:
+    """τ·dy/dt = u − y from y(0) = u(0), exact for u linear between samples."""
+    y = np.empty_like(u)
+    y[0] = u[0]
+    for k in range(1, t.size):
+        a = math.exp(-(t[k] - t[k - 1]) / tau_s)
+        slope = (u[k] - u[k - 1]) / (t[k] - t[k - 1])
+        y[k] = u[k] - slope * tau_s + a * (y[k - 1] - u[k - 1] + slope * tau_s)
+    return y
+
+
+def test_extra_channel_moves_the_sample_through_its_lagged_paths(tmp_path: Path) -> None:
+    paths = [{"gain_nm_per_unit": [8.0, -6.0], "tau_s": 600.0}, {"gain_nm_per_unit": [2.0, 1.0]}]
+    channel = {
+        "name": "pressure_hpa",
+        "mean": 1013.0,
+        "amplitude": 2.0,
+        "period_s": 5400.0,
+        "fluctuation": 0.3,
+        "fluctuation_tau_s": 900.0,
+        "noise": 0.0,
+        "paths": paths,
+    }
+    s = record(tmp_path, {**OFF, "channels": [channel]}, duration_s=3 * 3600.0)
+    t, x, y = truth(s)
+    p = s.channel_at("pressure_hpa", t)  # noise 0: the true value, sampled every second
+    assert np.ptp(p) > 3.0
+    slow = _first_order(t, p, 600.0) - p[0]
+    expected_x = 8.0 * slow + 2.0 * (p - p[0])
+    expected_y = -6.0 * slow + 1.0 * (p - p[0])
+    assert np.max(np.abs(x - expected_x)) < 0.02 * np.ptp(x)
+    assert np.max(np.abs(y - expected_y)) < 0.02 * np.ptp(y)
+    comps = components(tmp_path / "session")
+    np.testing.assert_allclose(comps["channels_x_nm"], x, atol=1e-9)
+
+
+def test_distractor_channel_is_logged_and_changes_nothing_else(tmp_path: Path) -> None:
+    """Regression guard: adding a logged channel must not move the sample or change
+    the other random processes of a seed (it draws from its own stream)."""
+    physics = {
+        "room": {"ac_amplitude_k": 0.5, "fluctuation_k": 0.05},
+        "random_walk": {"enabled": True, "sigma_nm_per_sqrt_s": [0.02, 0.02]},
+    }
+    plain = record(tmp_path / "a", physics, duration_s=3600.0)
+    extra = {"name": "laser_power_mw", "mean": 1.5, "fluctuation": 0.03, "noise": 0.002}
+    with_d = record(tmp_path / "b", {**physics, "channels": [extra]}, duration_s=3600.0)
+    assert plain.truth is not None
+    assert with_d.truth is not None
+    np.testing.assert_array_equal(plain.truth, with_d.truth)
+    np.testing.assert_array_equal(plain.channels["temperature_c"], with_d.channels["temperature_c"])
+    assert np.std(with_d.channels["laser_power_mw"]) > 0.005
+
+
+def test_logged_event_of_any_kind_is_followed_by_its_settling(tmp_path: Path) -> None:
+    events = [
+        {"t_s": 1000.0, "kind": "stage_move", "amplitude_nm": [20.0, -10.0], "tau_s": 300.0},
+        {"t_s": 2500.0, "kind": "door_open", "shape": "none"},
+        {"t_s": 3000.0, "kind": "stage_move", "amplitude_nm": [20.0, -10.0], "tau_s": 300.0},
+    ]
+    s = record(tmp_path, {**OFF, "events": events}, duration_s=4000.0)
+    kinds = [(e.t_s, str(e.kind)) for e in s.events if e.kind is not EventKind.POWER_ON]
+    assert kinds == [(1000.0, "stage_move"), (2500.0, "door_open"), (3000.0, "stage_move")]
+    t, x, y = truth(s)
+    resp = sum(np.where(t > t0, -np.expm1(-(t - t0) / 300.0), 0.0) for t0 in (1000.0, 3000.0))
+    np.testing.assert_allclose(x, 20.0 * resp, atol=1e-9)
+    np.testing.assert_allclose(y, -10.0 * resp, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    ("physics", "message"),
+    [
+        ({"channels": [{"name": "temperature_c"}]}, "logged by the simulator already"),
+        ({"channels": [{"name": "p_hpa"}, {"name": "p_hpa"}]}, "duplicate channel names"),
+        ({"events": [{"t_s": 1.0, "kind": "tip_change"}]}, "simulator's own actions"),
+        ({"events": [{"t_s": 1.0, "kind": "Door Open"}]}, "kind"),
+    ],
+)
+def test_bad_extra_channels_and_events_are_config_errors(
+    physics: dict[str, Any], message: str
+) -> None:
+    from afmdrift.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=message):
+        parse_scenario({"physics": physics})

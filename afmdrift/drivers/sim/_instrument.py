@@ -29,7 +29,15 @@ from afmdrift.drivers.sim._physics import DriftPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scanner import FrameRaster, ScanGeometry, render_lines
 from afmdrift.drivers.sim._scenario import Scenario, check_scan_geometry, load_scenario
-from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo, ScanDirection
+from afmdrift.records import (
+    ChannelSample,
+    Event,
+    EventKind,
+    Frame,
+    InstrumentInfo,
+    ScanDirection,
+    event_kind,
+)
 
 __all__ = ["PIEZO_RANGE_NM", "SimulatedAFM"]
 
@@ -142,6 +150,8 @@ class SimulatedAFM:
                 )
             if tips.rate_per_h > 0:
                 self._push(self._next_spontaneous_tip(0.0), self._spontaneous_tip)
+        for ev in sc.physics.events:
+            self._push(ev.t_s, partial(self._log_event, ev.kind))
         for mp in sc.manipulations:
             self._push(
                 mp.t_s,
@@ -172,6 +182,10 @@ class SimulatedAFM:
             self.sample.set_tip_radius(tip_radius_nm)
         self._events.append(Event(self._t, EventKind.TIP_CHANGE))
         _log.debug("t=%.3f s: tip change, step (%.3f, %.3f) nm", self._t, dx_nm, dy_nm)
+
+    def _log_event(self, kind: str) -> None:
+        """Log an event of a kind the simulator has no action for (``[[physics.events]]``)."""
+        self._events.append(Event(self._t, event_kind(kind)))
 
     def _manipulate_scheduled(
         self, x0_nm: float, y0_nm: float, x1_nm: float, y1_nm: float, *, snap: bool
@@ -416,7 +430,8 @@ class SimulatedAFM:
     # ------------------------------------------------------------------ sensors and events
 
     def read_channels(self) -> ChannelSample:
-        """Head temperature and relative humidity at :attr:`now_s`, with sensor noise."""
+        """Head temperature, relative humidity and the extra channels at :attr:`now_s`, with
+        sensor noise."""
         t = self._t
         s = self.scenario.sensors
         temp = float(self.physics.head_temperature_c(t)) + float(
@@ -425,7 +440,11 @@ class SimulatedAFM:
         rh = float(self.physics.humidity_pct(t)) + float(
             self._rng_sensor.normal(0.0, s.humidity_noise_pct)
         )
-        return ChannelSample(t_s=t, values={"temperature_c": temp, "humidity_pct": rh})
+        values = {"temperature_c": temp, "humidity_pct": rh}
+        for c in self.scenario.physics.channels:
+            true = float(self.physics.channel_values(t)[c.name])
+            values[c.name] = true + float(self._rng_sensor.normal(0.0, c.noise))
+        return ChannelSample(t_s=t, values=values)
 
     def sensor_series(
         self, t_s: npt.ArrayLike, *, rng: np.random.Generator | None = None
@@ -442,12 +461,16 @@ class SimulatedAFM:
         if rng is None:
             rng = np.random.default_rng(np.random.SeedSequence([self.seed, 0x5E45]))
         s = self.scenario.sensors
-        return {
+        out = {
             "temperature_c": self.physics.head_temperature_c(t)
             + rng.normal(0.0, s.temperature_noise_c, t.shape),
             "humidity_pct": self.physics.humidity_pct(t)
             + rng.normal(0.0, s.humidity_noise_pct, t.shape),
         }
+        true = self.physics.channel_values(t)
+        for c in self.scenario.physics.channels:
+            out[c.name] = true[c.name] + rng.normal(0.0, c.noise, t.shape)
+        return out
 
     @property
     def events(self) -> list[Event]:

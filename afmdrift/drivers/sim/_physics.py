@@ -22,7 +22,14 @@ function of time since power-on ``t`` and each zero at ``t = 0``:
   gives the actual offset ``a = P_r[c]``; ``p_hy = −(a − c)``;
 * humidity ``p_h = β (RH(t) − RH(0))`` with RH its own trend, slow sine and OU;
 * tip changes: a step ``s_k`` at each tip change time ``t_k``;
-* a Wiener process with ``σ`` nm/√s per axis.
+* a Wiener process with ``σ`` nm/√s per axis;
+* extra logged channels C (``[[physics.channels]]``: pressure, a stage
+  thermometer, ...), each coupled through any number of paths
+  ``p_ch = Σ_j g_j (C_j(t) − C_j(0))``, ``τ_j dC_j/dt = C − C_j`` (τ_j = 0:
+  C_j = C), or through none (a distractor);
+* logged events of any kind (``[[physics.events]]``), each followed by
+  ``A_e (1 − exp(−(t − t_e)/τ))`` (``settle``) or ``A_e log10(1 + (t − t_e)/t_0)``
+  (``log``), or by nothing.
 
 The stochastic processes live on a regular grid of step ``dt_s``, generated in
 fixed-size chunks from their own random streams, so a given seed gives the same
@@ -54,6 +61,8 @@ COMPONENTS: tuple[str, ...] = (
     "humidity",
     "tip_change",
     "random_walk",
+    "channels",
+    "events",
 )
 
 _CHUNK = 8192  # grid samples generated at a time (fixed, for determinism)
@@ -252,7 +261,19 @@ class DriftPhysics:
         self._rng_room = np.random.default_rng(room_ss)
         self._rng_rh = np.random.default_rng(rh_ss)
         self._rng_rw = np.random.default_rng(rw_ss)
-        self._grid = _Grid(self._dt, ("t_head", "t_scanner", "rh", "rw_x", "rw_y"))
+        # Extra channels and event amplitudes draw from their own streams, so a
+        # scenario without them gives the same p(t) as before they existed.
+        ext_ss = np.random.SeedSequence([int(seed), 0xC4A7]).spawn(len(config.channels) + 1)
+        self._rng_ch = [np.random.default_rng(s) for s in ext_ss[:-1]]
+        rng_ev = np.random.default_rng(ext_ss[-1])
+        self._event_scale = [
+            1.0 + ev.amplitude_spread * float(rng_ev.normal()) for ev in config.events
+        ]
+        names = ["t_head", "t_scanner", "rh", "rw_x", "rw_y"]
+        for i, ch in enumerate(config.channels):
+            names += [f"ch{i}", f"ch{i}_room"] + [f"ch{i}_p{j}" for j in range(len(ch.paths))]
+        self._grid = _Grid(self._dt, tuple(names))
+        self._ch_state: list[dict[str, float]] = []
         self._ou_room = 0.0
         self._ou_rh = 0.0
         self._rw = np.zeros(2)
@@ -310,9 +331,8 @@ class DriftPhysics:
         out, _ = lfilter([1.0], [1.0, -phi], eps, zi=[phi * x0])
         return np.asarray(out, dtype=np.float64)
 
-    def _lag(self, u_prev: float, y_prev: float, u: FloatArray) -> FloatArray:
+    def _lag(self, u_prev: float, y_prev: float, u: FloatArray, tau: float) -> FloatArray:
         """Exact first-order lag y' = (u − y)/τ for u linear between grid points."""
-        tau = self.config.thermal.tau_s
         a = math.exp(-self._dt / tau)
         u0 = np.concatenate([[u_prev], u[:-1]])
         m_tau = (u - u0) / self._dt * tau
@@ -326,6 +346,7 @@ class DriftPhysics:
         self._t_scanner = head0 + self.config.thermal.initial_offset_k
         self._t_head_prev = head0
         rh0 = float(np.clip(self._rh_deterministic(t0)[0] + self._ou_rh, 0.0, 100.0))
+        self._head_first = head0
         self._grid.append(
             {
                 "t_head": np.array([head0]),
@@ -333,6 +354,7 @@ class DriftPhysics:
                 "rh": np.array([rh0]),
                 "rw_x": np.zeros(1),
                 "rw_y": np.zeros(1),
+                **self._channels_first(head0),
             }
         )
 
@@ -346,7 +368,8 @@ class DriftPhysics:
         if ou_room.size:
             self._ou_room = float(ou_room[-1])
         head = self._head_deterministic(t) + ou_room
-        scanner = self._lag(self._t_head_prev, self._t_scanner, head)
+        scanner = self._lag(self._t_head_prev, self._t_scanner, head, self.config.thermal.tau_s)
+        extra = self._channels_chunk(t, head)
         self._t_head_prev = float(head[-1])
         self._t_scanner = float(scanner[-1])
         h = self.config.humidity
@@ -359,8 +382,65 @@ class DriftPhysics:
         rw = self._rw + np.cumsum(steps, axis=0)
         self._rw = rw[-1].copy()
         self._grid.append(
-            {"t_head": head, "t_scanner": scanner, "rh": rh, "rw_x": rw[:, 0], "rw_y": rw[:, 1]}
+            {
+                "t_head": head,
+                "t_scanner": scanner,
+                "rh": rh,
+                "rw_x": rw[:, 0],
+                "rw_y": rw[:, 1],
+                **extra,
+            }
         )
+
+    def _channel_own(self, i: int, t: FloatArray) -> FloatArray:
+        c = self.config.channels[i]
+        out: FloatArray = (
+            c.mean
+            + c.trend_per_h * t / 3600.0
+            + c.amplitude * np.sin(2.0 * np.pi * t / c.period_s + c.phase_rad)
+        )
+        return out
+
+    def _channels_first(self, head0: float) -> dict[str, FloatArray]:
+        """Grid values of the extra channels and their path states at t = 0."""
+        out: dict[str, FloatArray] = {}
+        for i, c in enumerate(self.config.channels):
+            ou0 = float(self._rng_ch[i].normal(0.0, c.fluctuation)) if c.fluctuation > 0 else 0.0
+            value = float(self._channel_own(i, np.zeros(1))[0]) + ou0
+            self._ch_state.append({"ou": ou0, "room": head0, "value": value})
+            out[f"ch{i}"] = np.array([value])
+            out[f"ch{i}_room"] = np.array([head0])
+            for j in range(len(c.paths)):
+                self._ch_state[i][f"p{j}"] = value
+                out[f"ch{i}_p{j}"] = np.array([value])
+        return out
+
+    def _channels_chunk(self, t: FloatArray, head: FloatArray) -> dict[str, FloatArray]:
+        """Grid values of the extra channels (true values) and their path states."""
+        out: dict[str, FloatArray] = {}
+        for i, c in enumerate(self.config.channels):
+            st = self._ch_state[i]
+            ou = self._ou(self._rng_ch[i], st["ou"], c.fluctuation, c.fluctuation_tau_s, t.size)
+            if c.fluctuation > 0:
+                st["ou"] = float(ou[-1])
+            room = (
+                self._lag(self._t_head_prev, st["room"], head, c.room_lag_s)
+                if c.room_lag_s > 0
+                else head
+            )
+            st["room"] = float(room[-1])
+            value = self._channel_own(i, t) + ou + c.room_gain * (room - self._head_first)
+            out[f"ch{i}"] = value
+            out[f"ch{i}_room"] = room
+            for j, path in enumerate(c.paths):
+                key = f"p{j}"
+                lagged = (
+                    self._lag(st["value"], st[key], value, path.tau_s) if path.tau_s > 0 else value
+                )
+                st[key] = float(lagged[-1])
+                out[f"ch{i}_{key}"] = lagged
+            st["value"] = float(value[-1])
+        return out
 
     def _ensure(self, t_max_s: float) -> None:
         while (self._grid.n - 1) * self._dt < t_max_s:
@@ -385,6 +465,11 @@ class DriftPhysics:
     def humidity_pct(self, t_s: npt.ArrayLike) -> FloatArray:
         """Relative humidity at ``t_s``, %."""
         return self._grid.at("rh", self._times(t_s))
+
+    def channel_values(self, t_s: npt.ArrayLike) -> dict[str, FloatArray]:
+        """True values of the extra channels (``[[physics.channels]]``) at ``t_s``, by name."""
+        t = self._times(t_s)
+        return {c.name: self._grid.at(f"ch{i}", t) for i, c in enumerate(self.config.channels)}
 
     # ------------------------------------------------------------------ actuator and events
 
@@ -494,6 +579,28 @@ class DriftPhysics:
             )
         else:
             out["random_walk"] = zero
+        out["channels"] = self._channel_drift(t)
+        out["events"] = self._event_drift(t)
+        return out
+
+    def _channel_drift(self, t: FloatArray) -> FloatArray:
+        """Σ over extra channels and their paths of g_j (C_j(t) − C_j(0)), nm."""
+        out = np.zeros((*t.shape, 2))
+        for i, c in enumerate(self.config.channels):
+            for j, path in enumerate(c.paths):
+                v = self._grid.at(f"ch{i}_p{j}", t) - self._grid.data[f"ch{i}_p{j}"][0]
+                out += v[..., None] * np.asarray(path.gain_nm_per_unit)
+        return out
+
+    def _event_drift(self, t: FloatArray) -> FloatArray:
+        """Σ over logged events of their settling or creep response, nm."""
+        out = np.zeros((*t.shape, 2))
+        for ev, scale in zip(self.config.events, self._event_scale, strict=True):
+            if ev.shape == "none":
+                continue
+            dt = np.maximum(t - ev.t_s, 0.0)
+            r = -np.expm1(-dt / ev.tau_s) if ev.shape == "settle" else np.log10(1.0 + dt / ev.t0_s)
+            out += (scale * r)[..., None] * np.asarray(ev.amplitude_nm)
         return out
 
     def drift_at(self, t_s: npt.ArrayLike) -> FloatArray:

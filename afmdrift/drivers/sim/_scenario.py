@@ -24,9 +24,12 @@ from afmdrift.errors import ConfigError
 __all__ = [
     "SCENARIO_DIR",
     "ArtefactsConfig",
+    "ChannelPathConfig",
     "CreepConfig",
+    "ExtraChannelConfig",
     "HumidityConfig",
     "HysteresisConfig",
+    "LoggedEventConfig",
     "ManipulationConfig",
     "OffsetMoveConfig",
     "PhysicsConfig",
@@ -259,6 +262,75 @@ class TipChangesConfig(_Model):
     step_sigma_nm: float = Field(5.0, ge=0, le=1000, description="Spontaneous step std.")
 
 
+class ChannelPathConfig(_Model):
+    """One path by which a logged channel C moves the sample: g·(C_s − C_s(0)),
+    τ·dC_s/dt = C − C_s (``tau_s`` = 0: C_s = C, a direct response)."""
+
+    gain_nm_per_unit: Pair = Field((0.0, 0.0), description="Drift per channel unit, per axis.")
+    tau_s: float = Field(0.0, ge=0, le=86400, description="First-order lag; 0 = direct.")
+
+
+#: Channel names the simulator logs itself.
+_BUILTIN_CHANNELS = ("temperature_c", "humidity_pct")
+
+
+class ExtraChannelConfig(_Model):
+    """A logged channel beyond temperature and humidity (pressure, a stage sensor, ...).
+
+    Its true value is ``mean + trend·t/3600 + amplitude·sin(2πt/period) + OU +
+    room_gain·(T_room,lag(t) − T_room,lag(0))``: its own slow variation and
+    fluctuation, optionally following the room (head) temperature through a
+    first-order lag ``room_lag_s``. The sensor adds white ``noise``. ``paths``
+    couple it to the drift; none: a distractor that is logged but moves nothing.
+    """
+
+    name: str = Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)
+    mean: float = Field(0.0, ge=-1e6, le=1e6)
+    trend_per_h: float = Field(0.0, ge=-1e4, le=1e4)
+    amplitude: float = Field(0.0, ge=0, le=1e4, description="Slow sinusoidal variation.")
+    period_s: float = Field(7200.0, gt=0, le=864000)
+    phase_rad: float = Field(0.0, ge=-10, le=10)
+    fluctuation: float = Field(0.0, ge=0, le=1e4, description="Stationary std of OU noise.")
+    fluctuation_tau_s: float = Field(900.0, gt=0, le=86400)
+    room_gain: float = Field(0.0, ge=-100, le=100, description="Units per K of room temperature.")
+    room_lag_s: float = Field(0.0, ge=0, le=86400, description="Lag behind the room; 0 = none.")
+    noise: float = Field(0.0, ge=0, le=1e4, description="Sensor noise (std).")
+    paths: list[ChannelPathConfig] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if self.name in _BUILTIN_CHANNELS:
+            raise ValueError(f"channel name {self.name!r} is logged by the simulator already")
+        return self
+
+
+class LoggedEventConfig(_Model):
+    """A logged event of any kind and the drift that follows it.
+
+    ``settle``: ``A·(1 − exp(−(t − t_e)/τ))`` after the event (a step that
+    settles), ``log``: ``A·log10(1 + (t − t_e)/t0)``, ``none``: logged only
+    (a distractor). Each event's amplitude is ``amplitude_nm`` times
+    ``1 + amplitude_spread·N(0, 1)``.
+    """
+
+    t_s: float = Field(ge=0)
+    kind: str = Field(pattern=r"^[a-z][a-z0-9_]*$", max_length=64)
+    shape: Literal["settle", "log", "none"] = "settle"
+    amplitude_nm: Pair = Field((0.0, 0.0))
+    amplitude_spread: float = Field(0.0, ge=0, le=2)
+    tau_s: float = Field(600.0, gt=0, le=86400)
+    t0_s: float = Field(10.0, gt=0, le=86400)
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if self.kind in ("offset_move", "manipulation", "tip_change", "power_on"):
+            raise ValueError(
+                f"kind {self.kind!r} is logged by the simulator's own actions; "
+                "use [[offset_moves]], [[manipulations]] or [physics.tip_changes]"
+            )
+        return self
+
+
 class PhysicsConfig(_Model):
     """All drift effects; see docs/physics.md."""
 
@@ -272,6 +344,15 @@ class PhysicsConfig(_Model):
     humidity: HumidityConfig = Field(default_factory=HumidityConfig)
     random_walk: RandomWalkConfig = Field(default_factory=RandomWalkConfig)
     tip_changes: TipChangesConfig = Field(default_factory=TipChangesConfig)
+    channels: list[ExtraChannelConfig] = Field(default_factory=list)
+    events: list[LoggedEventConfig] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _check_channels(self) -> Self:
+        names = [c.name for c in self.channels]
+        if len(set(names)) != len(names):
+            raise ValueError(f"physics.channels: duplicate channel names in {names}")
+        return self
 
 
 class ArtefactsConfig(_Model):
