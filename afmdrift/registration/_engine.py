@@ -19,7 +19,7 @@ import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
@@ -105,13 +105,16 @@ class ReferenceSpectra:
     conjugated, magnitude-normalised block spectra times the phase ramp
     (interleaved complex in int16 fixed point, see
     :func:`afmdrift.registration._kernels.normalise_reference`) and their
-    magnitudes in the sub-pixel band."""
+    magnitudes in the sub-pixel band. ``derived`` keeps what is computed
+    from the reference once and reused for every frame measured against it
+    (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`)."""
 
     grad: F32
     top: IArr
     left: IArr
     conj_spectra: npt.NDArray[np.int16]
     band_mag: F32
+    derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)

@@ -429,8 +429,6 @@ def register(
     return Registration(result, top, left, coarse)
 
 
-_TEXTURED: dict[int, tuple[ReferenceSpectra, npt.NDArray[np.bool_]]] = {}
-
 #: A block has texture when its reference content's variance is at least this
 #: multiple of the pre-filtered image's noise variance.
 TEXTURE_NOISE_RATIO = 2.0
@@ -452,9 +450,9 @@ def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[n
     some block reaches :data:`TEXTURE_CONTRAST` times it (otherwise every
     block counts). Flat substrate between particles has none; noise-free
     frames count every block that is not exactly flat."""
-    cached = _TEXTURED.get(id(ref))
-    if cached is not None and cached[0] is ref:
-        return cached[1]
+    cached = ref.derived.get("textured")
+    if cached is not None:
+        return cached
     g = ref.grad.astype(np.float64)
     if engine.prefilter in ("x", "both"):
         d = np.diff(g[::2], axis=1)
@@ -485,9 +483,7 @@ def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[n
             out[:] = True
     else:
         out = var > 0
-    with _cache_lock:
-        _TEXTURED.clear()  # the references in use are few; keep the newest
-        _TEXTURED[id(ref)] = (ref, out)
+    ref.derived["textured"] = out
     return out
 
 
