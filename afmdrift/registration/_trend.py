@@ -59,10 +59,31 @@ def _fit(
     degree: int,
 ) -> npt.NDArray[np.float64]:
     """Weighted least-squares polynomial coefficients, shape (degree + 1, 2)."""
-    a = _design(rows, degree) * np.sqrt(weights)[:, None]
-    b = values * np.sqrt(weights)[:, None]
-    coef, *_ = np.linalg.lstsq(a, b, rcond=None)
+    a = _design(rows, degree)
+    aw = a * weights[:, None]
+    # normal equations of a (degree + 1)-column problem: a 3×3 solve at most
+    # (rows are scaled to [-1, 1], so the system is well conditioned)
+    try:
+        coef = np.linalg.solve(aw.T @ a, aw.T @ values)
+    except np.linalg.LinAlgError:
+        coef, *_ = np.linalg.lstsq(a * np.sqrt(weights)[:, None],
+                                   values * np.sqrt(weights)[:, None], rcond=None)  # fmt: skip
     return np.asarray(coef, dtype=np.float64)
+
+
+def _group_medians(
+    vec: npt.NDArray[np.float64], group: npt.NDArray[np.intp], n_groups: int
+) -> npt.NDArray[np.float64]:
+    """Per-group, per-axis medians of ``vec`` (n, 2), groups 0..n_groups-1 all
+    non-empty: one sort per axis instead of a mask and a median per group."""
+    counts = np.bincount(group, minlength=n_groups)
+    start = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    lo, hi = start + (counts - 1) // 2, start + counts // 2
+    out = np.empty((n_groups, 2))
+    for axis in (0, 1):
+        v = vec[np.lexsort((vec[:, axis], group)), axis]
+        out[:, axis] = 0.5 * (v[lo] + v[hi])
+    return out
 
 
 def select_by_trend(
@@ -110,12 +131,8 @@ def select_by_trend(
     centre = float(levels.mean())
     x_rows = (row_px - centre) / scale
     vec = vectors_px[idx]
-    medians = np.empty((levels.size, 2))
-    counts = np.empty(levels.size)
-    for k in range(levels.size):
-        mine = vec[inverse == k]
-        medians[k] = np.median(mine, axis=0)
-        counts[k] = mine.shape[0]
+    medians = _group_medians(vec, inverse, levels.size)
+    counts = np.bincount(inverse, minlength=levels.size).astype(np.float64)
     coef = _fit((levels - centre) / scale, medians, counts, degree)
     design = _design(x_rows, degree)
     residual = np.ascontiguousarray(vectors_px - design @ coef)
