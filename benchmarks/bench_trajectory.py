@@ -15,6 +15,12 @@ alone (:meth:`DriftTrajectory.add_frame`).
 
 from __future__ import annotations
 
+import os
+
+# One OpenBLAS thread, as every afmdrift command process runs (afmdrift.cli),
+# set before NumPy loads it.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import argparse
 import statistics
 import time

@@ -357,12 +357,18 @@ class DriftTracker:
 
     def hold_limit_px(self) -> float:
         """Farthest a step may land from the predicted position and be accepted
-        at once, px: ``max(HOLD_MIN_PX, HOLD_K · 1.4826 · median |error|)``
-        over the recent prediction errors."""
+        at once, px: ``max(floor, HOLD_K · 1.4826 · median |error|)`` over the
+        recent prediction errors, the floor being the larger of
+        :data:`HOLD_MIN_PX` and half the block search radius (a drift that
+        changes speed between frames, an air-conditioning cycle sampled every
+        256 s, misses a constant-velocity prediction by several px)."""
+        floor = HOLD_MIN_PX
+        if self._engine is not None:
+            floor = max(floor, 0.5 * float(min(self._engine.layout.max_shift)))
         if len(self._innovations) < 3:
-            return HOLD_MIN_PX
+            return floor
         spread = 1.4826 * float(np.median(np.fromiter(self._innovations, float)))
-        return max(HOLD_MIN_PX, HOLD_K * spread)
+        return max(floor, HOLD_K * spread)
 
     def _confirm(
         self, meas: DriftResult, prior: tuple[float, float], index: int
@@ -374,16 +380,18 @@ class DriftTracker:
         Returns the result and the confirmed jump (zero if none)."""
         limit = self.hold_limit_px()
         error = math.hypot(meas.dx_px - prior[0], meas.dy_px - prior[1])
+        # every valid measurement's error enters the (median) spread, so a
+        # drift that is hard to predict widens the limit; a lone mis-lock
+        # barely moves the median
+        self._innovations.append(error)
         held, self._held = self._held, None
         if error <= limit:
-            self._innovations.append(error)
             return meas, (0.0, 0.0)
         if held is not None:
             h_index, (hx, hy), jump_px = held
             steps = index - h_index
             jump = (hx + self._velocity[0] * steps, hy + self._velocity[1] * steps)
             if math.hypot(meas.dx_px - jump[0], meas.dy_px - jump[1]) <= limit:
-                self._innovations.clear()
                 note = f"{meas.prior}; confirms the jump held at frame {h_index}"
                 return replace(meas, prior=note), jump_px
         jump_now = (meas.dx_px - prior[0], meas.dy_px - prior[1])

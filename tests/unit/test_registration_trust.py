@@ -247,3 +247,23 @@ def test_featureless_blocks_neither_vote_nor_count() -> None:
     r = measure_drift(ref, cur, pixel_size_nm=2.0)
     assert r.valid, r.reason
     assert (r.dx_px, r.dy_px) == pytest.approx((3.3, -2.6), abs=0.05)
+
+
+def test_a_drift_that_changes_speed_between_frames_is_not_held() -> None:
+    """Regression: an air-conditioning cycle of 15 min sampled every 256 s
+    moves the sample back and forth by several px a frame; the constant-
+    velocity prediction misses by up to 10 px. Such frames were held as
+    jumps (4 of 60 in benchmarks/bench_trajectory.py)."""
+    tex = _texture((700, 700), seed=14)
+    rng = np.random.default_rng(15)
+    tracker = DriftTracker(pixel_size_nm=2.0)
+    t = np.arange(16) * 256.0
+    x = 30.0 * (1 - np.exp(-t / 2500.0)) + 3.0 * np.sin(2 * np.pi * t / 900.0)
+    y = -20.0 * (1 - np.exp(-t / 2000.0)) + 2.0 * np.cos(2 * np.pi * t / 700.0)
+    steps = []
+    for dx, dy in zip(x, y, strict=True):
+        frame = fourier_shift(tex, dx_px=dx, dy_px=dy)[94:606, 94:606]
+        steps.append(tracker.update(add_noise(frame, snr=10, rng=rng)))
+    assert all(s.accepted for s in steps[1:] if s is not None)
+    assert steps[-1] is not None
+    assert steps[-1].position_px == pytest.approx((x[-1] - x[0], y[-1] - y[0]), abs=0.1)
