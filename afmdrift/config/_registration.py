@@ -44,7 +44,7 @@ class RegistrationConfig(BaseModel):
         "auto",
         description="Pre-filter: the gradient image of eq. (2) along x (fast axis), y, "
         "both, none (heights), levelled (heights less a line per scan line), or auto: x "
-        "unless the x gradient's signal is below half its noise, then levelled.",
+        "unless the x gradient's signal is below 8 % of its noise, then levelled.",
     )
     peaks: int = Field(4, ge=1, le=32, description="Candidate peaks verified by MSE (K).")
     max_shift_px: float | None = Field(

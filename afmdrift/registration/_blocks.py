@@ -41,8 +41,11 @@ __all__ = [
 Gradient = Literal["x", "y", "both", "none", "levelled"]
 
 #: ``gradient = "auto"``: the x gradient is kept unless its signal is below this
-#: fraction of its noise (then the levelled heights carry the texture).
-AUTO_GRADIENT_SNR = 0.5
+#: fraction of its noise (then the levelled heights carry the texture). Measured
+#: gradient SNRs: 0.12–0.24 for particles, rough and terrace textures at height
+#: SNR 5 (kept: with levelled heights their σ covered only 75–87 % of the errors
+#: within 2σ), 0.03 at SNR 2 and ≤ 0.03 at SNR 1 (levelled).
+AUTO_GRADIENT_SNR = 0.08
 
 
 def gradient_shape(shape: tuple[int, int], gradient: Gradient) -> tuple[int, int]:
