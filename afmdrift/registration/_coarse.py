@@ -62,6 +62,7 @@ __all__ = [
     "COARSE_MIN_Z",
     "CoarseShift",
     "coarse_shift",
+    "overlap_slices",
     "static_pixels",
 ]
 
@@ -229,17 +230,26 @@ def _local_peaks(corr: F64, floor: float) -> tuple[npt.NDArray[np.intp], npt.NDA
     return rows[order], cols[order]
 
 
+def overlap_slices(
+    shape: tuple[int, ...], dx: int, dy: int
+) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
+    """``(rows, cols)`` slices of the reference and of the current frame that
+    show the same sample for an integer shift ``(dx, dy)`` (a feature at u in
+    the reference is at u + d in the current frame)."""
+    rows, cols = shape[0], shape[1]
+    ref = (slice(max(0, -dy), rows - max(0, dy)), slice(max(0, -dx), cols - max(0, dx)))
+    cur = (slice(max(0, dy), rows - max(0, -dy)), slice(max(0, dx), cols - max(0, -dx)))
+    return ref, cur
+
+
 def _overlap(a: F64, b: F64, dx: int, dy: int) -> tuple[F64, F64] | None:
     """The parts of ``a`` (reference) and ``b`` (current) that show the same
     sample for ``b(u + d) = a(u)``, or None if smaller than MIN_OVERLAP_PX."""
     rows, cols = a.shape
     if abs(dx) > cols - MIN_OVERLAP_PX or abs(dy) > rows - MIN_OVERLAP_PX:
         return None
-    ra = slice(max(0, -dy), rows - max(0, dy))
-    ca = slice(max(0, -dx), cols - max(0, dx))
-    rb = slice(max(0, dy), rows - max(0, -dy))
-    cb = slice(max(0, dx), cols - max(0, -dx))
-    return a[ra, ca], b[rb, cb]
+    ra, rb = overlap_slices(a.shape, dx, dy)
+    return a[ra], b[rb]
 
 
 def _ncc(a: F64, b: F64, dx: int, dy: int) -> float:

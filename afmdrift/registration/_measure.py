@@ -15,7 +15,7 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import FrameStats, config_for_image
-from afmdrift.registration._coarse import CoarseShift, coarse_shift
+from afmdrift.registration._coarse import CoarseShift, coarse_shift, overlap_slices
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
     InvalidFrameError,
@@ -617,10 +617,7 @@ def _measure_overlap(
     rows, cols = ref.shape
     if rows - abs(dy) < MIN_IMAGE_PX or cols - abs(dx) < MIN_IMAGE_PX:
         return None
-    ra = slice(max(0, -dy), rows - max(0, dy))
-    ca = slice(max(0, -dx), cols - max(0, dx))
-    rb = slice(max(0, dy), rows - max(0, -dy))
-    cb = slice(max(0, dx), cols - max(0, -dx))
+    (ra, ca), (rb, cb) = overlap_slices(ref.shape, dx, dy)
     inner = measure_drift(
         ref[ra, ca], cur[rb, cb], pixel_size_nm=pixel, config=config, prior_px=(0.0, 0.0)
     )
