@@ -897,14 +897,7 @@ def _finding(
     if top.driver:
         return _generic_finding(top, results, terms, summary, after_summary), terms
     doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
-    change = ""
-    if after_summary is not None and summary["rmse_nm"] > 0:
-        drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
-        change = (
-            f" Re-running the model with it cuts the one-step RMS error from "
-            f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
-            f"({100 * drop:.0f}% lower)."
-        )
+    change = _error_change(summary, after_summary)
     return (
         f"Missing effect: {top.effect} ({doc.rstrip('.')}). Fitted: {_format_params(top)}. "
         f"Evidence: {top.evidence()}.{change} To add it, put in your configuration file: "
@@ -984,14 +977,7 @@ def _generic_finding(
         if named
         else ""
     )
-    change = ""
-    if after_summary is not None and summary["rmse_nm"] > 0:
-        drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
-        change = (
-            f" Re-running the model with it cuts the one-step RMS error from "
-            f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
-            f"({100 * drop:.0f}% lower)."
-        )
+    change = _error_change(summary, after_summary)
     quoted = ", ".join(f'"{t}"' for t in terms)
     return (
         f"Missing effect outside the library: {describe_driver(top)}. No library effect "
@@ -1003,3 +989,16 @@ def _generic_finding(
 
 def _term_instance(name: str, physics: PhysicsConfig) -> EffectTerm:
     return term_class(name, available_terms(physics.plugins))()
+
+
+def _error_change(summary: dict[str, float], after_summary: dict[str, float] | None) -> str:
+    """The finding's sentence on how much adding the candidate cuts the
+    one-step error ("" when the model was not re-run with it)."""
+    if after_summary is None or not summary["rmse_nm"] > 0:
+        return ""
+    drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
+    return (
+        f" Re-running the model with it cuts the one-step RMS error from "
+        f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
+        f"({100 * drop:.0f}% lower)."
+    )
