@@ -118,7 +118,24 @@ class DriverConfig(BaseModel):
         description="nanonis: signal giving the instrument time in s; empty: the host clock.",
     )
     nanonis_wait_ms: int = Field(
-        200, ge=0, le=60_000, description="nanonis: timeout of each Scan.WaitEndOfScan."
+        200,
+        ge=0,
+        le=60_000,
+        description=(
+            "nanonis: timeout of each Scan.WaitEndOfScan (with nanonis_wait_port: how long "
+            "each poll waits for the reply of the wait that is always outstanding)."
+        ),
+    )
+    nanonis_wait_port: int | None = Field(
+        None,
+        ge=1,
+        le=65535,
+        description=(
+            "nanonis: a second port of the controller's TCP interface (it listens on several, "
+            "one client each) kept for Scan.WaitEndOfScan, with a wait always outstanding, "
+            "so no end of scan is missed. Unset: waits share the command port, and a scan "
+            "ending during another command is skipped."
+        ),
     )
     nanonis_drift_comp_limit_pct: float = Field(
         10.0, gt=0, le=100, description="nanonis: drift compensation saturation limit, % of range."

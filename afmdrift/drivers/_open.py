@@ -36,8 +36,13 @@ def instrument_from_config(config: DriverConfig) -> Instrument:
             sensor_file=config.folder_sensor_file,
         )
     if config.transport.startswith(NANONIS_PREFIX):
+        url = nanonis_socket_url(config.transport)
+        wait = None
+        if config.nanonis_wait_port is not None:
+            wait = SerialTransport(f"{url.rsplit(':', 1)[0]}:{config.nanonis_wait_port}")
         return NanonisDriver(
-            SerialTransport(nanonis_socket_url(config.transport)),
+            SerialTransport(url),
+            wait_transport=wait,
             channel_index=config.nanonis_channel,
             direction=config.nanonis_direction,
             channels=config.nanonis_channels,

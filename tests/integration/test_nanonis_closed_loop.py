@@ -42,6 +42,7 @@ async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
             port = await server.start_tcp(0)
             driver = NanonisDriver(
                 f"nanonis://127.0.0.1:{port}",
+                wait_transport=f"nanonis://127.0.0.1:{port}",
                 channel_index=SCAN_CHANNEL,
                 channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
                 clock_signal=CLOCK_SIGNAL,

@@ -23,13 +23,16 @@ from service_sim import REPO, closed_port, scenario_data, write_scenario
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
 
 
-def _config(path: Path, run_dir: Path, pub_port: int) -> Path:
+def _config(path: Path, run_dir: Path, pub_port: int, sim_port: int) -> Path:
+    # The simulator takes any number of clients on its one port; the waits
+    # get their own connection, as on a controller's second port.
     path.write_text(
         f"""
 [driver]
 nanonis_channel = 14
 nanonis_clock_signal = "Clock (s)"
 nanonis_wait_ms = 100
+nanonis_wait_port = {sim_port}
 nanonis_channels = {{temperature_c = "Temperature (C)", humidity_pct = "Humidity (%)"}}
 
 [service]
@@ -79,7 +82,6 @@ async def test_afmdrift_run_records_frames_and_publishes_offsets(tmp_path: Path)
     scenario = write_scenario(tmp_path / "scenario.toml", scenario_data(seed=4, pixels=128))
     run_dir = tmp_path / "run"
     pub_port = closed_port()
-    cfg = _config(tmp_path / "afmdrift.toml", run_dir, pub_port)
     sim = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "afmdrift", "sim", "serve", "--protocol", "nanonis",
         "--port", "0", "--scenario", str(scenario), "--speed", "50",
@@ -90,6 +92,7 @@ async def test_afmdrift_run_records_frames_and_publishes_offsets(tmp_path: Path)
     try:
         assert sim.stdout is not None
         port = int((await asyncio.wait_for(sim.stdout.readline(), 30)).decode().strip())
+        cfg = _config(tmp_path / "afmdrift.toml", run_dir, pub_port, port)
         daemon = await asyncio.create_subprocess_exec(
             sys.executable, "-m", "afmdrift", "run", "--config", str(cfg),
             "--instrument", f"nanonis://127.0.0.1:{port}",

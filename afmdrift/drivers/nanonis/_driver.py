@@ -20,10 +20,14 @@ Frames
     (``wait_ms``). When a scan ended, the frame is read at once with
     ``Scan.FrameDataGrab``; its geometry comes from ``Scan.FrameGet`` and
     ``Scan.BufferGet``, its timing from ``Scan.SpeedGet`` (line time is
-    forward + backward time per line) and the time the end was seen. A scan
-    that ends between two waits is missed; polling continuously
-    (``frame_poll_interval_s`` <= ``wait_ms``) keeps that window to the
-    duration of the other commands.
+    forward + backward time per line) and the time the end was seen. The
+    controller reports the next end of scan after the request, so a scan
+    that ends between two waits is missed. With ``wait_transport`` (a second
+    port of the TCP interface) the waits run on their own connection without
+    a timeout, and the next one is sent the moment a reply arrives, a frame
+    before the next end: no end of scan is missed. On the shared connection,
+    polling continuously (``frame_poll_interval_s`` <= ``wait_ms``) keeps
+    the window to the duration of the other commands.
 Event log
     Nanonis logs nothing afmdrift can read, so the driver logs what moves the
     image: every offset it commands (``offset_move`` with the delta), and the
@@ -101,6 +105,13 @@ def nanonis_socket_url(url: str) -> str:
     return f"socket://{parts.hostname}:{port}"
 
 
+def _as_transport(transport: Transport | str) -> Transport:
+    if isinstance(transport, str):
+        url = nanonis_socket_url(transport) if transport.startswith(NANONIS_SCHEME) else transport
+        return SerialTransport(url)
+    return transport
+
+
 @dataclass(frozen=True, slots=True)
 class DriftCompState:
     """The controller's drift compensation (``Piezo.DriftCompGet``), in nm and nm/s."""
@@ -119,6 +130,9 @@ class NanonisDriver(ConnectOnEnter):
     transport : Transport or str
         An unopened transport (re-opened to reconnect), or a URL:
         ``nanonis://HOST:PORT`` or ``socket://HOST:PORT``.
+    wait_transport : Transport or str, optional
+        A second connection (same forms) used only for ``Scan.WaitEndOfScan``,
+        with a wait always outstanding on it. None: waits share ``transport``.
     channel_index : int
         Scan channel that ``Scan.FrameDataGrab`` reads (an index of the
         channels ``Scan.BufferGet`` lists; a height channel in metres).
@@ -153,6 +167,7 @@ class NanonisDriver(ConnectOnEnter):
         self,
         transport: Transport | str,
         *,
+        wait_transport: Transport | str | None = None,
         channel_index: int = 0,
         direction: Literal["forward", "backward"] = "forward",
         channels: Mapping[str, str] | None = None,
@@ -166,11 +181,7 @@ class NanonisDriver(ConnectOnEnter):
         reconnect_attempts: int = 3,
         max_body_bytes: int = MAX_BODY_BYTES,
     ) -> None:
-        if isinstance(transport, str):
-            url = (
-                nanonis_socket_url(transport) if transport.startswith(NANONIS_SCHEME) else transport
-            )
-            transport = SerialTransport(url)
+        transport = _as_transport(transport)
         if direction not in ("forward", "backward"):
             raise ValueError(f"direction must be 'forward' or 'backward', got {direction!r}")
         if offset_mode not in ("frame", "follow_me"):
@@ -189,6 +200,7 @@ class NanonisDriver(ConnectOnEnter):
                 f"{timeout_s}, {reconnect_attempts}"
             )
         self.transport = transport
+        self.wait_transport = None if wait_transport is None else _as_transport(wait_transport)
         self.channel_index = int(channel_index)
         self.direction = direction
         self.channel_map = dict(channels or {})
@@ -203,6 +215,9 @@ class NanonisDriver(ConnectOnEnter):
         self.max_body_bytes = int(max_body_bytes)
         self._lock = asyncio.Lock()
         self._io_lock = threading.Lock()
+        self._wait_lock = asyncio.Lock()
+        self._wait_io = threading.Lock()
+        self._wait_pending = False  # a Scan.WaitEndOfScan request awaits its reply
         self._t0 = time.monotonic()
         self._signal_index: dict[str, int] = {}
         self._range_nm = (math.inf, math.inf)
@@ -226,6 +241,9 @@ class NanonisDriver(ConnectOnEnter):
         """Open the transport; read the signal names, piezo range and drift compensation."""
         async with self._lock:
             await self._open_with_retries()
+        if self.wait_transport is not None:
+            async with self._wait_lock:
+                await self._open_with_retries(self.wait_transport)
         names = (await self.call("Signals.NamesGet"))[0]
         self._signal_index = {str(n): k for k, n in enumerate(names)}
         for key, signal in [*self.channel_map.items(), ("clock", self.clock_signal)]:
@@ -245,34 +263,49 @@ class NanonisDriver(ConnectOnEnter):
         self._comp_t = t
         self._comp_saturated = list(state.saturated[:2])
 
-    async def _open_with_retries(self) -> None:
+    async def _open_with_retries(self, transport: Transport | None = None) -> None:
+        """(Re)open the command connection, or ``transport`` (the wait connection)."""
+        transport = self.transport if transport is None else transport
         last: Exception | None = None
         for attempt in range(self.reconnect_attempts):
             if attempt:
                 await asyncio.sleep(min(0.1 * 2**attempt, 2.0))
             try:
-                await asyncio.to_thread(self._reopen_sync)
+                await asyncio.to_thread(self._reopen_sync, transport)
                 return
             except InstrumentDisconnected as err:
                 last = err
         raise InstrumentDisconnected(
-            f"{self.transport.name}: could not connect after {self.reconnect_attempts} "
+            f"{transport.name}: could not connect after {self.reconnect_attempts} "
             f"attempt(s): {last}"
         )
 
-    def _reopen_sync(self) -> None:
-        with self._io_lock:
-            self.transport.close()
-            self.transport.open()
+    def _reopen_sync(self, transport: Transport) -> None:
+        with self._wait_io if transport is self.wait_transport else self._io_lock:
+            transport.close()
+            if transport is self.wait_transport:
+                self._wait_pending = False
+            transport.open()
 
     async def close(self) -> None:
-        """Close the transport (idempotent)."""
+        """Close the connections (idempotent)."""
         async with self._lock:
             await asyncio.to_thread(self._close_sync)
+        if self.wait_transport is not None:
+            # The wait in flight, if any, ends within ``wait_ms``; closing
+            # waits for it rather than cutting a reply in half.
+            async with self._wait_lock:
+                await asyncio.to_thread(self._close_wait_sync)
 
     def _close_sync(self) -> None:
         with self._io_lock:
             self.transport.close()
+
+    def _close_wait_sync(self) -> None:
+        assert self.wait_transport is not None
+        with self._wait_io:
+            self.wait_transport.close()
+            self._wait_pending = False
 
     # ---------------------------------------------------------------- exchange
 
@@ -312,6 +345,48 @@ class NanonisDriver(ConnectOnEnter):
                 self.transport.flush_input()
                 raise
 
+    def _wait_exchange(self) -> bool:
+        """Has the scan ended? (False: yes, True: not within ``wait_ms``.)
+
+        The wait connection always has one ``Scan.WaitEndOfScan`` without a
+        timeout outstanding: the controller reports the next end of scan
+        after a request, so the next request goes out the moment a reply
+        arrives, a whole frame before the next end. No end can fall between
+        two waits. A reply not there within ``wait_ms`` leaves the request
+        outstanding (and any part of the reply already read buffered).
+        """
+        transport = self.wait_transport
+        assert transport is not None
+        name = "Scan.WaitEndOfScan"
+        request = encode_request(name, -1)
+        with self._wait_io:
+            try:
+                if not self._wait_pending:
+                    transport.write(request)
+                    self._wait_pending = True
+                try:
+                    head = transport.read_exact(HEADER_SIZE, self.wait_ms / 1000.0)
+                except InstrumentTimeout:
+                    return True
+                header = decode_header(head, max_body_bytes=self.max_body_bytes)
+                body = transport.read_exact(header.body_size, self.timeout_s)
+                self._wait_pending = False
+                decode_reply(name, header, body)
+                transport.write(request)
+                self._wait_pending = True
+                return False
+            except (ProtocolError, InstrumentTimeout) as err:
+                # A half-read reply cannot be resynchronised against a wait
+                # that may answer later: start the connection afresh.
+                log.warning("%s: %s: %s; reconnecting", transport.name, name, err)
+                transport.close()
+                self._wait_pending = False
+                raise
+            except BaseException:
+                if not transport.is_open:
+                    self._wait_pending = False
+                raise
+
     # ---------------------------------------------------------------- Instrument
 
     async def identify(self) -> InstrumentInfo:
@@ -346,9 +421,15 @@ class NanonisDriver(ConnectOnEnter):
 
     async def latest_frame(self) -> Frame | None:
         """Wait up to ``wait_ms`` for an end of scan; read the new frame, else the last one."""
-        timed_out, _path = await self.call(
-            "Scan.WaitEndOfScan", self.wait_ms, wait_s=self.wait_ms / 1000.0
-        )
+        if self.wait_transport is None:
+            timed_out, _path = await self.call(
+                "Scan.WaitEndOfScan", self.wait_ms, wait_s=self.wait_ms / 1000.0
+            )
+        else:
+            async with self._wait_lock:
+                if not self.wait_transport.is_open:
+                    await self._open_with_retries(self.wait_transport)
+                timed_out = await asyncio.to_thread(self._wait_exchange)
         if timed_out:
             return self._latest
         t_end = await self.now_s()
@@ -480,9 +561,8 @@ class NanonisDriver(ConnectOnEnter):
             if not math.isfinite(v):
                 raise ValueError(f"set_drift_velocity: {name} = {v} is not finite")
         state = await self.drift_comp()
-        t = await self.now_s()
         if self._comp_on:
-            self._book_comp(t)
+            self._book_comp(await self.now_s())
         limits = [self.drift_comp_limit_pct / 100.0 * r for r in self._range_nm]
         near = any(
             abs(q) >= self.recentre_fraction * lim
@@ -492,13 +572,33 @@ class NanonisDriver(ConnectOnEnter):
             await self._recentre()
         vx = float(np.float32(vx_nm_per_s / _M_TO_NM))
         vy = float(np.float32(vy_nm_per_s / _M_TO_NM))
-        await self.call("Piezo.DriftCompSet", 1, vx, vy, 0.0, self.drift_comp_limit_pct)
-        self._comp_on = True
-        self._comp_v = (vx * _M_TO_NM, vy * _M_TO_NM)
-        self._comp_t = await self.now_s()
+        await self._switch_velocity(1, (vx * _M_TO_NM, vy * _M_TO_NM))
         self._comp_saturated = [False, False]
 
+    async def _switch_velocity(self, action: int, v_nm_per_s: tuple[float, float]) -> None:
+        """``Piezo.DriftCompSet`` (1: on at this velocity, 2: off), booked at the switch.
+
+        The controller does not say when the command took effect; it did
+        between the clock readings on either side of it. The old velocity is
+        booked up to their midpoint and the new one from it, so a round trip
+        of the line costs at most half a round trip × the velocity change
+        (at 50× simulator speed a whole unbooked round trip per 0.1 s tick
+        left a few % of the ramp out of the drift positions).
+        """
+        v_si = [v / _M_TO_NM for v in v_nm_per_s]
+        before = await self.now_s()
+        await self.call("Piezo.DriftCompSet", action, *v_si, 0.0, self.drift_comp_limit_pct)
+        t_switch = 0.5 * (before + await self.now_s())
+        if self._comp_on:
+            self._book_comp(t_switch)
+        self._comp_t = max(self._comp_t, t_switch)
+        self._comp_on = action == 1
+        self._comp_v = v_nm_per_s if action == 1 else (0.0, 0.0)
+
     async def _recentre(self) -> None:
+        # Stop the ramp first (the displacement holds), so the frame centre
+        # takes over exactly what was applied, then release it.
+        await self._switch_velocity(1, (0.0, 0.0))
         qx, qy = self._comp_q
         log.info("drift compensation re-centred at (%.2f, %.2f) nm", qx, qy)
         if self.offset_mode == "frame":
@@ -507,14 +607,12 @@ class NanonisDriver(ConnectOnEnter):
         else:
             x, y = await self.call("FolMe.XYPosGet", 0)
             await self.call("FolMe.XYPosSet", x + qx / _M_TO_NM, y + qy / _M_TO_NM, 0)
-        await self.call("Piezo.DriftCompSet", 2, 0.0, 0.0, 0.0, self.drift_comp_limit_pct)
-        t = await self.now_s()
+        await self._switch_velocity(2, (0.0, 0.0))
+        t = self._comp_t
         # The base took over what the compensation had applied: net zero.
         self._events.append(Event(t, EventKind.OFFSET_MOVE, qx, qy))
         self._events.append(Event(t, EventKind.OFFSET_MOVE, -qx, -qy))
         self._comp_q = [0.0, 0.0]
-        self._comp_on = False
-        self._comp_t = t
         self.recentres += 1
 
     # ---------------------------------------------------------------- scan control
