@@ -16,7 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.records import ChannelSample, Event, ScanDirection
+from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
 __all__ = ["History", "Observation", "Prediction", "Predictor"]
 
@@ -64,6 +64,13 @@ class History:
     _arrays: dict[str, tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
+    # Per event kind: (log state, times, (n, 2) x/y) for the design matrices of
+    # event terms, which a fit builds dozens of times per frame (a closed loop
+    # logs thousands of offset moves).
+    _kinds: dict[str, tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
+    _events_added: int = field(default=0, init=False, repr=False, compare=False)
 
     def add_channels(self, sample: ChannelSample) -> None:
         if self.channel_t_s and sample.t_s < self.channel_t_s[-1]:
@@ -83,6 +90,21 @@ class History:
     def add_events(self, events: Iterable[Event]) -> None:
         for e in events:
             bisect.insort(self.events, e, key=lambda ev: ev.t_s)
+            self._events_added += 1
+
+    def of_kind(
+        self, kind: EventKind | str
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """Times (n,) and ``(x_nm, y_nm)`` (n, 2) of the events of ``kind``, in time order."""
+        key = self._events_added + len(self.events)
+        name = str(kind)
+        cached = self._kinds.get(name)
+        if cached is None or cached[0] != key:
+            ev = [e for e in self.events if e.kind == kind]
+            t = np.array([e.t_s for e in ev], dtype=np.float64)
+            xy = np.array([(e.x_nm, e.y_nm) for e in ev], dtype=np.float64).reshape(-1, 2)
+            cached = self._kinds[name] = (key, t, xy)
+        return cached[1], cached[2]
 
     def channel_at(self, name: str, t_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
         """Channel ``name`` at ``t_s`` (linear inside the log, held outside)."""

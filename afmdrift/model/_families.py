@@ -143,10 +143,10 @@ class EventResponse(GenericTerm):
         return {"event_kind": self.kind, "shape": self.shape}
 
     def _times(self, history: History) -> FloatArray:
-        return np.array([e.t_s for e in history.events if e.kind == self.kind], dtype=np.float64)
+        return history.of_kind(self.kind)[0]
 
     def missing(self, history: History) -> str | None:
-        if not any(e.kind == self.kind for e in history.events):
+        if not history.of_kind(self.kind)[0].size:
             return f"no {self.kind} event logged"
         return None
 

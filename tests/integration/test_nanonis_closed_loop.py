@@ -93,13 +93,13 @@ async def test_two_hours_of_closed_loop_hold_the_image_while_the_sample_drifts(
     by more than 50 nm.
 
     Regression guard at the measured level, not the issue's target: issue 15
-    asks for 2 nm RMS; measured (benchmarks/RESULTS.md) 3.9 nm RMS through
-    Scan.FrameSet and 5.6 nm through Piezo.DriftCompSet, against 120 to 130 nm
-    of drift.
+    asks for 2 nm RMS; measured (benchmarks/RESULTS.md, 2026-11-25 evening)
+    2.4 nm RMS through Scan.FrameSet and 3.0 nm through Piezo.DriftCompSet,
+    against 120 to 130 nm of drift, every frame recorded.
     """
     m = await _closed_loop(tmp_path / "run", actuator)
     print(f"closed loop via {actuator}: {m}")
-    assert m["frames"] > 80
+    assert m["frames"] > 100
     assert m["drift_nm"] > 50.0
-    assert m["rms_nm"] < 7.0
+    assert m["rms_nm"] < 4.5
     assert m["recentres"] == 0

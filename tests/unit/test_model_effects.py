@@ -25,6 +25,7 @@ from afmdrift.model import (
     make_term,
     parse_term_spec,
 )
+from afmdrift.model._effects import log_creep_sum
 from afmdrift.model._synthetic import synthetic_series
 from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
@@ -449,3 +450,33 @@ def test_duplicate_term_specs_are_rejected_and_labels_make_them_distinct() -> No
     model = PhysicsPredictor(PhysicsConfig(terms=["channel:stage_c", "channel:stage_c#2"]))
     assert [t.name for t in model.terms] == ["channel:stage_c", "channel:stage_c#2"]
     assert make_term("event:door_open:log").name == "event:door_open:log"
+
+
+@pytest.mark.parametrize("t0_s", [0.3, 10.0, 3000.0])
+def test_creep_of_thousands_of_moves_is_the_exact_sum(t0_s: float) -> None:
+    """A closed loop logs a move every few seconds: far moves go by bins (the
+    exact sum of 720 moves at 2000 times is the reference)."""
+    rng = np.random.default_rng(3)
+    t_moves = np.sort(rng.uniform(0.0, 7200.0, 720))
+    steps = rng.normal(size=720) * (rng.random(720) > 0.3)
+    t = np.sort(rng.uniform(-100.0, 8000.0, 2000))
+    exact = np.log10(1.0 + np.maximum(t[:, None] - t_moves[None, :], 0.0) / t0_s) @ steps
+    got = log_creep_sum(t, t_moves, steps, t0_s)
+    # the documented bound (3e-4 of the binned steps), and 1e-4 of the creep itself
+    assert np.max(np.abs(got - exact)) < 3e-4 * np.abs(steps).sum()
+    assert np.max(np.abs(got - exact)) < 1e-4 * np.max(np.abs(exact))
+    assert np.all(got[t <= t_moves[0]] == 0.0)
+
+
+def test_event_arrays_follow_the_log() -> None:
+    history = History()
+    history.add_events([Event(10.0, EventKind.OFFSET_MOVE, 1.0, 2.0)])
+    t, xy = history.of_kind(EventKind.OFFSET_MOVE)
+    assert t.tolist() == [10.0]
+    assert xy.tolist() == [[1.0, 2.0]]
+    history.add_events([Event(5.0, EventKind.OFFSET_MOVE, -1.0, 0.0), Event(7.0, "door")])
+    t, xy = history.of_kind(EventKind.OFFSET_MOVE)
+    assert t.tolist() == [5.0, 10.0]
+    assert xy[:, 0].tolist() == [-1.0, 1.0]
+    assert history.of_kind("door")[0].tolist() == [7.0]
+    assert history.of_kind(EventKind.POWER_ON)[0].size == 0
