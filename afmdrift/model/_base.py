@@ -70,7 +70,6 @@ class History:
     _kinds: dict[str, tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
-    _events_added: int = field(default=0, init=False, repr=False, compare=False)
 
     def add_channels(self, sample: ChannelSample) -> None:
         if self.channel_t_s and sample.t_s < self.channel_t_s[-1]:
@@ -90,13 +89,12 @@ class History:
     def add_events(self, events: Iterable[Event]) -> None:
         for e in events:
             bisect.insort(self.events, e, key=lambda ev: ev.t_s)
-            self._events_added += 1
 
     def of_kind(
         self, kind: EventKind | str
     ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Times (n,) and ``(x_nm, y_nm)`` (n, 2) of the events of ``kind``, in time order."""
-        key = self._events_added + len(self.events)
+        key = len(self.events)  # the log only grows
         name = str(kind)
         cached = self._kinds.get(name)
         if cached is None or cached[0] != key:

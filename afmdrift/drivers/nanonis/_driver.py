@@ -561,8 +561,9 @@ class NanonisDriver(ConnectOnEnter):
             if not math.isfinite(v):
                 raise ValueError(f"set_drift_velocity: {name} = {v} is not finite")
         state = await self.drift_comp()
+        before = await self.now_s()
         if self._comp_on:
-            self._book_comp(await self.now_s())
+            self._book_comp(before)
         limits = [self.drift_comp_limit_pct / 100.0 * r for r in self._range_nm]
         near = any(
             abs(q) >= self.recentre_fraction * lim
@@ -570,12 +571,15 @@ class NanonisDriver(ConnectOnEnter):
         )
         if self._comp_on and (any(state.saturated[:2]) or near):
             await self._recentre()
+            before = await self.now_s()
         vx = float(np.float32(vx_nm_per_s / _M_TO_NM))
         vy = float(np.float32(vy_nm_per_s / _M_TO_NM))
-        await self._switch_velocity(1, (vx * _M_TO_NM, vy * _M_TO_NM))
+        await self._switch_velocity(1, (vx * _M_TO_NM, vy * _M_TO_NM), before)
         self._comp_saturated = [False, False]
 
-    async def _switch_velocity(self, action: int, v_nm_per_s: tuple[float, float]) -> None:
+    async def _switch_velocity(
+        self, action: int, v_nm_per_s: tuple[float, float], before: float | None = None
+    ) -> None:
         """``Piezo.DriftCompSet`` (1: on at this velocity, 2: off), booked at the switch.
 
         The controller does not say when the command took effect; it did
@@ -586,7 +590,8 @@ class NanonisDriver(ConnectOnEnter):
         left a few % of the ramp out of the drift positions).
         """
         v_si = [v / _M_TO_NM for v in v_nm_per_s]
-        before = await self.now_s()
+        if before is None:  # the clock just read by the caller, if any
+            before = await self.now_s()
         await self.call("Piezo.DriftCompSet", action, *v_si, 0.0, self.drift_comp_limit_pct)
         t_switch = 0.5 * (before + await self.now_s())
         if self._comp_on:
