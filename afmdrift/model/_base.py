@@ -38,6 +38,12 @@ class Observation:
         Slow-scan direction of the frame (for the scan-direction bias).
     frame : int
         Frame index.
+    reference_direction : ScanDirection or None
+        Slow-scan direction of the session reference the position is measured
+        against (``None``: unknown). A scan-direction bias cancels between
+        frames of the reference's direction, so the drift itself
+        (:meth:`Predictor.predict_drift`) is the position such a frame would
+        show; unknown, it is the midpoint between up and down frames.
     """
 
     t_s: float
@@ -46,6 +52,7 @@ class Observation:
     sigma_nm: float
     direction: ScanDirection = ScanDirection.UP
     frame: int = -1
+    reference_direction: ScanDirection | None = None
 
 
 @dataclass(slots=True)

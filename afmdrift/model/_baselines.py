@@ -36,6 +36,9 @@ class ObservationLog:
     sigma_nm: list[float] = field(default_factory=list)
     scan_sign: list[float] = field(default_factory=list)
     errors: list[tuple[float, float]] = field(default_factory=list)
+    #: +1/−1: scan direction of the session reference the positions are
+    #: measured against (the latest observation that named one); None: unknown.
+    ref_sign: float | None = None
 
     def append(self, obs: Observation, error: tuple[float, float] | None = None) -> None:
         if not (math.isfinite(obs.t_s) and math.isfinite(obs.x_nm) and math.isfinite(obs.y_nm)):
@@ -50,6 +53,8 @@ class ObservationLog:
         self.sigma_nm.append(float(obs.sigma_nm) if math.isfinite(obs.sigma_nm) else 0.0)
         self.scan_sign.append(1.0 if obs.direction is ScanDirection.UP else -1.0)
         self.errors.append(error if error is not None else (math.nan, math.nan))
+        if obs.reference_direction is not None:
+            self.ref_sign = 1.0 if obs.reference_direction is ScanDirection.UP else -1.0
 
     def __len__(self) -> int:
         return len(self.t_s)
@@ -94,6 +99,7 @@ class ObservationLog:
             "sigma_nm": list(self.sigma_nm),
             "scan_sign": list(self.scan_sign),
             "errors": [[_json_float(a), _json_float(b)] for a, b in self.errors],
+            "ref_sign": self.ref_sign,
         }
 
     @classmethod
@@ -104,6 +110,7 @@ class ObservationLog:
             sigma_nm=[float(v) for v in d["sigma_nm"]],
             scan_sign=[float(v) for v in d["scan_sign"]],
             errors=[(_from_json_float(a), _from_json_float(b)) for a, b in d["errors"]],
+            ref_sign=None if d.get("ref_sign") is None else float(d["ref_sign"]),
         )
 
 

@@ -61,7 +61,9 @@ class MeasuredSeries:
     drift trajectory sample; the mid-scan time where it fed nothing),
     ``xy_nm`` (n, 2) the observed p (NaN where the frame did not feed the
     model), ``sigma_nm`` its uncertainty, ``t_end_s`` frame completion times,
-    ``measure_ms`` the pipeline's time per frame.
+    ``measure_ms`` the pipeline's time per frame, ``reference_direction`` the
+    scan direction of the session reference the positions are measured
+    against (None: unknown).
     """
 
     t_s: FloatArray
@@ -71,6 +73,7 @@ class MeasuredSeries:
     directions: list[ScanDirection]
     measure_ms: FloatArray
     valid_blocks: list[int] = field(default_factory=list)
+    reference_direction: ScanDirection | None = None
 
 
 def _stats(e: FloatArray) -> dict[str, Any]:
@@ -198,6 +201,7 @@ def _run_one(
             sigma_nm=float(series.sigma_nm[i]) if math.isfinite(series.sigma_nm[i]) else 0.0,
             direction=series.directions[i],
             frame=int(i),
+            reference_direction=series.reference_direction,
         )
         t0 = time.perf_counter()
         predictor.update(obs, history)

@@ -368,10 +368,14 @@ class PhysicsPredictor(_LoggingPredictor):
 
         With ``drift_only`` the terms that describe the measurement rather than
         the sample position (:attr:`EffectTerm.measurement_artefact`, e.g.
-        ``scan_direction``) are left out.
+        ``scan_direction``) take their value in a frame scanned like the
+        session reference, against which positions are measured (there the
+        artefact cancels, so that frame shows the drift itself); with the
+        reference's direction unknown they are left out.
         """
         t = as_times(t_s)
         sign = future_scan_sign(t, self.log.t(), np.asarray(self.log.scan_sign))
+        ref_sign = self.log.ref_sign
         mean = np.zeros((t.size, 2))
         var = np.zeros((t.size, 2))
         for axis, fit in enumerate(self.fits):
@@ -381,7 +385,17 @@ class PhysicsPredictor(_LoggingPredictor):
             for name, b in blocks:
                 block = _conform(b, widths[name])
                 if drift_only and name != "intercept" and self._term(name).measurement_artefact:
-                    block = np.zeros_like(block)
+                    if ref_sign is None:
+                        block = np.zeros_like(block)
+                    else:
+                        as_reference = self._term(name).design(
+                            t,
+                            history,
+                            scan_sign=np.full_like(sign, ref_sign),
+                            params=self.params[name],
+                            axis=axis,
+                        )
+                        block = _conform(as_reference, widths[name])
                 parts.append(block)
             x = np.hstack(parts)[:, fit.keep]
             mean[:, axis] = x @ fit.coef

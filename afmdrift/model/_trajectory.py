@@ -502,11 +502,16 @@ class DriftTrajectory:
                 f.p, f.sigma, f.fixed = p, s, fx
             self.bias, self.bias_var = bias, bias_var
 
+    @property
+    def origin_sign(self) -> int | None:
+        """Scan direction of the session reference (+1 up, −1 down; None before one)."""
+        return self.frames[self.origin[0]].sign if self.origin else None
+
     def _bias_shift(self, f: _Frame) -> float:
         """ds of frame ``f``: its positions are reported as p + ds·b, relative
         to the session reference's direction."""
-        ref_sign = self.frames[self.origin[0]].sign if self.origin else f.sign
-        return 0.5 * (f.sign - ref_sign)
+        ref_sign = self.origin_sign
+        return 0.5 * (f.sign - (f.sign if ref_sign is None else ref_sign))
 
     def estimate(self, key: int) -> FrameTrajectory:
         """The current estimate of frame ``key`` (bias of its direction included)."""

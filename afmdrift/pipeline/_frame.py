@@ -57,7 +57,7 @@ from afmdrift.pipeline._positions import (
     summarise_field,
 )
 from afmdrift.pipeline._records import FrameRecord, ResumeState, observation_from_record
-from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
+from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent, ScanDirection
 from afmdrift.wire import FieldSummary
 
 FloatArray = npt.NDArray[np.float64]
@@ -198,8 +198,10 @@ class FramePipeline:
         self.feed.push(channels, events)
         self.feed.advance(state.last.t_end_s)
         fed = [r for r in records if r.fed_model]
+        ref = state.reference_record
+        ref_direction = ScanDirection(ref.direction) if ref is not None else None
         for r in fed[-self.config.service.training_window :]:
-            self.observations.append(observation_from_record(r))
+            self.observations.append(observation_from_record(r, ref_direction))
         if self._load_predictor_state(state):
             self.n_fed = len(fed)
         elif state.predictor_state is not None and self.observations:
@@ -340,6 +342,7 @@ class FramePipeline:
                 sigma_nm=sigma,
                 direction=frame.direction,
                 frame=seq,
+                reference_direction=self.positions.reference_direction,
             )
             if self.observations and obs.t_s <= self.observations[-1].t_s:
                 reason = f"frame time {t:.3f} s is not after the last fed frame"

@@ -166,6 +166,15 @@ class DriftPositions:
     def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
         return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
 
+    @property
+    def reference_direction(self) -> ScanDirection | None:
+        """Slow-scan direction of the session reference that positions are
+        measured against (None before the first reference)."""
+        sign = self.trajectory.origin_sign
+        if sign is None:
+            return None
+        return ScanDirection.UP if sign > 0 else ScanDirection.DOWN
+
     def request_reset(self) -> None:
         """Make the next frame the registration reference (p stays continuous)."""
         self._reset_requested = True

@@ -26,6 +26,7 @@ __all__ = [
     "measurement_row",
     "observation_from_record",
     "record_from_row",
+    "reference_direction_of",
 ]
 
 
@@ -136,9 +137,12 @@ class ResumeState:
     t_ref_s: float | None
 
 
-def observation_from_record(r: FrameRecord) -> Observation:
+def observation_from_record(
+    r: FrameRecord, reference_direction: ScanDirection | None = None
+) -> Observation:
     """The model observation that a frame which fed the model contributed
-    (the mid-scan position for records written before ``obs_*`` existed)."""
+    (the mid-scan position for records written before ``obs_*`` existed);
+    ``reference_direction`` is the scan direction of the session reference."""
     if math.isfinite(r.obs_t_s):
         return Observation(
             t_s=r.obs_t_s,
@@ -147,6 +151,7 @@ def observation_from_record(r: FrameRecord) -> Observation:
             sigma_nm=r.obs_sigma_nm if math.isfinite(r.obs_sigma_nm) else 0.0,
             direction=ScanDirection(r.direction),
             frame=r.seq,
+            reference_direction=reference_direction,
         )
     return Observation(
         t_s=r.t_mid_s,
@@ -155,7 +160,16 @@ def observation_from_record(r: FrameRecord) -> Observation:
         sigma_nm=r.sigma_nm if math.isfinite(r.sigma_nm) else 0.0,
         direction=ScanDirection(r.direction),
         frame=r.seq,
+        reference_direction=reference_direction,
     )
+
+
+def reference_direction_of(records: Sequence[FrameRecord]) -> ScanDirection | None:
+    """Scan direction of the session reference among ``records`` (None if absent)."""
+    for r in records:
+        if r.reason == "reference":
+            return ScanDirection(r.direction)
+    return None
 
 
 def _fmt(v: Any) -> str:

@@ -16,7 +16,11 @@ from afmdrift.config import AfmdriftConfig
 from afmdrift.model import FrameTrajectory, MeasuredSeries
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
 from afmdrift.pipeline._frame import FramePipeline
-from afmdrift.pipeline._records import FrameRecord, observation_from_record
+from afmdrift.pipeline._records import (
+    FrameRecord,
+    observation_from_record,
+    reference_direction_of,
+)
 from afmdrift.records import EventKind, ScanDirection
 from afmdrift.session import Session, write_session
 
@@ -30,9 +34,10 @@ def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
     t = np.empty(n)
     xy = np.full((n, 2), np.nan)
     sigma = np.full(n, np.nan)
+    reference = reference_direction_of(records)
     for i, r in enumerate(records):
         if r.fed_model:
-            obs = observation_from_record(r)
+            obs = observation_from_record(r, reference)
             t[i], xy[i], sigma[i] = obs.t_s, (obs.x_nm, obs.y_nm), obs.sigma_nm
         else:
             t[i] = r.t_mid_s
@@ -44,6 +49,7 @@ def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
         directions=[ScanDirection(r.direction) for r in records],
         measure_ms=np.array([r.latency_s * 1e3 for r in records], dtype=np.float64),
         valid_blocks=[int(r.valid_blocks) if math.isfinite(r.x_nm) else -1 for r in records],
+        reference_direction=reference,
     )
 
 

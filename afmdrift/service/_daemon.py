@@ -141,8 +141,6 @@ class DriftService:
         self._absolute_offset_base: tuple[float, float] | None = None
         self._last_command: tuple[float, float] | None = None
         self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
-        self._last_frame_end_s: float | None = None
-        self._frame_period_s: float | None = None  # between the last two frame ends
         self._store: RunStore | None = None
         self._control: ControlSocket | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -356,9 +354,6 @@ class DriftService:
         self.frames_processed += 1
         self._frame_done.set()
         self.link.see_frame_end(outcome.record.t_end_s)
-        if self._last_frame_end_s is not None and outcome.record.t_end_s > self._last_frame_end_s:
-            self._frame_period_s = outcome.record.t_end_s - self._last_frame_end_s
-        self._last_frame_end_s = outcome.record.t_end_s
         self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
 
     async def wait_for_frames(self, n: int) -> None:
@@ -415,15 +410,18 @@ class DriftService:
 
     async def _velocity_tick(self, hold: tuple[float, float] | None) -> None:
         """Drive the instrument's own drift compensation: a piecewise-constant
-        velocity that brings the offset onto ``hold + d(t)`` one horizon ahead.
+        velocity that keeps the offset on ``hold + d(t)``.
 
-        ``v = (hold + d(t + H) − offset(t)) / H`` with the horizon ``H`` one
-        frame period (at least the time between two ticks). A ramp of d is
-        followed without lag, an error decays with time constant ``H``, and
-        the delay of a command behind a frame transfer (seconds) stays small
-        against ``H`` (a horizon of one tick would make the loop oscillate).
-        The velocity is limited to ``max_offset_rate_nm_s``; without a valid
-        prediction it is set to zero once.
+        ``v = (hold + d(t + τ) − offset(t))/τ``, with τ three tick intervals
+        (of instrument time, measured): the slope of d is fed forward, so a
+        ramp is followed without lag, and an error (a new d(t) after a frame,
+        a ramp booked late) decays with time constant τ. (With τ one frame
+        period, as before, a correction published at the end of a frame was
+        only a third applied by the middle of the next.) Three ticks keep the
+        loop stable when a command waits one tick behind a frame transfer: a
+        gain of 1/3 per tick, where an integrating loop with one tick of delay
+        oscillates from 1. The velocity is limited to ``max_offset_rate_nm_s``;
+        without a valid prediction it is set to zero once.
         """
         actuator = self.instrument
         assert isinstance(actuator, VelocityActuator)
@@ -437,10 +435,10 @@ class DriftService:
         ox, oy = await self.link.call(self.instrument.get_offset)
         prev = self._last_velocity
         tick = t_now - prev[0] if prev is not None and t_now > prev[0] else 1.0
-        horizon = max(tick, self._frame_period_s or 0.0)
-        target = curve.at([t_now + horizon]).reshape(-1)
-        vx = (hold[0] + float(target[0]) - ox) / horizon
-        vy = (hold[1] + float(target[1]) - oy) / horizon
+        tau = 3.0 * tick
+        target = curve.at([t_now + tau]).reshape(-1)
+        vx = (hold[0] + float(target[0]) - ox) / tau
+        vy = (hold[1] + float(target[1]) - oy) / tau
         speed = math.hypot(vx, vy)
         limit = self.svc.max_offset_rate_nm_s
         if speed > limit:

@@ -199,6 +199,32 @@ def test_future_scan_direction_alternates() -> None:
     assert drift[0, 0] == pytest.approx(0.0, abs=1e-6)
 
 
+@pytest.mark.parametrize("reference", [ScanDirection.UP, ScanDirection.DOWN])
+def test_drift_is_what_a_frame_scanned_like_the_reference_shows(reference: ScanDirection) -> None:
+    """Positions are measured against the session reference, so the scan-direction
+    bias cancels in frames of its direction and shifts the others by the whole
+    up-minus-down bias. The drift the tip follows is the former, not the midpoint
+    (which put a closed loop half a bias off, 1 nm in y on the default scenario)."""
+    t = np.arange(128.0, 30 * PERIOD_S, PERIOD_S)
+    sign = np.where(np.arange(t.size) % 2 == 0, 1.0, -1.0)
+    ref = 1.0 if reference is ScanDirection.UP else -1.0
+    bias = np.array([0.5, 2.0])
+    p = np.column_stack([0.01 * t, -0.005 * t])
+    xy = p + 0.5 * (sign - ref)[:, None] * bias[None, :]
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "scan_direction"], residual="none"))
+    for i, ti in enumerate(t):
+        d = ScanDirection.UP if sign[i] > 0 else ScanDirection.DOWN
+        obs = Observation(float(ti), float(xy[i, 0]), float(xy[i, 1]), 0.2, d, i, reference)
+        model.update(obs, History())
+    t_next = t[-1] + PERIOD_S
+    drift = model.predict_drift([t_next], History()).mean_nm[0]
+    assert drift == pytest.approx([0.01 * t_next, -0.005 * t_next], abs=1e-6)
+    # The state round trip keeps the reference's direction.
+    again = PhysicsPredictor(PhysicsConfig(terms=["trend", "scan_direction"], residual="none"))
+    again.load_state_dict(model.state_dict())
+    assert again.predict_drift([t_next], History()).mean_nm[0] == pytest.approx(drift, abs=1e-9)
+
+
 def test_unknown_term_is_a_config_error_naming_it() -> None:
     with pytest.raises(ConfigError, match="'thermall'"):
         PhysicsPredictor(PhysicsConfig(terms=["trend", "thermall"]))
