@@ -9,7 +9,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 from afmdrift.config import KalmanConfig, ModelConfig, NNConfig, PhysicsConfig
-from afmdrift.model._base import History, Observation, Prediction, Predictor
+from afmdrift.model._base import (
+    History,
+    Observation,
+    OffsetPlay,
+    Prediction,
+    Predictor,
+    events_of_kind,
+)
 from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
 from afmdrift.model._effects import (
     ENTRY_POINT_GROUP,
@@ -20,6 +27,9 @@ from afmdrift.model._effects import (
     available_terms,
     load_term_class,
     make_term,
+    offset_through_play,
+    play_gaps,
+    step_through_play,
 )
 from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
 from afmdrift.model._families import (
@@ -89,6 +99,7 @@ __all__ = [
     "NonlinearParam",
     "Observation",
     "OffsetCurve",
+    "OffsetPlay",
     "PhysicsConfig",
     "PhysicsPredictor",
     "Prediction",
@@ -99,18 +110,22 @@ __all__ = [
     "default_q",
     "drift_from_measurements",
     "evaluate_series",
+    "events_of_kind",
     "hermite_curve",
     "is_term_spec",
     "load_term_class",
     "make_predictor",
     "make_term",
     "offset_change_nm",
+    "offset_through_play",
     "parse_term_spec",
+    "play_gaps",
     "reconstruct_offset",
     "resolve_terms",
     "sinc_curve",
     "sinc_reconstruct",
     "solve_wls",
+    "step_through_play",
     "term_class",
     "truth_frame_mean",
 ]

@@ -18,7 +18,14 @@ import numpy.typing as npt
 
 from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
-__all__ = ["History", "Observation", "Prediction", "Predictor"]
+__all__ = [
+    "History",
+    "Observation",
+    "OffsetPlay",
+    "Prediction",
+    "Predictor",
+    "events_of_kind",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -53,6 +60,32 @@ class Observation:
     direction: ScanDirection = ScanDirection.UP
     frame: int = -1
     reference_direction: ScanDirection | None = None
+
+
+def events_of_kind(
+    events: Sequence[Event], kind: EventKind | str
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Times (n,) and ``(x_nm, y_nm)`` (n, 2) of the events of ``kind`` in
+    ``events``, in time order (stable for equal times)."""
+    ev = [e for e in events if e.kind == kind]
+    t = np.array([e.t_s for e in ev], dtype=np.float64)
+    xy = np.array([(e.x_nm, e.y_nm) for e in ev], dtype=np.float64).reshape(-1, 2)
+    order = np.argsort(t, kind="stable")
+    return t[order], xy[order]
+
+
+@dataclass(frozen=True, slots=True)
+class OffsetPlay:
+    """Fitted play (backlash) of the offset actuator (the ``hysteresis`` term).
+
+    After a commanded step Δ the scanner's gap to the command is
+    ``g' = clip(g − Δ, −play_nm, play_nm)`` (:func:`afmdrift.model.play_gaps`),
+    and the image content moves with the scanner by ``gain·g`` per axis
+    (gain 1 for a pure play; 0 on an axis where the fit found no hysteresis).
+    """
+
+    play_nm: float
+    gain: tuple[float, float]
 
 
 @dataclass(slots=True)
@@ -105,9 +138,7 @@ class History:
         name = str(kind)
         cached = self._kinds.get(name)
         if cached is None or cached[0] != key:
-            ev = [e for e in self.events if e.kind == kind]
-            t = np.array([e.t_s for e in ev], dtype=np.float64)
-            xy = np.array([(e.x_nm, e.y_nm) for e in ev], dtype=np.float64).reshape(-1, 2)
+            t, xy = events_of_kind(self.events, kind)
             cached = self._kinds[name] = (key, t, xy)
         return cached[1], cached[2]
 
@@ -181,6 +212,11 @@ class Predictor(abc.ABC):
         up/down scan bias; the default returns :meth:`predict`.
         """
         return self.predict(t_s, history)
+
+    def offset_play(self) -> OffsetPlay | None:
+        """The play hysteresis of offset moves this model has fitted, for a
+        closed loop to pre-compensate its own moves (None: not modelled)."""
+        return None
 
     def observed(self) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
         """Times (n,) and positions (n, 2) of the observations seen so far.

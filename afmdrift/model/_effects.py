@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import ClassVar
 
+import numba
 import numpy as np
 import numpy.typing as npt
 from scipy.signal import lfilter
@@ -60,6 +61,9 @@ __all__ = [
     "available_terms",
     "load_term_class",
     "make_term",
+    "offset_through_play",
+    "play_gaps",
+    "step_through_play",
 ]
 
 _log = logging.getLogger(__name__)
@@ -484,17 +488,92 @@ class ScanDirectionBias(EffectTerm):
         return (0.5 * np.asarray(scan_sign, dtype=np.float64))[:, None]
 
 
-class Hysteresis(EffectTerm):
-    """Direction-dependent positioning error after offset moves.
+@numba.njit(cache=True, nogil=True)
+def _play_gaps(steps: FloatArray, r: float, gap0: float) -> FloatArray:  # pragma: no cover
+    out = np.empty(steps.size)
+    g = gap0
+    for k in range(steps.size):
+        # the commanded offset moves by steps[k]; the scanner y stays put while
+        # |c − y| ≤ r, else it is dragged along: g = y − c stays in [−r, r]
+        g = min(max(g - steps[k], -r), r)
+        out[k] = g
+    return out
 
-    p(t) = h·sign(Δ_last(t)), Δ_last the step on this axis of the most recent
-    ``offset_move`` before t with a nonzero step on this axis (0 before any).
-    h (nm) is half the hysteresis gap between approaching a position from
-    below and from above.
+
+def play_gaps(steps: npt.ArrayLike, play_nm: float, gap0_nm: float = 0.0) -> FloatArray:
+    """Gap g = y − c between the scanner y and the commanded offset c after
+    each of ``steps`` (one axis), for a play (backlash) of half-width
+    ``play_nm`` that starts with gap ``gap0_nm``: ``g_k = clip(g_{k−1} − Δ_k, −r, r)``.
+    """
+    return np.asarray(
+        _play_gaps(np.ascontiguousarray(steps, dtype=np.float64), float(play_nm), float(gap0_nm)),
+        dtype=np.float64,
+    )
+
+
+def step_through_play(want_nm: float, gap_nm: float, play_nm: float, gain: float) -> float:
+    """The commanded step Δ (one axis) that moves the image content by
+    ``want_nm``, counting the change of the play gap it causes.
+
+    A step Δ moves the content by ``Δ − gain·(g' − g)`` with
+    ``g' = clip(g − Δ, −r, r)`` (:func:`play_gaps`); for gain > −1 that is
+    increasing in Δ and piecewise linear, so it inverts in closed form: inside
+    the play a step moves the content by ``(1 + gain)·Δ``, beyond it by
+    ``Δ + gain·(r ± g)``.
+    """
+    r, k, g = float(play_nm), float(gain), float(gap_nm)
+    if k <= -1.0:
+        raise ValueError(f"play gain {k} must be > -1 (the content would not follow the command)")
+    if want_nm >= (g + r) * (1.0 + k):
+        return float(want_nm - k * (r + g))
+    if want_nm <= (g - r) * (1.0 + k):
+        return float(want_nm + k * (r - g))
+    return float(want_nm / (1.0 + k))
+
+
+def offset_through_play(
+    want_nm: float, *, sent: float, gap_nm: float, gap_seen_nm: float, play_nm: float, gain: float
+) -> float:
+    """The absolute offset to command (one axis) so the image lands where
+    ``want_nm`` would put it without the play.
+
+    ``want_nm`` is the hold position plus d(t), and d(t) holds ``gain`` times
+    the gap after the moves the model has seen (``gap_seen_nm``). ``sent`` is
+    the last offset commanded and ``gap_nm`` the gap after it. The step from
+    ``sent`` moves the content by what d(t) asks, plus what the gap changed
+    since the model's moves, through :func:`step_through_play`.
+    """
+    if gain == 0.0:
+        return float(want_nm)
+    move = want_nm - sent + gain * (gap_nm - gap_seen_nm)
+    return float(sent + step_through_play(move, gap_nm, play_nm, gain))
+
+
+class Hysteresis(EffectTerm):
+    """Positioning error of offset moves: a play (backlash) operator.
+
+    The scanner follows the commanded offset c (the sum of the logged
+    ``offset_move`` steps on this axis) with a play of half-width r: after
+    each move y = clip(y_prev, c − r, c + r), so the gap g = y − c stays in
+    [−r, r] (one Prandtl–Ishlinskii play operator, the elementary model of
+    piezo hysteresis; e.g. Kuhnen & Janocha, ESAIM: COCV 6, 407 (2001)).
+
+    p(t) = h·s(t), s = −g/r ∈ [−1, 1] after the latest move before t (0
+    before any). A move of more than 2r gives s = sign of that move, so h (nm)
+    is half the hysteresis gap between approaching a position from below and
+    from above; small moves back and forth (a closed loop holding a spot)
+    travel through the play and move s gradually. r (nm, ``play_nm``) is
+    fitted; below the smallest move it is the sign of the last move.
     """
 
     name = "hysteresis"
     coefficient_units = ("h_nm",)
+    nonlinear_params = (NonlinearParam("play_nm", 0.05, 10.0, 1.0, grid_points=12),)
+
+    def missing(self, history: History) -> str | None:
+        if not history.of_kind(EventKind.OFFSET_MOVE)[0].size:
+            return "no offset_move event logged"
+        return None
 
     def design(
         self,
@@ -506,13 +585,13 @@ class Hysteresis(EffectTerm):
         axis: int,
     ) -> FloatArray:
         tm, dm = _moves(history, axis)
-        keep = dm != 0.0
-        tm, sign = tm[keep], np.sign(dm[keep])
         out = np.zeros_like(t_s)
         if tm.size:
+            r = float(params["play_nm"])
+            s = -play_gaps(dm, r) / r
             k = np.searchsorted(tm, t_s, side="right") - 1
             ok = k >= 0
-            out[ok] = sign[k[ok]]
+            out[ok] = s[k[ok]]
         return out[:, None]
 
 

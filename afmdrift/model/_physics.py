@@ -45,7 +45,7 @@ import numpy.typing as npt
 from scipy.optimize import minimize_scalar
 
 from afmdrift.config import NNConfig, PhysicsConfig
-from afmdrift.model._base import History, Observation, Prediction
+from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
 from afmdrift.model._effects import EffectTerm
 from afmdrift.model._families import resolve_terms
@@ -326,6 +326,7 @@ class PhysicsPredictor(_LoggingPredictor):
                         best_log = float(res.x)
                     obj(best_log)
         self.params = params
+        active = self._prune(active, t, xy, w, sign, history)
         self.active = active
         self.add_intercept = self._needs_intercept(active)
         self.fits = []
@@ -339,6 +340,57 @@ class PhysicsPredictor(_LoggingPredictor):
             self.fits.append(fit)
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
         self._fit_residual(t, residuals, history)
+
+    def _prune(
+        self,
+        active: list[str],
+        t: FloatArray,
+        xy: FloatArray,
+        w: FloatArray,
+        sign: FloatArray,
+        history: History,
+    ) -> list[str]:
+        """Backward elimination by AICc (Hurvich & Tsai, Biometrika 76, 297
+        (1989)): while leaving one term out (its nonlinear parameters counted
+        as parameters) lowers the AICc of the fit of both axes, the term that
+        lowers it most is left out. Early in a session this keeps a time
+        constant that a dozen points cannot pin down from steering the
+        prediction; later it drops a term the data do not support. Terms that
+        provide the intercept stay.
+        """
+        blocks = [
+            dict(self.design_blocks(t, history, sign, axis, active=active, params=self.params))
+            for axis in (0, 1)
+        ]
+        n_obs = 2 * t.size
+
+        def aicc(names: list[str]) -> float:
+            wrss, k = 0.0, 0
+            for axis in (0, 1):
+                cols = [
+                    b for name, b in blocks[axis].items() if name == "intercept" or name in names
+                ]
+                fit = solve_wls(np.hstack(cols), xy[:, axis], w)
+                wrss += fit.wrss
+                k += int(fit.keep.sum())
+            k += sum(len(self._term(name).nonlinear_params) for name in names)
+            wrss = max(wrss, 1e-12 * n_obs)
+            return float(
+                n_obs * math.log(wrss / n_obs) + 2 * k + 2 * k * (k + 1) / max(n_obs - k - 1, 1)
+            )
+
+        current = list(active)
+        best = aicc(current)
+        while True:
+            droppable = [n for n in current if not self._term(n).provides_intercept]
+            if not droppable:
+                return current
+            scores = {n: aicc([m for m in current if m != n]) for n in droppable}
+            name = min(scores, key=scores.__getitem__)
+            if scores[name] >= best:
+                return current
+            current.remove(name)
+            best = scores[name]
 
     def _fit_residual(self, t: FloatArray, residuals: FloatArray, history: History) -> None:
         self.last_residual = residuals[-1].copy()
@@ -443,6 +495,32 @@ class PhysicsPredictor(_LoggingPredictor):
         return Prediction(t, mean, sigma)
 
     # ------------------------------------------------------------------ state
+    def offset_play(self) -> OffsetPlay | None:
+        """The fitted ``hysteresis`` play: half-width r and, per axis, the gain
+        −h/r by which the measured position follows the play gap (clipped to
+        [−0.9, 1.5]; 0 where h is within 2σ of zero)."""
+        if "hysteresis" not in self.active or not self.fits:
+            return None
+        r = float(self.params["hysteresis"]["play_nm"])
+        gain = [0.0, 0.0]
+        for axis, fit in enumerate(self.fits):
+            start = 0
+            for name, k in self.columns[axis]:
+                if name == "hysteresis":
+                    break
+                start += k
+            else:
+                continue
+            if not fit.keep[start]:
+                continue
+            j = int(np.count_nonzero(fit.keep[:start]))
+            h, var = float(fit.coef[j]), float(fit.cov[j, j])
+            if math.isfinite(h) and h * h > 4.0 * max(var, 0.0):
+                gain[axis] = min(max(-h / r, -0.9), 1.5)
+        if gain == [0.0, 0.0]:
+            return None
+        return OffsetPlay(play_nm=r, gain=(gain[0], gain[1]))
+
     def coefficients(self) -> dict[str, dict[str, list[float]]]:
         """Fitted linear coefficients per active term and axis (x, y), for reports.
 

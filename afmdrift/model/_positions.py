@@ -45,6 +45,7 @@ from collections.abc import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.model._base import events_of_kind
 from afmdrift.records import Event, EventKind, Frame
 
 __all__ = [
@@ -72,14 +73,10 @@ def commanded_offset_nm(t_s: npt.ArrayLike, events: Sequence[Event]) -> npt.NDAr
         O(t) in nm, zero before the first move.
     """
     t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
-    moves = [e for e in events if e.kind is EventKind.OFFSET_MOVE]
-    if not moves:
+    mt, steps = events_of_kind(events, EventKind.OFFSET_MOVE)
+    if not mt.size:
         return np.zeros((t.size, 2))
-    mt = np.array([e.t_s for e in moves], dtype=np.float64)
-    order = np.argsort(mt, kind="stable")
-    mt = mt[order]
-    cum = np.cumsum(np.array([[e.x_nm, e.y_nm] for e in moves], dtype=np.float64)[order], axis=0)
-    cum = np.vstack([np.zeros((1, 2)), cum])
+    cum = np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
     k = np.searchsorted(mt, t, side="right")
     return np.asarray(cum[k], dtype=np.float64)
 

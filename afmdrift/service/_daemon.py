@@ -40,14 +40,21 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TypeVar
 
+import numpy as np
+import numpy.typing as npt
 import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.drivers import Instrument, VelocityActuator
 from afmdrift.errors import ConfigError
-from afmdrift.model import commanded_offset_nm
+from afmdrift.model import (
+    commanded_offset_nm,
+    events_of_kind,
+    offset_through_play,
+    play_gaps,
+)
 from afmdrift.pipeline import FramePipeline
-from afmdrift.records import InstrumentInfo
+from afmdrift.records import EventKind, InstrumentInfo
 from afmdrift.registration import warm_up
 from afmdrift.service._acquire import Acquisition, FrameBatch
 from afmdrift.service._control import Controller
@@ -140,6 +147,8 @@ class DriftService:
         self._frame_done = asyncio.Event()
         self._absolute_offset_base: tuple[float, float] | None = None
         self._last_command: tuple[float, float] | None = None
+        # offset_move steps of the event log (n, 2), and the log length they are of
+        self._play_steps: tuple[int, npt.NDArray[np.float64]] = (-1, np.zeros((0, 2)))
         self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
         self._store: RunStore | None = None
         self._control: ControlSocket | None = None
@@ -399,6 +408,7 @@ class DriftService:
             return
         x = hold[0] + last.x_nm
         y = hold[1] + last.y_nm
+        x, y = self._through_play(x, y)
         if (
             self._last_command is not None
             and math.hypot(x - self._last_command[0], y - self._last_command[1])
@@ -407,6 +417,43 @@ class DriftService:
             return
         await self.link.set_offset(x, y)
         self._last_command = (x, y)
+
+    def _through_play(self, x: float, y: float) -> tuple[float, float]:
+        """The offset to command so the image lands where ``(x, y)`` would put
+        it without the play hysteresis of the offset actuator (the model's
+        ``hysteresis`` term, when fitted).
+
+        d(t) already holds the play gap after the moves the model has seen;
+        what the moves since then, and this one, change in it is added here
+        (:func:`~afmdrift.model.step_through_play`). Moves sent but not yet
+        back in the event log count as one step.
+        """
+        play = self.pipeline.predictor.offset_play()
+        base = self._absolute_offset_base
+        if play is None or base is None:
+            return x, y
+        events = self.acquisition.events
+        if self._play_steps[0] != len(events):
+            self._play_steps = (len(events), events_of_kind(events, EventKind.OFFSET_MOVE)[1])
+        steps = self._play_steps[1]
+        logged = np.asarray(base) + steps.sum(axis=0)
+        sent = np.asarray(self._last_command) if self._last_command is not None else logged
+        seen = self.pipeline.history.of_kind(EventKind.OFFSET_MOVE)[1]
+        out = []
+        for axis, want in enumerate((x, y)):
+            g_now = play_gaps(np.append(steps[:, axis], sent[axis] - logged[axis]), play.play_nm)
+            g_seen = play_gaps(seen[:, axis], play.play_nm)
+            out.append(
+                offset_through_play(
+                    want,
+                    sent=float(sent[axis]),
+                    gap_nm=float(g_now[-1]),
+                    gap_seen_nm=float(g_seen[-1]) if g_seen.size else 0.0,
+                    play_nm=play.play_nm,
+                    gain=play.gain[axis],
+                )
+            )
+        return out[0], out[1]
 
     async def _velocity_tick(self, hold: tuple[float, float] | None) -> None:
         """Drive the instrument's own drift compensation: a piecewise-constant

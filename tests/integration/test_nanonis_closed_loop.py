@@ -48,7 +48,9 @@ async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
                 clock_signal=CLOCK_SIGNAL,
                 wait_ms=100,
             )
-            # The project's default registration and model; the service's loops fast.
+            # The project's default registration and model, with the hysteresis
+            # of the offset moves (a play) that `afmdrift diagnose` names on a
+            # closed-loop run of this scenario; the service's loops fast.
             svc = service_config(
                 run_dir,
                 closed_loop=True,
@@ -56,7 +58,13 @@ async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
                 closed_loop_interval_s=0.1,
                 closed_loop_min_step_nm=0.0,
             ).service
-            cfg = parse_config({"service": svc.model_dump(mode="json", exclude_defaults=True)})
+            terms = ["trend", "warmup", "thermal_lag", "creep", "hysteresis", "scan_direction"]
+            cfg = parse_config(
+                {
+                    "service": svc.model_dump(mode="json", exclude_defaults=True),
+                    "model": {"physics": {"terms": terms}},
+                }
+            )
             async with running_service(cfg, driver, ctx) as service:
                 async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
                     while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
@@ -92,14 +100,15 @@ async def test_two_hours_of_closed_loop_hold_the_image_while_the_sample_drifts(
     and holds the image content near its first position while the sample drifts
     by more than 50 nm.
 
-    Regression guard at the measured level, not the issue's target: issue 15
-    asks for 2 nm RMS; measured (benchmarks/RESULTS.md, 2026-11-25 evening)
-    2.4 nm RMS through Scan.FrameSet and 3.0 nm through Piezo.DriftCompSet,
-    against 120 to 130 nm of drift, every frame recorded.
+    Issue 15 asks for 2 nm RMS; measured (benchmarks/RESULTS.md, 2026-11-26)
+    1.90 to 1.92 nm through Scan.FrameSet and 1.55 nm through
+    Piezo.DriftCompSet, against 120 to 132 nm of drift, every frame recorded.
+    The guard leaves room for the run-to-run spread under CI load.
     """
     m = await _closed_loop(tmp_path / "run", actuator)
     print(f"closed loop via {actuator}: {m}")
     assert m["frames"] > 100
     assert m["drift_nm"] > 50.0
-    assert m["rms_nm"] < 4.5
+    assert m["rms_nm"] < 2.5
+    assert m["rms_after_10_frames_nm"] < 2.0
     assert m["recentres"] == 0

@@ -25,7 +25,12 @@ from afmdrift.model import (
     make_term,
     parse_term_spec,
 )
-from afmdrift.model._effects import log_creep_sum
+from afmdrift.model._effects import (
+    log_creep_sum,
+    offset_through_play,
+    play_gaps,
+    step_through_play,
+)
 from afmdrift.model._synthetic import synthetic_series
 from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
@@ -506,3 +511,123 @@ def test_event_arrays_follow_the_log() -> None:
     assert xy[:, 0].tolist() == [-1.0, 1.0]
     assert history.of_kind("door")[0].tolist() == [7.0]
     assert history.of_kind(EventKind.POWER_ON)[0].size == 0
+
+
+def test_play_gaps_and_their_inverse() -> None:
+    """The gap g = y − c of a play of half-width r, and the step that moves the
+    content by a wanted amount through it (checked by applying it)."""
+    np.testing.assert_allclose(play_gaps([1.0, 1.0, -0.5, -3.0], 1.0), [-1.0, -1.0, -0.5, 1.0])
+    np.testing.assert_allclose(play_gaps([0.2], 1.0, gap0_nm=0.9), [0.7])
+    for want in (-5.0, -1.0, -0.2, 0.0, 0.3, 1.0, 5.0):
+        for gap in (-1.0, 0.0, 0.5):
+            for gain in (1.0, -0.5, 0.0, 1.5):
+                step = step_through_play(want, gap, 1.0, gain)
+                after = float(np.clip(gap - step, -1.0, 1.0))
+                assert step - gain * (after - gap) == pytest.approx(want, abs=1e-9)
+    with pytest.raises(ValueError, match="gain"):
+        step_through_play(1.0, 0.0, 1.0, -1.0)
+
+
+def test_hysteresis_play_and_gain_recovered_from_small_moves_back_and_forth() -> None:
+    """A closed loop moves the offset in small steps that reverse: the position
+    follows the scanner's play gap (r = 2 nm, gain 1 in x, 0.5 in y), which the
+    sign of the last move cannot describe."""
+    rng = np.random.default_rng(5)
+    t_moves = np.arange(10.0, 7200.0, 5.0)
+    steps = np.cumsum(rng.normal(0.0, 0.3, size=(t_moves.size, 2)), axis=0) * 0.05
+    steps += rng.normal(0.0, 0.4, size=steps.shape)
+    h = History()
+    h.add_events(
+        [
+            Event(float(t), EventKind.OFFSET_MOVE, *map(float, s))
+            for t, s in zip(t_moves, steps, strict=True)
+        ]
+    )
+    gain = np.array([1.0, 0.5])
+    gaps = np.column_stack([play_gaps(steps[:, a], 2.0) for a in (0, 1)])
+    t = np.arange(64.0, 7200.0, 64.0)
+    k = np.searchsorted(t_moves, t, side="right") - 1
+    xy = 0.01 * t[:, None] + gain[None, :] * np.where(k[:, None] >= 0, gaps[np.maximum(k, 0)], 0.0)
+    xy += rng.normal(0.0, 0.1, size=xy.shape)
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "hysteresis"], residual="none"))
+    _feed(model, t, xy, h, sigma_nm=0.1)
+    play = model.offset_play()
+    assert play is not None
+    assert play.play_nm == pytest.approx(2.0, rel=0.15)
+    assert play.gain == pytest.approx((1.0, 0.5), abs=0.1)
+
+
+def test_no_offset_play_without_moves() -> None:
+    t = np.arange(64.0, 3600.0, 64.0)
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "hysteresis"], residual="none"))
+    _feed(model, t, np.column_stack([0.01 * t, 0.0 * t]), History())
+    assert model.active == ["trend"]
+    assert model.offset_play() is None
+
+
+def test_a_time_constant_the_data_do_not_support_is_left_out() -> None:
+    """AICc backward elimination: on a steady drift with noise the warm-up and
+    thermal-lag terms (each a time constant and a column per axis) would bend
+    the extrapolation; they are left out, and the prediction stays on the ramp."""
+    rng = np.random.default_rng(11)
+    t = np.arange(128.0, 40 * PERIOD_S, PERIOD_S)
+    h = _temperature_history(float(t[-1]))
+    h.add_events([Event(0.0, EventKind.POWER_ON)])
+    xy = np.column_stack([0.02 * t, -0.01 * t]) + rng.normal(0.0, 0.3, size=(t.size, 2))
+    model = PhysicsPredictor(
+        PhysicsConfig(terms=["trend", "warmup", "thermal_lag"], residual="none")
+    )
+    _feed(model, t, xy, h, sigma_nm=0.3)
+    assert model.active == ["trend"]
+    t_next = t[-1] + PERIOD_S
+    p = model.predict([t_next], h).mean_nm[0]
+    assert p == pytest.approx([0.02 * t_next, -0.01 * t_next], abs=0.5)
+
+
+def test_a_loop_through_the_inverse_play_holds_the_image_on_a_simulated_scanner() -> None:
+    """A closed loop on the simulator's scanner (play of half-width 2 nm, the
+    image following the scanner's gap): commanding ``hold + d`` directly lets
+    the image jump by up to 4 nm each time the moves reverse; through
+    :func:`offset_through_play`, with d(t) knowing the gap only up to a few
+    moves back (as a model fitted at the last frame does), it stays put."""
+    from afmdrift.drivers.sim import SimulatedAFM
+
+    rng = np.random.default_rng(2)
+    drift = np.cumsum(rng.normal(0.0, 0.8, size=(400, 2)), axis=0)  # reverses often
+    play = 2.0
+    shown = {}
+    for through in (False, True):
+        sim = SimulatedAFM.from_scenario("default")
+        physics = sim.physics
+        sent = np.zeros(2)
+        gaps: list[np.ndarray] = []
+        image = []
+        for k, d_true in enumerate(drift):
+            t = 10.0 + k
+            # what d(t) knows: the true drift plus the gap after the moves up to k - 5
+            seen = gaps[-5] if len(gaps) >= 5 else np.zeros(2)
+            want = d_true + seen
+            cmd = np.array(want)
+            if through:
+                now = gaps[-1] if gaps else np.zeros(2)
+                cmd = np.array(
+                    [
+                        offset_through_play(
+                            float(want[a]),
+                            sent=float(sent[a]),
+                            gap_nm=float(now[a]),
+                            gap_seen_nm=float(seen[a]),
+                            play_nm=play,
+                            gain=1.0,
+                        )
+                        for a in (0, 1)
+                    ]
+                )
+            move = physics.command_offset(t, float(cmd[0]), float(cmd[1]))
+            sent = cmd
+            gaps.append(np.array([move.ex_nm, move.ey_nm]))
+            # the image shows the drift plus the scanner's gap, less the command
+            image.append(d_true + gaps[-1] - cmd)
+        shown[through] = np.asarray(image)[20:]
+    assert np.abs(shown[False]).max() > 2.0
+    assert np.abs(shown[True]).max() < 1e-6
