@@ -29,7 +29,10 @@ size-stability check needs periodic scans anyway.
 
 Files present when the instrument first connects are not read (unless
 ``include_existing``): the run starts with the next image saved. A file that
-is rewritten later (new size or mtime) is read again as a new frame.
+is rewritten later (new size or mtime) is read again as a new frame, unless
+its image data are those it gave last time (a writer that appends bytes after
+an image a reader had already accepted whole): that frame would read as no
+drift between the two reads.
 
 Timing
 ------
@@ -70,6 +73,7 @@ from __future__ import annotations
 
 import asyncio
 import csv
+import hashlib
 import io
 import logging
 import math
@@ -152,6 +156,13 @@ class _Watched:
     attempts: int = 0
 
 
+def _digest(images: list[AfmImage]) -> bytes:
+    h = hashlib.blake2b(digest_size=16)
+    for image in images:
+        h.update(image.heights_nm.tobytes())
+    return h.digest()
+
+
 class FolderInstrument(ConnectOnEnter):
     """A folder of image files saved by vendor software, seen as an instrument.
 
@@ -223,6 +234,9 @@ class FolderInstrument(ConnectOnEnter):
         self.skipped: list[tuple[str, str]] = []
         self.read_errors = 0
         self._files: dict[str, _Watched] = {}
+        # digest of the image data each file last gave, to tell a rewrite that
+        # changed nothing in it (e.g. trailing bytes after a complete image)
+        self._digests: dict[str, bytes] = {}
         self._queue: deque[tuple[str, Frame]] = deque()
         self._latest: Frame | None = None
         self._next_index = 0
@@ -336,6 +350,7 @@ class FolderInstrument(ConnectOnEnter):
                 ready.append(name)
         for name in set(self._files) - set(seen):
             del self._files[name]
+            self._digests.pop(name, None)
         return ready
 
     def _read_ready(self, names: list[str]) -> None:
@@ -361,6 +376,14 @@ class FolderInstrument(ConnectOnEnter):
                     log.info("%s: not readable yet (%s); retrying", name, err)
                 continue
             watched.state = "read"
+            digest = _digest(images)
+            if self._digests.get(name) == digest:
+                # A writer finished a file whose image data a reader had
+                # already accepted whole: the same frame again would read as
+                # no drift over the time between the two reads.
+                log.debug("%s changed, but not its image data; not read again", name)
+                continue
+            self._digests[name] = digest
             for k, (t_start, t_end, image) in enumerate(self._times(images, watched.mtime_s)):
                 new.append((t_end, name, k, t_start, image))
         new.sort(key=lambda item: item[:3])

@@ -91,6 +91,32 @@ async def test_existing_files_are_skipped_new_ones_read_in_time_order(tmp_path: 
 
 
 @pytest.mark.asyncio
+async def test_bytes_appended_after_a_whole_image_do_not_give_the_frame_again(
+    tmp_path: Path,
+) -> None:
+    """A writer whose last chunk only adds bytes after image data a reader had
+    already accepted: the same frame again, later, would read as no drift. A
+    file rewritten with other data is a new frame."""
+    inst = FolderInstrument(tmp_path, poll_s=POLL_S, line_time_s=0.01)
+    async with inst:
+        p = _tif(tmp_path / "x.tif", 1)
+        (first,) = await _drain(inst, until=1)
+        with p.open("ab") as f:
+            f.write(b"\0" * 64)
+        for _ in range(8):
+            latest = await inst.latest_frame()
+            assert latest is None or latest.index == first.index
+            await asyncio.sleep(POLL_S)
+        assert inst.delivered == ["x.tif"]
+        _tif(p, 2)
+        async with asyncio.timeout(10):
+            while (latest := await inst.latest_frame()) is None or latest.index == first.index:  # noqa: ASYNC110 (polls as the service does)
+                await asyncio.sleep(POLL_S / 2)
+    assert inst.delivered == ["x.tif", "x.tif"]
+    np.testing.assert_allclose(latest.heights_nm, _image(2).astype(np.float32))
+
+
+@pytest.mark.asyncio
 async def test_header_time_that_does_not_fit_the_mtime_is_replaced(tmp_path: Path) -> None:
     """A file copied from an old run keeps its duration but ends at its mtime."""
     inst = FolderInstrument(tmp_path, poll_s=POLL_S)
