@@ -501,12 +501,17 @@ JUMP_Z = 20.0
 #: After an offset move, a change of p larger than this fraction of the move
 #: is a jump (creep and hysteresis stay well below it).
 JUMP_MOVE_FRACTION = 0.5
+#: ... for moves this many times the median frame-to-frame change of p; the
+#: smaller moves of a closed loop following the drift are judged like frames
+#: without a move.
+JUMP_MOVE_SIZE = 5.0
 
 
 def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
     """Frames whose measured position jumps implausibly, as (index into the
     run, jump (x, y) in nm): a robust z of the Euclidean increment above
-    :data:`JUMP_Z`, or, across an offset move, an increment larger than
+    :data:`JUMP_Z`, or, across an offset move of more than
+    :data:`JUMP_MOVE_SIZE` median increments, an increment larger than
     :data:`JUMP_MOVE_FRACTION` of the move."""
 
     inc = np.diff(run.measured_nm, axis=0)
@@ -514,12 +519,14 @@ def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
         return []
     size = np.hypot(inc[:, 0], inc[:, 1])
     z = robust_z(size)
-    moves = [e for e in run.history.events if e.kind is EventKind.OFFSET_MOVE]
+    typical = float(np.nanmedian(size))
+    mt, steps = run.history.of_kind(EventKind.OFFSET_MOVE)
+    moved_by = np.hypot(steps[:, 0], steps[:, 1])
     out: list[tuple[int, FloatArray]] = []
     for i in range(inc.shape[0]):
         t0, t1 = run.t_s[i], run.t_s[i + 1]
-        moved = sum(math.hypot(e.x_nm, e.y_nm) for e in moves if t0 < e.t_s <= t1)
-        if moved > 0:
+        moved = float(moved_by[(mt > t0) & (mt <= t1)].sum())
+        if moved > JUMP_MOVE_SIZE * typical:
             if size[i] > JUMP_MOVE_FRACTION * moved:
                 out.append((i + 1, inc[i]))
         elif z[i] > JUMP_Z:

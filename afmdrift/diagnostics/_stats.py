@@ -28,7 +28,7 @@ import numpy.typing as npt
 from scipy import signal, stats
 
 from afmdrift.diagnostics._data import RunData
-from afmdrift.records import Event
+from afmdrift.records import Event, EventKind
 
 __all__ = [
     "Failure",
@@ -436,23 +436,45 @@ class _Logged:
         """Events from two frame intervals before ``t0_s`` to ``t1_s``: tags and notes."""
         tags: list[str] = []
         parts: list[str] = []
+        moves = [
+            e
+            for e in self.events
+            if e.kind is EventKind.OFFSET_MOVE and t0_s - 2.0 * self.step_s <= e.t_s <= t1_s
+        ]
         for ev in self.events:
             if t0_s - 2.0 * self.step_s <= ev.t_s <= t1_s:
                 tag = str(ev.kind)
                 if tag not in tags:
                     tags.append(tag)
-                dt_s = t0_s - ev.t_s
-                if dt_s < 0:
-                    when = f"inside, at t = {ev.t_s:.0f} s"
-                elif dt_s < 90:
-                    when = f"{dt_s:.0f} s before"
-                else:
-                    when = f"{dt_s / 60:.0f} min before"
+                if tag == "offset_move" and len(moves) > _MOVES_LISTED:
+                    continue
+                when = _when(t0_s - ev.t_s, ev.t_s)
                 if tag == "offset_move":
                     parts.append(f"offset move of ({ev.x_nm:+.0f}, {ev.y_nm:+.0f}) nm {when}")
                 else:
                     parts.append(f"{tag.replace('_', ' ')} {when}")
+        if len(moves) > _MOVES_LISTED:
+            # a closed loop moves every few seconds: one line for all of them
+            net = (sum(e.x_nm for e in moves), sum(e.y_nm for e in moves))
+            first = _when(t0_s - moves[0].t_s, moves[0].t_s)
+            parts.append(
+                f"{len(moves)} offset moves (a closed loop?) adding up to "
+                f"({net[0]:+.0f}, {net[1]:+.0f}) nm, the first {first}"
+            )
         return tags, parts
+
+
+#: More offset moves than this in one episode are summed in one note.
+_MOVES_LISTED = 3
+
+
+def _when(dt_s: float, t_s: float) -> str:
+    """How long before an episode (starting ``dt_s`` after ``t_s``) an event was."""
+    if dt_s < 0:
+        return f"inside, at t = {t_s:.0f} s"
+    if dt_s < 90:
+        return f"{dt_s:.0f} s before"
+    return f"{dt_s / 60:.0f} min before"
 
 
 def _episode(

@@ -80,8 +80,9 @@ class OffsetPlay:
 
     After a commanded step Δ the scanner's gap to the command is
     ``g' = clip(g − Δ, −play_nm, play_nm)`` (:func:`afmdrift.model.play_gaps`),
-    and the image content moves with the scanner by ``gain·g`` per axis
-    (gain 1 for a pure play; 0 on an axis where the fit found no hysteresis).
+    and the measured position p moves by ``gain·g`` per axis (−1 for a
+    scanner that lags its command by the play, the image moving with the
+    scanner; 0 on an axis where the fit found no hysteresis).
     """
 
     play_nm: float

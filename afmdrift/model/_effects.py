@@ -516,14 +516,20 @@ def step_through_play(want_nm: float, gap_nm: float, play_nm: float, gain: float
     ``want_nm``, counting the change of the play gap it causes.
 
     A step Δ moves the content by ``Δ − gain·(g' − g)`` with
-    ``g' = clip(g − Δ, −r, r)`` (:func:`play_gaps`); for gain > −1 that is
-    increasing in Δ and piecewise linear, so it inverts in closed form: inside
-    the play a step moves the content by ``(1 + gain)·Δ``, beyond it by
-    ``Δ + gain·(r ± g)``.
+    ``g' = clip(g − Δ, −r, r)`` (:func:`play_gaps`); for gain ≥ −1 that is
+    non-decreasing in Δ and piecewise linear, so it inverts in closed form:
+    inside the play a step moves the content by ``(1 + gain)·Δ``, beyond it by
+    ``Δ + gain·(r ± g)``. Gain −1 is a scanner that lags its command by the
+    play (a step inside it moves nothing): the step then takes up the play and
+    goes on by ``want_nm``.
     """
     r, k, g = float(play_nm), float(gain), float(gap_nm)
-    if k <= -1.0:
-        raise ValueError(f"play gain {k} must be > -1 (the content would not follow the command)")
+    if k < -1.0:
+        raise ValueError(
+            f"play gain {k} must be >= -1 (the content would move against the command)"
+        )
+    if want_nm == 0.0:
+        return 0.0
     if want_nm >= (g + r) * (1.0 + k):
         return float(want_nm - k * (r + g))
     if want_nm <= (g - r) * (1.0 + k):

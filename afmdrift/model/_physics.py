@@ -498,7 +498,7 @@ class PhysicsPredictor(_LoggingPredictor):
     def offset_play(self) -> OffsetPlay | None:
         """The fitted ``hysteresis`` play: half-width r and, per axis, the gain
         −h/r by which the measured position follows the play gap (clipped to
-        [−0.9, 1.5]; 0 where h is within 2σ of zero)."""
+        [−1, 1.5]; 0 where h is within 2σ of zero)."""
         if "hysteresis" not in self.active or not self.fits:
             return None
         r = float(self.params["hysteresis"]["play_nm"])
@@ -516,7 +516,7 @@ class PhysicsPredictor(_LoggingPredictor):
             j = int(np.count_nonzero(fit.keep[:start]))
             h, var = float(fit.coef[j]), float(fit.cov[j, j])
             if math.isfinite(h) and h * h > 4.0 * max(var, 0.0):
-                gain[axis] = min(max(-h / r, -0.9), 1.5)
+                gain[axis] = min(max(-h / r, -1.0), 1.5)
         if gain == [0.0, 0.0]:
             return None
         return OffsetPlay(play_nm=r, gain=(gain[0], gain[1]))

@@ -106,6 +106,23 @@ def test_episode_after_an_offset_move_names_the_move() -> None:
     assert "offset move of (+80, -60) nm" in eps[0].note
 
 
+def test_episode_in_a_closed_loop_sums_its_moves_in_one_note() -> None:
+    """A closed loop moves every few seconds: one note for all of them, not one each."""
+    t, _, sign = _frames(60)
+    rng = np.random.default_rng(6)
+    e = rng.normal(0, 0.5, (60, 2))
+    e[30] = [9.0, -7.0]
+    moves = [
+        Event(t_s=float(t[28] + 5.0 * k), kind=EventKind.OFFSET_MOVE, x_nm=0.5, y_nm=-0.25)
+        for k in range(100)
+    ]
+    data = RunData.from_arrays(t_s=t, xy_nm=np.zeros((60, 2)), events=moves)
+    (ep,) = find_episodes(data, t, np.arange(60), e, sign)
+    assert "offset moves (a closed loop?) adding up to" in ep.note
+    assert "offset move of" not in ep.note
+    assert len(ep.note) < 300
+
+
 def _lagged(t: np.ndarray, temp: np.ndarray, tau_s: float) -> np.ndarray:
     out = np.empty_like(temp)
     out[0] = temp[0]
@@ -203,26 +220,51 @@ def test_thresholds_are_documented_in_the_json() -> None:
         assert set(c) >= {"effect", "significant", "score", "params", "rmse_after_nm"}
 
 
+def _replaced(data: RunData, xy: np.ndarray, events: list[Event]) -> RunData:
+    """``data`` with other positions and events."""
+    return RunData.from_arrays(
+        t_s=data.t_s,
+        xy_nm=xy,
+        scan_sign=data.scan_sign,
+        t_end_s=data.t_end_s,
+        channels=data.channels,
+        events=events,
+    )
+
+
 def test_a_registration_jump_is_called_out_before_the_finding() -> None:
     """Regression guard: a mis-locked frame (a 250 nm step in the measured drift)
     must be flagged, since the candidate tests would otherwise 'explain' it."""
     data, xy = _synthetic(humidity_nm_per_pct=0.0, seed=16, n=40)
     stepped = xy.copy()
     stepped[25:] += [250.0, -80.0]
-    broken = RunData.from_arrays(
-        t_s=data.t_s,
-        xy_nm=stepped,
-        scan_sign=data.scan_sign,
-        t_end_s=data.t_end_s,
-        channels=data.channels,
-        events=data.events,
-    )
-    dg = diagnose(broken, PhysicsConfig(terms=["trend"]))
+    dg = diagnose(_replaced(data, stepped, data.events), PhysicsConfig(terms=["trend"]))
     assert dg.finding.startswith("Caution: the measured drift jumps by (+25")
     assert "at t = 7516 s (1 such jump(s))" in dg.finding
     assert any("t = 7516 s (frame 25)" in p for p in dg.patterns)
     clean = diagnose(data, PhysicsConfig(terms=["trend"]))
     assert not clean.finding.startswith("Caution")
+
+
+def test_a_closed_loop_following_the_drift_is_not_a_string_of_jumps() -> None:
+    """Moves the size of the drift between frames (a closed loop) do not make
+    every frame a jump (the rule for moves far larger than the drift's steps,
+    across which registration can fail, is for those)."""
+    data, xy = _synthetic(humidity_nm_per_pct=0.0, seed=16, n=40)
+    inc = np.diff(xy, axis=0)
+    moves = [
+        Event(
+            t_s=float(data.t_s[i] + 10.0 * (k + 1)),
+            kind=EventKind.OFFSET_MOVE,
+            x_nm=float(inc[i, 0] / 5),
+            y_nm=float(inc[i, 1] / 5),
+        )
+        for i in range(inc.shape[0])
+        for k in range(5)
+    ]
+    dg = diagnose(_replaced(data, xy, [*data.events, *moves]), PhysicsConfig(terms=["trend"]))
+    assert not any("jumps" in p for p in dg.patterns)
+    assert not dg.finding.startswith("Caution")
 
 
 # --------------------------------------------------------------------------- generic families

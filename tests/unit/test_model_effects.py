@@ -520,12 +520,12 @@ def test_play_gaps_and_their_inverse() -> None:
     np.testing.assert_allclose(play_gaps([0.2], 1.0, gap0_nm=0.9), [0.7])
     for want in (-5.0, -1.0, -0.2, 0.0, 0.3, 1.0, 5.0):
         for gap in (-1.0, 0.0, 0.5):
-            for gain in (1.0, -0.5, 0.0, 1.5):
+            for gain in (1.0, -0.5, 0.0, 1.5, -1.0):
                 step = step_through_play(want, gap, 1.0, gain)
                 after = float(np.clip(gap - step, -1.0, 1.0))
                 assert step - gain * (after - gap) == pytest.approx(want, abs=1e-9)
     with pytest.raises(ValueError, match="gain"):
-        step_through_play(1.0, 0.0, 1.0, -1.0)
+        step_through_play(1.0, 0.0, 1.0, -1.5)
 
 
 def test_hysteresis_play_and_gain_recovered_from_small_moves_back_and_forth() -> None:
@@ -585,49 +585,49 @@ def test_a_time_constant_the_data_do_not_support_is_left_out() -> None:
 
 
 def test_a_loop_through_the_inverse_play_holds_the_image_on_a_simulated_scanner() -> None:
-    """A closed loop on the simulator's scanner (play of half-width 2 nm, the
-    image following the scanner's gap): commanding ``hold + d`` directly lets
-    the image jump by up to 4 nm each time the moves reverse; through
-    :func:`offset_through_play`, with d(t) knowing the gap only up to a few
-    moves back (as a model fitted at the last frame does), it stays put."""
+    """A closed loop on the simulator's scanner (a play of half-width 2 nm, and
+    the drift term the simulator adds for it): commanding ``hold + d``
+    directly lets the image jump by up to 4 nm each time the moves reverse;
+    through :func:`offset_through_play`, with d(t) knowing the play only up to
+    a few moves back (as a model fitted at the last frame does), it stays put.
+    The simulator's scanner lags its command: gain −1."""
     from afmdrift.drivers.sim import SimulatedAFM
 
     rng = np.random.default_rng(2)
     drift = np.cumsum(rng.normal(0.0, 0.8, size=(400, 2)), axis=0)  # reverses often
-    play = 2.0
+    play, gain = 2.0, -1.0
     shown = {}
     for through in (False, True):
-        sim = SimulatedAFM.from_scenario("default")
-        physics = sim.physics
+        physics = SimulatedAFM.from_scenario("default").physics
         sent = np.zeros(2)
-        gaps: list[np.ndarray] = []
+        terms: list[np.ndarray] = []  # the simulator's hysteresis term after each move
         image = []
         for k, d_true in enumerate(drift):
             t = 10.0 + k
-            # what d(t) knows: the true drift plus the gap after the moves up to k - 5
-            seen = gaps[-5] if len(gaps) >= 5 else np.zeros(2)
+            # what d(t) knows: the drift and the play's term after the moves up to k - 5
+            seen = terms[-5] if len(terms) >= 5 else np.zeros(2)
             want = d_true + seen
             cmd = np.array(want)
             if through:
-                now = gaps[-1] if gaps else np.zeros(2)
+                now = terms[-1] if terms else np.zeros(2)
                 cmd = np.array(
                     [
                         offset_through_play(
                             float(want[a]),
                             sent=float(sent[a]),
-                            gap_nm=float(now[a]),
-                            gap_seen_nm=float(seen[a]),
+                            gap_nm=float(now[a]) / gain,
+                            gap_seen_nm=float(seen[a]) / gain,
                             play_nm=play,
-                            gain=1.0,
+                            gain=gain,
                         )
                         for a in (0, 1)
                     ]
                 )
-            move = physics.command_offset(t, float(cmd[0]), float(cmd[1]))
+            physics.command_offset(t, float(cmd[0]), float(cmd[1]))
             sent = cmd
-            gaps.append(np.array([move.ex_nm, move.ey_nm]))
-            # the image shows the drift plus the scanner's gap, less the command
-            image.append(d_true + gaps[-1] - cmd)
+            terms.append(np.asarray(physics.components_at([t + 0.5])["hysteresis"][0]))
+            # the image: the drift plus the simulator's hysteresis term, less the command
+            image.append(d_true + terms[-1] - cmd)
         shown[through] = np.asarray(image)[20:]
     assert np.abs(shown[False]).max() > 2.0
     assert np.abs(shown[True]).max() < 1e-6
