@@ -562,7 +562,7 @@ class Hysteresis(EffectTerm):
     ``offset_move`` steps on this axis) with a play of half-width r: after
     each move y = clip(y_prev, c − r, c + r), so the gap g = y − c stays in
     [−r, r] (one Prandtl–Ishlinskii play operator, the elementary model of
-    piezo hysteresis; e.g. Kuhnen & Janocha, ESAIM: COCV 6, 407 (2001)).
+    piezo hysteresis, as in the simulator: docs/physics.md).
 
     p(t) = h·s(t), s = −g/r ∈ [−1, 1] after the latest move before t (0
     before any). A move of more than 2r gives s = sign of that move, so h (nm)
