@@ -326,14 +326,24 @@ class PhysicsPredictor(_LoggingPredictor):
                         best_log = float(res.x)
                     obj(best_log)
         self.params = params
-        active = self._prune(active, t, xy, w, sign, history)
+        blocks_all = [
+            dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
+            for axis in (0, 1)
+        ]
+        active = self._prune(active, blocks_all, xy, w)
         self.active = active
         self.add_intercept = self._needs_intercept(active)
         self.fits = []
         self.columns = []
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
-            blocks_final = self.design_blocks(t, history, sign, axis)
+            # the blocks of the terms kept (terms providing the intercept stay,
+            # so the intercept block is as design_blocks would give it)
+            blocks_final = [
+                (name, b)
+                for name, b in blocks_all[axis].items()
+                if name == "intercept" or name in active
+            ]
             self.columns.append([(name, int(b.shape[1])) for name, b in blocks_final])
             x = np.hstack([b for _, b in blocks_final])
             fit = solve_wls(x, xy[:, axis], w)
@@ -344,11 +354,9 @@ class PhysicsPredictor(_LoggingPredictor):
     def _prune(
         self,
         active: list[str],
-        t: FloatArray,
+        blocks: list[dict[str, FloatArray]],
         xy: FloatArray,
         w: FloatArray,
-        sign: FloatArray,
-        history: History,
     ) -> list[str]:
         """Backward elimination by AICc (Hurvich & Tsai, Biometrika 76, 297
         (1989)): while leaving one term out (its nonlinear parameters counted
@@ -356,13 +364,10 @@ class PhysicsPredictor(_LoggingPredictor):
         lowers it most is left out. Early in a session this keeps a time
         constant that a dozen points cannot pin down from steering the
         prediction; later it drops a term the data do not support. Terms that
-        provide the intercept stay.
+        provide the intercept stay. ``blocks`` are the design blocks of
+        ``active`` per axis, by name.
         """
-        blocks = [
-            dict(self.design_blocks(t, history, sign, axis, active=active, params=self.params))
-            for axis in (0, 1)
-        ]
-        n_obs = 2 * t.size
+        n_obs = 2 * xy.shape[0]
 
         def aicc(names: list[str]) -> float:
             wrss, k = 0.0, 0
