@@ -423,9 +423,11 @@ class DriftTrajectory:
         mask = np.ones(n, dtype=bool)
         mask[drop] = False
         keep = np.nonzero(mask)[0]
-        h_kk = self._h[np.ix_(keep, keep)]
-        h_kd = self._h[np.ix_(keep, drop)]
-        h_dd = self._h[np.ix_(drop, drop)]
+        # (two takes are cheaper than np.ix_ on these small matrices)
+        h_k = self._h.take(keep, axis=0)
+        h_kk = h_k.take(keep, axis=1)
+        h_kd = h_k.take(drop, axis=1)
+        h_dd = self._h.take(drop, axis=0).take(drop, axis=1)
         rhs = np.column_stack([h_kd.T, self._g[drop]])
         _, x, info = lapack.dposv(h_dd, rhs, lower=1)
         if info != 0:  # not numerically positive definite: the general solver

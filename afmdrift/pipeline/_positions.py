@@ -118,6 +118,18 @@ class _Timing:
         return np.asarray(self.t_start_s + (r + 0.5) * line_s, dtype=np.float64)
 
 
+def _sorted_unique(values: FloatArray) -> FloatArray:
+    """The distinct values, sorted (``np.unique`` of a few dozen values,
+    without its overhead: this runs for every frame)."""
+    v = np.sort(values)
+    if v.size < 2:
+        return v
+    keep = np.empty(v.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(v[1:], v[:-1], out=keep[1:])
+    return v[keep]
+
+
 def _sign(direction: ScanDirection) -> int:
     return 1 if direction is ScanDirection.UP else -1
 
@@ -290,7 +302,7 @@ class DriftPositions:
     def _knot_times(self, tracker: DriftTracker, timing: _Timing, dy_px: float) -> FloatArray:
         """Scan times of the block rows of a frame whose content sits ``dy_px``
         below the reference grid."""
-        return np.unique(timing.times_at(tracker.block_rows_px + dy_px))
+        return _sorted_unique(timing.times_at(tracker.block_rows_px + dy_px))
 
     def _remember(
         self, tracker_index: int, seq: int, frame: Frame, *, in_use: int | None = None
@@ -426,8 +438,12 @@ class DriftPositions:
         rows = np.asarray(fld.centres_px, dtype=np.float64)[valid, 1]
         if vec.shape[0] == 0:
             return None
-        levels, inverse, counts = np.unique(rows, return_inverse=True, return_counts=True)
-        means = np.column_stack([np.bincount(inverse, weights=vec[:, a]) / counts for a in (0, 1)])
+        levels = _sorted_unique(rows)
+        inverse = np.searchsorted(levels, rows)
+        counts = np.bincount(inverse, minlength=levels.size)
+        means = np.empty((levels.size, 2))
+        for a in (0, 1):
+            means[:, a] = np.bincount(inverse, weights=vec[:, a], minlength=levels.size) / counts
         timing_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction)
         t_cur = timing_cur.times_at(levels + means[:, 1])
         t_ref = timing_ref.times_at(levels)
@@ -535,7 +551,9 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
         )
     mean = good.sum(axis=0) / n
     std = np.sqrt(np.sum((good - mean) ** 2, axis=0) / n)
-    conf = np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid]
+    conf = np.sort(np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid])
+    # the median (as np.median, without its overhead on a few dozen blocks)
+    median_conf = 0.5 * (float(conf[(n - 1) // 2]) + float(conf[n // 2]))
 
     def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None
@@ -547,5 +565,5 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
         mean_dy_nm=finite(float(mean[1])),
         std_dx_nm=finite(float(std[0])),
         std_dy_nm=finite(float(std[1])),
-        median_confidence=finite(float(np.median(conf))),
+        median_confidence=finite(median_conf),
     )

@@ -48,6 +48,7 @@ __all__ = [
     "reject_mad",
     "reject_paper",
     "select_blocks",
+    "trend_select",
     "usable_blocks",
     "window_blocks",
 ]
@@ -780,6 +781,196 @@ def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[
     m = 0
     for i in range(n):
         m += 1 if out[i] else 0
+    return m
+
+
+@_jit
+def _poly_fit(x, values, weights, mask, degree, coef):  # type: ignore[no-untyped-def]
+    """Weighted least-squares polynomial ``Σ_k coef[k, axis]·x^k`` (degree
+    ``degree``) through ``values`` (n, 2) at the rows where ``mask``, by its
+    normal equations (Gaussian elimination with partial pivoting; at most
+    3×3, rows scaled to [-1, 1]). A singular system (fewer distinct rows than
+    coefficients) gets the minimum-norm least-squares solution."""
+    d = degree + 1
+    a = np.zeros((d, d))
+    b = np.zeros((d, 2))
+    for i in range(x.shape[0]):
+        if not mask[i]:
+            continue
+        w = weights[i]
+        p_k = 1.0
+        for k in range(d):
+            p_j = 1.0
+            for j in range(d):
+                a[k, j] += w * p_k * p_j
+                p_j *= x[i]
+            b[k, 0] += w * p_k * values[i, 0]
+            b[k, 1] += w * p_k * values[i, 1]
+            p_k *= x[i]
+    m = a.copy()
+    r = b.copy()
+    singular = False
+    for col in range(d):
+        piv = col
+        for k in range(col + 1, d):
+            if abs(m[k, col]) > abs(m[piv, col]):
+                piv = k
+        if not abs(m[piv, col]) > 1e-12 * max(abs(a[0, 0]), 1e-300):
+            singular = True
+            break
+        if piv != col:
+            for j in range(d):
+                m[col, j], m[piv, j] = m[piv, j], m[col, j]
+            for j in range(2):
+                r[col, j], r[piv, j] = r[piv, j], r[col, j]
+        for k in range(col + 1, d):
+            f = m[k, col] / m[col, col]
+            for j in range(col, d):
+                m[k, j] -= f * m[col, j]
+            for j in range(2):
+                r[k, j] -= f * r[col, j]
+    if not singular:
+        for col in range(d - 1, -1, -1):
+            for j in range(2):
+                s = r[col, j]
+                for k in range(col + 1, d):
+                    s -= m[col, k] * coef[k, j]
+                coef[col, j] = s / m[col, col]
+        return
+    n = 0
+    for i in range(x.shape[0]):
+        n += 1 if mask[i] else 0
+    design = np.empty((n, d))
+    rhs = np.empty((n, 2))
+    n = 0
+    for i in range(x.shape[0]):
+        if mask[i]:
+            sw = math.sqrt(weights[i])
+            p_k = 1.0
+            for k in range(d):
+                design[n, k] = sw * p_k
+                p_k *= x[i]
+            rhs[n, 0] = sw * values[i, 0]
+            rhs[n, 1] = sw * values[i, 1]
+            n += 1
+    sol = np.linalg.lstsq(design, rhs)[0]
+    coef[:d, :] = sol
+
+
+@_jit
+def _poly_residual(x, vectors, coef, degree, residual):  # type: ignore[no-untyped-def]
+    for i in range(x.shape[0]):
+        for j in range(2):
+            s = 0.0
+            p_k = 1.0
+            for k in range(degree + 1):
+                s += coef[k, j] * p_k
+                p_k *= x[i]
+            residual[i, j] = vectors[i, j] - s
+
+
+@_jit
+def trend_select(  # type: ignore[no-untyped-def]
+    vectors, row_px, usable, threshold, floor, max_iter, max_degree, f_min, explained_min, out
+):
+    """The trend rule of :func:`afmdrift.registration._trend.select_by_trend`
+    (see there), in one compiled pass: per-row medians, a weighted polynomial
+    of degree up to ``max_degree`` through them, the MAD rule on the
+    residuals (:func:`reject_mad`), refitted on the kept blocks and judged
+    once more; the spreads and the F test of the trend against one mean.
+
+    vectors : (n, 2) float64; row_px : (n,) float64; usable, out : (n,) bool.
+    Returns ``(n_valid, spread_x, spread_y, significant)``.
+    """
+    n = vectors.shape[0]
+    out[:] = usable
+    m = 0
+    for i in range(n):
+        m += 1 if usable[i] else 0
+    nan = math.nan
+    if m < 3:
+        return m, nan, nan, False
+    rows = np.empty(m)
+    _gather_1d(row_px, usable, rows)
+    levels = np.unique(rows)
+    n_lev = levels.size
+    degree = min(max_degree, n_lev - 1, max(0, (m - 2) // 3))
+    scale = max(levels[-1] - levels[0], 1.0)
+    centre = 0.0
+    for k in range(n_lev):
+        centre += levels[k]
+    centre /= n_lev
+    # per block row: the median of its usable blocks, weighted by their number
+    medians = np.empty((n_lev, 2))
+    counts = np.zeros(n_lev)
+    group = np.searchsorted(levels, rows)
+    for k in range(m):
+        counts[group[k]] += 1.0
+    sel = np.empty(m)
+    for g in range(n_lev):
+        for axis in range(2):
+            c = 0
+            j = 0
+            for i in range(n):
+                if usable[i]:
+                    if group[j] == g:
+                        sel[c] = vectors[i, axis]
+                        c += 1
+                    j += 1
+            medians[g, axis] = np.median(sel[:c])
+    x_lev = (levels - centre) / scale
+    every = np.ones(n_lev, dtype=np.bool_)
+    coef = np.zeros((max_degree + 1, 2))
+    _poly_fit(x_lev, medians, counts, every, degree, coef)
+    x_rows = (row_px - centre) / scale
+    residual = np.empty((n, 2))
+    _poly_residual(x_rows, vectors, coef, degree, residual)
+    ones = np.ones(n)
+    for _ in range(2):
+        reject_mad(residual, usable, threshold, floor, max_iter, out)
+        good = 0
+        for i in range(n):
+            good += 1 if out[i] else 0
+        if good < degree + 2:
+            break
+        coef[:] = 0.0
+        _poly_fit(x_rows, vectors, ones, out, degree, coef)
+        _poly_residual(x_rows, vectors, coef, degree, residual)
+    good = 0
+    for i in range(n):
+        good += 1 if out[i] else 0
+    dof = good - (degree + 1)
+    if dof < 1 or degree == 0:
+        return good, nan, nan, False
+    rss = np.zeros(2)
+    mean = np.zeros(2)
+    for i in range(n):
+        if out[i]:
+            for j in range(2):
+                rss[j] += residual[i, j] * residual[i, j]
+                mean[j] += vectors[i, j]
+    mean /= good
+    rss0 = np.zeros(2)
+    for i in range(n):
+        if out[i]:
+            for j in range(2):
+                rss0[j] += (vectors[i, j] - mean[j]) ** 2
+    rss_sum = rss[0] + rss[1]
+    rss0_sum = rss0[0] + rss0[1]
+    gain = (rss0_sum - rss_sum) / (2 * degree)
+    noise = max(rss_sum / (2 * dof), (floor / 2) ** 2)
+    explained = 1.0 - rss_sum / max(rss0_sum, 1e-300)
+    significant = gain / noise > f_min and explained >= explained_min
+    return good, math.sqrt(rss[0] / dof), math.sqrt(rss[1] / dof), significant
+
+
+@_jit
+def _gather_1d(values, mask, out):  # type: ignore[no-untyped-def]
+    m = 0
+    for i in range(values.shape[0]):
+        if mask[i]:
+            out[m] = values[i]
+            m += 1
     return m
 
 
