@@ -92,6 +92,8 @@ def offset_change_nm(
     """
     t = np.atleast_1d(np.asarray(t_s, dtype=np.float64))
     ref = np.atleast_1d(np.asarray(t_ref_s, dtype=np.float64))
+    if not events:  # nothing moved (a stack or movie without a log)
+        return np.zeros((np.broadcast_shapes(t.shape, ref.shape)[0], 2))
     t, ref = np.broadcast_arrays(t, ref)
     # One pass over the event log for both sets of times.
     both = commanded_offset_nm(np.concatenate([t, ref]), events)

@@ -49,7 +49,10 @@ causal (the daemon, and everything that reports what the daemon can do)
     marginalised out by a Schur complement, not frozen, so the estimate of
     the newest frame is that of solving every frame so far at once: the
     Kalman filter of this model, at a cost that does not grow with the
-    session. It uses only what has arrived. Uncertainties are scaled by the
+    session (the dense algebra of each update, some 40 unknowns, is one
+    compiled call each for the solve and the marginalisation: as NumPy and
+    LAPACK calls it cost more in call overhead than in arithmetic). It uses
+    only what has arrived. Uncertainties are scaled by the
     running χ² per degree of freedom of the block-row constraints when that
     exceeds 1.
 smoothed (``afmdrift correct``, the smoothed trajectory of ``afmdrift replay``)
@@ -62,11 +65,11 @@ import bisect
 import math
 from dataclasses import dataclass, field
 
+import numba
 import numpy as np
 import numpy.typing as npt
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
-from scipy.linalg import lapack
 
 __all__ = ["BandConstraint", "DriftTrajectory", "FrameTrajectory", "default_q"]
 
@@ -105,6 +108,9 @@ GAUGE_SIGMA_NM = 1e-3
 #: Standard deviation of the weak prior on every free knot (centred on the
 #: latest estimate), nm: it only keeps a knot without data determined.
 FREE_KNOT_SIGMA_NM = 1e3
+#: The known part of a row whose knots are all free (shared: never written).
+_ZERO2 = np.zeros(2)
+_ZERO2.setflags(write=False)
 #: Smallest standard uncertainty of a block-row mean, nm.
 MIN_SIGMA_NM = 1e-3
 
@@ -171,6 +177,164 @@ def _weights(t: float, knots: list[float]) -> tuple[int, int, float, float]:
     h = t1 - t0
     w = (t - t0) / h if h > 0 else 0.0
     return k, k + 1, 1.0 - w, w
+
+
+@numba.njit(cache=True, nogil=True)
+def _cholesky(h: FloatArray) -> tuple[FloatArray, bool]:
+    """Lower Cholesky factor of ``h``; False if it is not numerically
+    positive definite."""
+    n = h.shape[0]
+    c = np.zeros((n, n))
+    for j in range(n):
+        s = h[j, j]
+        for k in range(j):
+            s -= c[j, k] * c[j, k]
+        if not s > 0.0:
+            return c, False
+        d = math.sqrt(s)
+        c[j, j] = d
+        for i in range(j + 1, n):
+            s = h[i, j]
+            for k in range(j):
+                s -= c[i, k] * c[j, k]
+            c[i, j] = s / d
+    return c, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _forward(c: FloatArray, b: FloatArray) -> FloatArray:
+    """``c⁻¹ b`` for a lower triangular ``c``, ``b`` (n, k)."""
+    n, m = b.shape
+    z = np.empty((n, m))
+    for i in range(n):
+        for j in range(m):
+            s = b[i, j]
+            for k in range(i):
+                s -= c[i, k] * z[k, j]
+            z[i, j] = s / c[i, i]
+    return z
+
+
+@numba.njit(cache=True, nogil=True)
+def _backward(c: FloatArray, z: FloatArray) -> FloatArray:
+    """``c⁻ᵀ z`` for a lower triangular ``c``, ``z`` (n, k)."""
+    n, m = z.shape
+    x = np.empty((n, m))
+    for i in range(n - 1, -1, -1):
+        for j in range(m):
+            s = z[i, j]
+            for k in range(i + 1, n):
+                s -= c[k, i] * x[k, j]
+            x[i, j] = s / c[i, i]
+    return x
+
+
+@numba.njit(cache=True, nogil=True)
+def _extend_and_solve(
+    h_old: FloatArray,
+    g_old: FloatArray,
+    n_new: int,
+    centre: FloatArray,
+    a: FloatArray,
+    y: FloatArray,
+    bias_shift: float,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, bool]:
+    """The causal update's dense algebra in one compiled call.
+
+    The information form (H, g) grows by ``n_new`` knots with the weak free
+    knot prior centred on ``centre``, takes the weighted rows ``a`` (m, n),
+    ``y`` (m, 2) and is solved by Cholesky. Returns ``(h, g, sol, var, ok)``:
+    ``var`` holds the variances of the bias and of each new knot shifted by
+    ``bias_shift``·b (what is reported); ``ok`` False when H is not
+    numerically positive definite (``sol`` and ``var`` are then unset).
+    """
+    base = h_old.shape[0]
+    n = base + n_new
+    h = np.zeros((n, n))
+    g = np.zeros((n, 2))
+    h[:base, :base] = h_old
+    g[:base] = g_old
+    w = 1.0 / FREE_KNOT_SIGMA_NM**2
+    for i in range(base, n):
+        h[i, i] += w
+        g[i, 0] += centre[0] * w
+        g[i, 1] += centre[1] * w
+    h += a.T @ a
+    g += a.T @ y
+    c, ok = _cholesky(h)
+    sol = np.zeros((n, 2))
+    var = np.zeros(n_new + 1)
+    if not ok:
+        return h, g, sol, var, False
+    sol = _backward(c, _forward(c, g))
+    report = np.zeros((n, n_new + 1))
+    report[0, 0] = 1.0
+    for i in range(n_new):
+        report[base + i, 1 + i] = 1.0
+        report[0, 1 + i] = bias_shift
+    z = _forward(c, report)
+    for j in range(n_new + 1):
+        s = 0.0
+        for i in range(n):
+            s += z[i, j] * z[i, j]
+        var[j] = s
+    return h, g, sol, var, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _schur(
+    h: FloatArray, g: FloatArray, keep: npt.NDArray[np.intp], drop: npt.NDArray[np.intp]
+) -> tuple[FloatArray, FloatArray, bool]:
+    """(H, g) with the unknowns ``drop`` marginalised out (Schur complement);
+    False if their block is not numerically positive definite."""
+    nk, nd = keep.size, drop.size
+    h_kk = np.empty((nk, nk))
+    h_kd = np.empty((nk, nd))
+    h_dd = np.empty((nd, nd))
+    rhs = np.empty((nd, nk + 2))
+    for i in range(nk):
+        for j in range(nk):
+            h_kk[i, j] = h[keep[i], keep[j]]
+        for j in range(nd):
+            h_kd[i, j] = h[keep[i], drop[j]]
+    for i in range(nd):
+        for j in range(nd):
+            h_dd[i, j] = h[drop[i], drop[j]]
+        for j in range(nk):
+            rhs[i, j] = h_kd[j, i]
+        rhs[i, nk] = g[drop[i], 0]
+        rhs[i, nk + 1] = g[drop[i], 1]
+    c, ok = _cholesky(h_dd)
+    if not ok:
+        return h, g, False
+    x = _backward(c, _forward(c, rhs))
+    h_new = h_kk - h_kd @ np.ascontiguousarray(x[:, :nk])
+    g_new = np.empty((nk, 2))
+    for i in range(nk):
+        g_new[i, 0] = g[keep[i], 0]
+        g_new[i, 1] = g[keep[i], 1]
+    g_new -= h_kd @ np.ascontiguousarray(x[:, nk:])
+    return h_new, g_new, True
+
+
+def _weighted_rows(
+    rows: list[tuple[list[tuple[int, float]], FloatArray | tuple[float, float], float]], n: int
+) -> tuple[FloatArray, FloatArray]:
+    """The rows ``Σ a·x = value ± sigma`` over ``n`` unknowns as a dense
+    design (rows, n) and values (rows, 2), each divided by its sigma."""
+    m = len(rows)
+    flat: list[int] = []
+    weights: list[float] = []
+    for k, (terms, _, sigma) in enumerate(rows):
+        for c, w in terms:
+            flat.append(k * n + c)
+            weights.append(w / sigma)
+    a = np.asarray(np.bincount(flat, weights=weights, minlength=m * n), dtype=np.float64).reshape(
+        m, n
+    )
+    y = np.array([r[1] for r in rows], dtype=np.float64).reshape(m, 2)
+    y /= np.array([r[2] for r in rows])[:, None]
+    return a, y
 
 
 class DriftTrajectory:
@@ -272,24 +436,16 @@ class DriftTrajectory:
         the estimate equals that of solving all frames so far at once."""
         n_new = frame.t_s.size
         base = self._h.shape[0]
-        h = np.zeros((base + n_new, base + n_new))
-        h[:base, :base] = self._h
-        g = np.zeros((base + n_new, 2))
-        g[:base] = self._g
-        # The weak prior of each new knot, centred on the latest estimate
-        # (a diagonal term: added directly).
+        # The weak prior of each new knot is centred on the latest estimate.
         centre = np.zeros(2)
         if self._tail:
             k_last, i_last = self._tail[-1][1]
             centre = self.frames[k_last].p[i_last]
         new_cols = np.arange(base, base + n_new)
-        h[new_cols, new_cols] += 1.0 / FREE_KNOT_SIGMA_NM**2
-        g[base:] += centre / FREE_KNOT_SIGMA_NM**2
-        self._h, self._g = h, g
         for i in range(n_new):
             self._idx[(frame.key, i)] = base + i
         self._cols[frame.key] = new_cols
-        rows: list[tuple[list[tuple[int, float]], FloatArray, float]] = []
+        rows: list[tuple[list[tuple[int, float]], FloatArray | tuple[float, float], float]] = []
         # smoothness: the last two free knots before the frame, then its own
         previous = [node for node in self._tail if node is not None][-2:]
         chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
@@ -300,7 +456,8 @@ class DriftTrajectory:
             terms, const = self._terms_of_nodes(
                 ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
             )
-            rows.append((terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2))))
+            target = _ZERO2 if const is _ZERO2 else -const
+            rows.append((terms, target, math.sqrt(self.q * 0.5 * (h1 + h2))))
         self._tail = chain[-2:]
         first_data = len(rows)
         for con in frame.constraints:
@@ -308,33 +465,36 @@ class DriftTrajectory:
             t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0)
             ds = 0.5 * (frame.sign - self.frames[con.ref_key].sign)
             terms = t1 + t2 + ([(0, ds)] if ds != 0.0 else [])
-            value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
+            if c1 is _ZERO2 and c2 is _ZERO2:
+                value: FloatArray | tuple[float, float] = con.value_nm
+            else:
+                value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
             rows.append((terms, value, max(con.sigma_nm, MIN_SIGMA_NM)))
         n_data = len(rows) - first_data
         if self.origin is not None and self.origin[0] == frame.key:
             terms, const = self._terms_at(frame.key, self.origin[1], 1.0)
             rows.append((terms, -const, GAUGE_SIGMA_NM))
-        a, y = self._add_rows(rows)
+        a, y = _weighted_rows(rows, base + n_new)
         # Solve, and the variances of what is reported: the bias, and this
         # frame's knots *with* the frame's bias shift ds·b (a down frame's p
         # alone is only known up to b; p + ds·b is what the data determine).
         # Older frames keep the uncertainty they were reported with.
-        n = self._h.shape[0]
-        report = np.zeros((n, n_new + 1))
-        report[0, 0] = 1.0
-        report[new_cols, np.arange(1, n_new + 1)] = 1.0
-        report[0, 1:] = self._bias_shift(frame)
-        cho, info = lapack.dpotrf(self._h, lower=1, clean=1)
-        if info == 0:
-            sol, _ = lapack.dpotrs(cho, self._g, lower=1)
-            z, _ = lapack.dpotrs(cho, report, lower=1)
-        else:
+        shift = self._bias_shift(frame)
+        self._h, self._g, sol, var, ok = _extend_and_solve(
+            self._h, self._g, n_new, centre, a, y, shift
+        )
+        if not ok:
             # Numerically not positive definite (constraints far stronger than
             # the priors): the symmetric eigen-solution, which always exists.
+            n = self._h.shape[0]
+            report = np.zeros((n, n_new + 1))
+            report[0, 0] = 1.0
+            report[new_cols, np.arange(1, n_new + 1)] = 1.0
+            report[0, 1:] = shift
             w, v = np.linalg.eigh(self._h)
             inv = (v / np.maximum(w, w.max() * 1e-15)) @ v.T
-            sol, z = inv @ self._g, inv @ report
-        var = np.sum(report * z, axis=0)
+            sol = inv @ self._g
+            var = np.sum(report * (inv @ report), axis=0)
         if n_data:
             r = a[first_data : first_data + n_data] @ sol - y[first_data : first_data + n_data]
             self._chi2 += float(np.sum(r * r))
@@ -368,13 +528,13 @@ class DriftTrajectory:
         f = self.frames[key]
         i, j, wi, wj = _weights(t, f.t_list)
         terms: list[tuple[int, float]] = []
-        const = np.zeros(2)
+        const = _ZERO2  # shared, never written: most knots are free
         for idx, w in ((i, wi), (j, wj)):
             if w == 0.0:
                 continue
             c = idx_map.get((key, idx))
             if c is None:
-                const += scale * w * f.p[idx]
+                const = const + scale * w * f.p[idx]
                 if fixed_var is not None:
                     fixed_var.append(float(f.sigma[idx]) ** 2)
             else:
@@ -385,36 +545,14 @@ class DriftTrajectory:
         self, nodes: tuple[tuple[tuple[int, int], float], ...]
     ) -> tuple[list[tuple[int, float]], FloatArray]:
         terms: list[tuple[int, float]] = []
-        const = np.zeros(2)
+        const = _ZERO2
         for (k, i), w in nodes:
             c = self._idx.get((k, i))
             if c is None:
-                const += w * self.frames[k].p[i]
+                const = const + w * self.frames[k].p[i]
             else:
                 terms.append((c, w))
         return terms, const
-
-    def _add_rows(
-        self, rows: list[tuple[list[tuple[int, float]], FloatArray, float]]
-    ) -> tuple[FloatArray, FloatArray]:
-        """Add the rows ``Σ a·x = value ± sigma`` to the information form, all
-        at once (one small dense product); returns the weighted design (rows,
-        n) and values (rows, 2)."""
-        n, m = self._h.shape[0], len(rows)
-        flat: list[int] = []
-        weights: list[float] = []
-        for k, (terms, _, sigma) in enumerate(rows):
-            for c, w in terms:
-                flat.append(k * n + c)
-                weights.append(w / sigma)
-        a = np.asarray(
-            np.bincount(flat, weights=weights, minlength=m * n), dtype=np.float64
-        ).reshape(m, n)
-        y = np.array([r[1] for r in rows], dtype=np.float64).reshape(m, 2)
-        y /= np.array([r[2] for r in rows])[:, None]
-        self._h += a.T @ a
-        self._g += a.T @ y
-        return a, y
 
     def _marginalise(self, gone_keys: list[int]) -> None:
         """Marginalise the knots of frames ``gone_keys`` out (Schur complement)."""
@@ -423,17 +561,15 @@ class DriftTrajectory:
         mask = np.ones(n, dtype=bool)
         mask[drop] = False
         keep = np.nonzero(mask)[0]
-        # (two takes are cheaper than np.ix_ on these small matrices)
-        h_k = self._h.take(keep, axis=0)
-        h_kk = h_k.take(keep, axis=1)
-        h_kd = h_k.take(drop, axis=1)
-        h_dd = self._h.take(drop, axis=0).take(drop, axis=1)
-        rhs = np.column_stack([h_kd.T, self._g[drop]])
-        _, x, info = lapack.dposv(h_dd, rhs, lower=1)
-        if info != 0:  # not numerically positive definite: the general solver
-            x = np.linalg.solve(h_dd, rhs)
-        self._h = h_kk - h_kd @ x[:, : keep.size]
-        self._g = self._g[keep] - h_kd @ x[:, keep.size :]
+        h, g, ok = _schur(self._h, self._g, keep, drop)
+        if not ok:  # not numerically positive definite: the general solver
+            h_k = self._h.take(keep, axis=0)
+            h_kd = h_k.take(drop, axis=1)
+            rhs = np.column_stack([h_kd.T, self._g[drop]])
+            x = np.linalg.solve(self._h.take(drop, axis=0).take(drop, axis=1), rhs)
+            h = h_k.take(keep, axis=1) - h_kd @ x[:, : keep.size]
+            g = self._g[keep] - h_kd @ x[:, keep.size :]
+        self._h, self._g = h, g
         remap = np.full(n, -1)
         remap[keep] = np.arange(keep.size)
         new_index = remap.tolist()

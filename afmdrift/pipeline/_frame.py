@@ -24,7 +24,6 @@ continuous, and the frame does not feed the model.
 
 from __future__ import annotations
 
-import json
 import logging
 import math
 import time
@@ -462,7 +461,7 @@ def _frame_record(
         offset_y_nm=float(offset[1]),
         wall_s=finished,
         latency_s=finished - started,
-        field_json=json.dumps(None if pos.field is None else pos.field.model_dump()),
+        field_json="null" if pos.field is None else pos.field.model_dump_json(),
         obs_t_s=obs_t if fed else math.nan,
         obs_x_nm=float(obs_xy[0]) if fed else math.nan,
         obs_y_nm=float(obs_xy[1]) if fed else math.nan,

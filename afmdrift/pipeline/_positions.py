@@ -111,7 +111,7 @@ class _Timing:
         """Scan time of (fractional) rows, clamped to the frame: the row times
         of :func:`afmdrift.records.row_times_s` (mid-line, linear in the row)
         interpolated, computed directly."""
-        r = np.clip(rows_px, 0.0, self.rows - 1.0)
+        r = np.minimum(np.maximum(rows_px, 0.0), self.rows - 1.0)  # (np.clip costs more)
         if self.direction is ScanDirection.DOWN:
             r = (self.rows - 1.0) - r
         line_s = (self.t_end_s - self.t_start_s) / self.rows
@@ -535,9 +535,7 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
     if fld is None:
         return None
     valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
-    good = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2)[valid] * np.asarray(
-        pixel_size_nm, dtype=np.float64
-    )
+    good = np.asarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2)[valid]
     n = good.shape[0]
     if n == 0:
         return FieldSummary(
@@ -549,8 +547,13 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
             std_dy_nm=None,
             median_confidence=None,
         )
-    mean = good.sum(axis=0) / n
-    std = np.sqrt(np.sum((good - mean) ** 2, axis=0) / n)
+    # population mean and standard deviation per axis, in nm
+    px, py = pixel_size_nm
+    mean_px = good.sum(axis=0) / n
+    good -= mean_px
+    std_px = np.sqrt(np.einsum("ij,ij->j", good, good) / n)
+    mean = (float(mean_px[0]) * px, float(mean_px[1]) * py)
+    std = (float(std_px[0]) * abs(px), float(std_px[1]) * abs(py))
     conf = np.sort(np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid])
     # the median (as np.median, without its overhead on a few dozen blocks)
     median_conf = 0.5 * (float(conf[(n - 1) // 2]) + float(conf[n // 2]))
@@ -561,9 +564,9 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
     return FieldSummary(
         total_blocks=int(valid.size),
         valid_blocks=n,
-        mean_dx_nm=finite(float(mean[0])),
-        mean_dy_nm=finite(float(mean[1])),
-        std_dx_nm=finite(float(std[0])),
-        std_dy_nm=finite(float(std[1])),
+        mean_dx_nm=finite(mean[0]),
+        mean_dy_nm=finite(mean[1]),
+        std_dx_nm=finite(std[0]),
+        std_dy_nm=finite(std[1]),
         median_confidence=finite(median_conf),
     )

@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import functools
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
@@ -367,7 +368,7 @@ class DriftTracker:
             floor = max(floor, 0.5 * float(min(self._engine.layout.max_shift)))
         if len(self._innovations) < 3:
             return floor
-        spread = 1.4826 * float(np.median(np.fromiter(self._innovations, float)))
+        spread = 1.4826 * float(statistics.median(self._innovations))
         return max(floor, HOLD_K * spread)
 
     def _confirm(
