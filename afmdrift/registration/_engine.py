@@ -68,6 +68,10 @@ NMS_RADIUS = 2
 #: (figures in benchmarks/RESULTS.md). The split into batches depends only
 #: on the layout (:func:`batch_split`).
 BATCH_BLOCKS = 8
+#: Window area (px²) for which a batch holds BATCH_BLOCKS blocks; smaller
+#: windows go in proportionally larger batches (the same work arrays' size),
+#: so that per-batch call overhead stays small against the arithmetic.
+BATCH_WINDOW_PX2 = 128 * 128
 
 _pool_lock = threading.Lock()
 _pools: dict[int, ThreadPoolExecutor] = {}
@@ -185,7 +189,8 @@ class _Peaks:
 class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
-    The blocks are processed in batches of :data:`BATCH_BLOCKS`. With
+    The blocks are processed in batches of :func:`batch_blocks` (:data:`BATCH_BLOCKS`
+    of 128² windows). With
     ``config.threads > 1`` the calling thread and pool workers take the
     batches in turn, each with its own single-threaded FFTW plans and work
     arrays (pyFFTW and the compiled kernels release the GIL). Every block is
@@ -230,7 +235,7 @@ class BlockEngine:
         self._fy = np.arange(-ky_max, ky_max + 1) / ey
         self._fx = np.arange(0, kx_max + 1) / ex
         wisdom = resolve_wisdom_path(config.fftw_wisdom)
-        self._batches = batch_split(n)
+        self._batches = batch_split(n, batch_blocks(lay.ext))
         self._threads = min(config.threads, len(self._batches))
         dft = config.subpixel == "dft"
         sizes = sorted({b.stop - b.start for b in self._batches})
@@ -679,14 +684,21 @@ class BlockEngine:
         out.ok[sl] = ok_x & ok_y
 
 
-def batch_split(n: int) -> tuple[slice, ...]:
-    """Batches of :data:`BATCH_BLOCKS` of ``n`` blocks; the last
-    ``2 * BATCH_BLOCKS`` blocks, and what does not fill a whole batch before
-    them, in batches of half that size."""
-    tail_start = max(0, n - 2 * BATCH_BLOCKS)
-    tail_start -= tail_start % BATCH_BLOCKS
-    half = max(1, BATCH_BLOCKS // 2)
-    starts = [*range(0, tail_start, BATCH_BLOCKS), *range(tail_start, n, half)]
+def batch_blocks(ext: tuple[int, int]) -> int:
+    """Blocks per batch for windows of ``ext`` px: :data:`BATCH_BLOCKS` for
+    128² windows, more for smaller ones (the same work array size: 32 for
+    64² windows)."""
+    return BATCH_BLOCKS * max(1, BATCH_WINDOW_PX2 // max(1, ext[0] * ext[1]))
+
+
+def batch_split(n: int, size: int = BATCH_BLOCKS) -> tuple[slice, ...]:
+    """Batches of ``size`` of ``n`` blocks; the last ``2 * size`` blocks,
+    and what does not fill a whole batch before them, in batches of half
+    that size."""
+    tail_start = max(0, n - 2 * size)
+    tail_start -= tail_start % size
+    half = max(1, size // 2)
+    starts = [*range(0, tail_start, size), *range(tail_start, n, half)]
     stops = [*starts[1:], n]
     return tuple(slice(a, b) for a, b in zip(starts, stops, strict=True))
 

@@ -328,19 +328,28 @@ def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> N
     np.testing.assert_allclose(stats[2:], vectors[expect].std(axis=0, ddof=1), rtol=1e-12)
 
 
-@pytest.mark.parametrize("n", [1, 9, 16, 20, 64, 80, 100])
-def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int) -> None:
-    from afmdrift.registration._engine import BATCH_BLOCKS, batch_split
+@pytest.mark.parametrize("size", [8, 32])
+@pytest.mark.parametrize("n", [1, 9, 16, 20, 36, 64, 80, 100])
+def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int, size: int) -> None:
+    from afmdrift.registration._engine import batch_split
 
-    batches = batch_split(n)
+    batches = batch_split(n, size)
     assert [b.start for b in batches] == [0, *(b.stop for b in batches[:-1])]
     assert batches[-1].stop == n
     sizes = [b.stop - b.start for b in batches]
-    assert max(sizes) <= BATCH_BLOCKS
+    assert max(sizes) <= size
     assert sizes == sorted(sizes, reverse=True)
-    # The last 2 * BATCH_BLOCKS blocks, and what does not fill a whole batch
+    # The last 2 * size blocks, and what does not fill a whole batch
     # before them, are in half batches.
-    small = sum(s for s in sizes if s < BATCH_BLOCKS)
-    assert min(n, 2 * BATCH_BLOCKS) <= small < 3 * BATCH_BLOCKS
-    if n >= 2 * BATCH_BLOCKS:
-        assert sizes[-1] == BATCH_BLOCKS // 2
+    small = sum(s for s in sizes if s < size)
+    assert min(n, 2 * size) <= small < 3 * size
+    if n >= 2 * size:
+        assert sizes[-1] <= size // 2
+
+
+def test_smaller_windows_go_in_larger_batches() -> None:
+    from afmdrift.registration._engine import BATCH_BLOCKS, batch_blocks
+
+    assert batch_blocks((128, 128)) == BATCH_BLOCKS
+    assert batch_blocks((64, 64)) == 4 * BATCH_BLOCKS
+    assert batch_blocks((256, 256)) == BATCH_BLOCKS
