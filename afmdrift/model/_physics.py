@@ -330,72 +330,19 @@ class PhysicsPredictor(_LoggingPredictor):
             dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
             for axis in (0, 1)
         ]
-        active = self._prune(active, blocks_all, xy, w)
         self.active = active
         self.add_intercept = self._needs_intercept(active)
         self.fits = []
         self.columns = []
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
-            # the blocks of the terms kept (terms providing the intercept stay,
-            # so the intercept block is as design_blocks would give it)
-            blocks_final = [
-                (name, b)
-                for name, b in blocks_all[axis].items()
-                if name == "intercept" or name in active
-            ]
+            blocks_final = list(blocks_all[axis].items())
             self.columns.append([(name, int(b.shape[1])) for name, b in blocks_final])
             x = np.hstack([b for _, b in blocks_final])
             fit = solve_wls(x, xy[:, axis], w)
             self.fits.append(fit)
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
         self._fit_residual(t, residuals, history)
-
-    def _prune(
-        self,
-        active: list[str],
-        blocks: list[dict[str, FloatArray]],
-        xy: FloatArray,
-        w: FloatArray,
-    ) -> list[str]:
-        """Backward elimination by AICc (Hurvich & Tsai, Biometrika 76, 297
-        (1989)): while leaving one term out (its nonlinear parameters counted
-        as parameters) lowers the AICc of the fit of both axes, the term that
-        lowers it most is left out. Early in a session this keeps a time
-        constant that a dozen points cannot pin down from steering the
-        prediction; later it drops a term the data do not support. Terms that
-        provide the intercept stay. ``blocks`` are the design blocks of
-        ``active`` per axis, by name.
-        """
-        n_obs = 2 * xy.shape[0]
-
-        def aicc(names: list[str]) -> float:
-            wrss, k = 0.0, 0
-            for axis in (0, 1):
-                cols = [
-                    b for name, b in blocks[axis].items() if name == "intercept" or name in names
-                ]
-                fit = solve_wls(np.hstack(cols), xy[:, axis], w)
-                wrss += fit.wrss
-                k += int(fit.keep.sum())
-            k += sum(len(self._term(name).nonlinear_params) for name in names)
-            wrss = max(wrss, 1e-12 * n_obs)
-            return float(
-                n_obs * math.log(wrss / n_obs) + 2 * k + 2 * k * (k + 1) / max(n_obs - k - 1, 1)
-            )
-
-        current = list(active)
-        best = aicc(current)
-        while True:
-            droppable = [n for n in current if not self._term(n).provides_intercept]
-            if not droppable:
-                return current
-            scores = {n: aicc([m for m in current if m != n]) for n in droppable}
-            name = min(scores, key=scores.__getitem__)
-            if scores[name] >= best:
-                return current
-            current.remove(name)
-            best = scores[name]
 
     def _fit_residual(self, t: FloatArray, residuals: FloatArray, history: History) -> None:
         self.last_residual = residuals[-1].copy()

@@ -565,25 +565,6 @@ def test_no_offset_play_without_moves() -> None:
     assert model.offset_play() is None
 
 
-def test_a_time_constant_the_data_do_not_support_is_left_out() -> None:
-    """AICc backward elimination: on a steady drift with noise the warm-up and
-    thermal-lag terms (each a time constant and a column per axis) would bend
-    the extrapolation; they are left out, and the prediction stays on the ramp."""
-    rng = np.random.default_rng(11)
-    t = np.arange(128.0, 40 * PERIOD_S, PERIOD_S)
-    h = _temperature_history(float(t[-1]))
-    h.add_events([Event(0.0, EventKind.POWER_ON)])
-    xy = np.column_stack([0.02 * t, -0.01 * t]) + rng.normal(0.0, 0.3, size=(t.size, 2))
-    model = PhysicsPredictor(
-        PhysicsConfig(terms=["trend", "warmup", "thermal_lag"], residual="none")
-    )
-    _feed(model, t, xy, h, sigma_nm=0.3)
-    assert model.active == ["trend"]
-    t_next = t[-1] + PERIOD_S
-    p = model.predict([t_next], h).mean_nm[0]
-    assert p == pytest.approx([0.02 * t_next, -0.01 * t_next], abs=0.5)
-
-
 def test_a_loop_through_the_inverse_play_holds_the_image_on_a_simulated_scanner() -> None:
     """A closed loop on the simulator's scanner (a play of half-width 2 nm, and
     the drift term the simulator adds for it): commanding ``hold + d``
