@@ -259,8 +259,18 @@ def _extend_and_solve(
         h[i, i] += w
         g[i, 0] += centre[0] * w
         g[i, 1] += centre[1] * w
-    h += a.T @ a
-    g += a.T @ y
+    # aᵀa and aᵀy by loops (a few dozen rows and unknowns: no BLAS call,
+    # and far less to compile)
+    m = a.shape[0]
+    for r in range(m):
+        for i in range(n):
+            ai = a[r, i]
+            if ai == 0.0:
+                continue
+            g[i, 0] += ai * y[r, 0]
+            g[i, 1] += ai * y[r, 1]
+            for j in range(n):
+                h[i, j] += ai * a[r, j]
     c, ok = _cholesky(h)
     sol = np.zeros((n, 2))
     var = np.zeros(n_new + 1)
@@ -308,13 +318,17 @@ def _schur(
     if not ok:
         return h, g, False
     x = _backward(c, _forward(c, rhs))
-    h_new = h_kk - h_kd @ np.ascontiguousarray(x[:, :nk])
     g_new = np.empty((nk, 2))
     for i in range(nk):
         g_new[i, 0] = g[keep[i], 0]
         g_new[i, 1] = g[keep[i], 1]
-    g_new -= h_kd @ np.ascontiguousarray(x[:, nk:])
-    return h_new, g_new, True
+        for k in range(nd):
+            hk = h_kd[i, k]
+            g_new[i, 0] -= hk * x[k, nk]
+            g_new[i, 1] -= hk * x[k, nk + 1]
+            for j in range(nk):
+                h_kk[i, j] -= hk * x[k, j]
+    return h_kk, g_new, True
 
 
 def _weighted_rows(
@@ -337,6 +351,24 @@ def _weighted_rows(
     return a, y
 
 
+_compiled = False
+
+
+def _compile_kernels() -> None:
+    """Compile (or load from Numba's disk cache) the causal update's kernels
+    once per process, when the first trajectory is made: compiled lazily at
+    the first marginalisation instead, they held the GIL for a second or more
+    in the middle of a daemon's run (its other tasks waited)."""
+    global _compiled
+    if _compiled:
+        return
+    h = np.eye(3)
+    g = np.zeros((3, 2))
+    _extend_and_solve(h, g, 2, np.zeros(2), np.zeros((1, 5)), np.zeros((1, 2)), 0.0)
+    _schur(np.eye(5), np.zeros((5, 2)), np.arange(3), np.arange(3, 5))
+    _compiled = True
+
+
 class DriftTrajectory:
     """Causal and smoothed estimates of p(t) from block-row constraints.
 
@@ -356,6 +388,7 @@ class DriftTrajectory:
             raise ValueError(f"q_nm2_s3 must be finite and > 0, got {q_nm2_s3!r}")
         if window < 2:
             raise ValueError(f"window must be >= 2 frames, got {window!r}")
+        _compile_kernels()
         self.q = float(q_nm2_s3)
         self.window = int(window)
         self.keep_history = keep_history

@@ -790,71 +790,62 @@ def _poly_fit(x, values, weights, mask, degree, coef):  # type: ignore[no-untype
     ``degree``) through ``values`` (n, 2) at the rows where ``mask``, by its
     normal equations (Gaussian elimination with partial pivoting; at most
     3×3, rows scaled to [-1, 1]). A singular system (fewer distinct rows than
-    coefficients) gets the minimum-norm least-squares solution."""
-    d = degree + 1
-    a = np.zeros((d, d))
-    b = np.zeros((d, 2))
-    for i in range(x.shape[0]):
-        if not mask[i]:
-            continue
-        w = weights[i]
-        p_k = 1.0
-        for k in range(d):
-            p_j = 1.0
-            for j in range(d):
-                a[k, j] += w * p_k * p_j
-                p_j *= x[i]
-            b[k, 0] += w * p_k * values[i, 0]
-            b[k, 1] += w * p_k * values[i, 1]
-            p_k *= x[i]
-    m = a.copy()
-    r = b.copy()
-    singular = False
-    for col in range(d):
-        piv = col
-        for k in range(col + 1, d):
-            if abs(m[k, col]) > abs(m[piv, col]):
-                piv = k
-        if not abs(m[piv, col]) > 1e-12 * max(abs(a[0, 0]), 1e-300):
-            singular = True
-            break
-        if piv != col:
-            for j in range(d):
-                m[col, j], m[piv, j] = m[piv, j], m[col, j]
-            for j in range(2):
-                r[col, j], r[piv, j] = r[piv, j], r[col, j]
-        for k in range(col + 1, d):
-            f = m[k, col] / m[col, col]
-            for j in range(col, d):
-                m[k, j] -= f * m[col, j]
-            for j in range(2):
-                r[k, j] -= f * r[col, j]
-    if not singular:
-        for col in range(d - 1, -1, -1):
-            for j in range(2):
-                s = r[col, j]
-                for k in range(col + 1, d):
-                    s -= m[col, k] * coef[k, j]
-                coef[col, j] = s / m[col, col]
-        return
-    n = 0
-    for i in range(x.shape[0]):
-        n += 1 if mask[i] else 0
-    design = np.empty((n, d))
-    rhs = np.empty((n, 2))
-    n = 0
-    for i in range(x.shape[0]):
-        if mask[i]:
-            sw = math.sqrt(weights[i])
+    coefficients) is fitted with the highest degree it determines (the
+    higher coefficients zero); ``coef`` rows beyond ``degree`` are left as
+    they are. Returns the degree fitted."""
+    for d in range(degree + 1, 0, -1):
+        a = np.zeros((d, d))
+        b = np.zeros((d, 2))
+        for i in range(x.shape[0]):
+            if not mask[i]:
+                continue
+            w = weights[i]
             p_k = 1.0
             for k in range(d):
-                design[n, k] = sw * p_k
+                p_j = 1.0
+                for j in range(d):
+                    a[k, j] += w * p_k * p_j
+                    p_j *= x[i]
+                b[k, 0] += w * p_k * values[i, 0]
+                b[k, 1] += w * p_k * values[i, 1]
                 p_k *= x[i]
-            rhs[n, 0] = sw * values[i, 0]
-            rhs[n, 1] = sw * values[i, 1]
-            n += 1
-    sol = np.linalg.lstsq(design, rhs)[0]
-    coef[:d, :] = sol
+        singular = False
+        scale = max(abs(a[0, 0]), 1e-300)
+        for col in range(d):
+            piv = col
+            for k in range(col + 1, d):
+                if abs(a[k, col]) > abs(a[piv, col]):
+                    piv = k
+            if not abs(a[piv, col]) > 1e-12 * scale:
+                singular = True
+                break
+            if piv != col:
+                for j in range(d):
+                    a[col, j], a[piv, j] = a[piv, j], a[col, j]
+                for j in range(2):
+                    b[col, j], b[piv, j] = b[piv, j], b[col, j]
+            for k in range(col + 1, d):
+                f = a[k, col] / a[col, col]
+                for j in range(col, d):
+                    a[k, j] -= f * a[col, j]
+                for j in range(2):
+                    b[k, j] -= f * b[col, j]
+        if singular:
+            continue
+        for k in range(d, degree + 1):
+            coef[k, 0] = 0.0
+            coef[k, 1] = 0.0
+        for col in range(d - 1, -1, -1):
+            for j in range(2):
+                s = b[col, j]
+                for k in range(col + 1, d):
+                    s -= a[col, k] * coef[k, j]
+                coef[col, j] = s / a[col, col]
+        return d - 1
+    for k in range(degree + 1):
+        coef[k, 0] = 0.0
+        coef[k, 1] = 0.0
+    return -1
 
 
 @_jit
@@ -892,8 +883,14 @@ def trend_select(  # type: ignore[no-untyped-def]
         return m, nan, nan, False
     rows = np.empty(m)
     _gather_1d(row_px, usable, rows)
-    levels = np.unique(rows)
-    n_lev = levels.size
+    sorted_rows = np.sort(rows)
+    levels = np.empty(m)
+    n_lev = 0
+    for k in range(m):
+        if n_lev == 0 or sorted_rows[k] != levels[n_lev - 1]:
+            levels[n_lev] = sorted_rows[k]
+            n_lev += 1
+    levels = levels[:n_lev]
     degree = min(max_degree, n_lev - 1, max(0, (m - 2) // 3))
     scale = max(levels[-1] - levels[0], 1.0)
     centre = 0.0
