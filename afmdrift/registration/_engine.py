@@ -14,6 +14,7 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 
 from __future__ import annotations
 
+import functools
 import itertools
 import os
 import threading
@@ -440,6 +441,13 @@ class BlockEngine:
         them into ``fft.spectrum``."""
         _kernels.window_blocks(grad, top[sl], left[sl], self.window, fft.real)
         fft.forward()
+
+    @functools.cached_property
+    def block_rows_px(self) -> F64:
+        """Distinct rows of the block centres of the reference grid, px (sorted)."""
+        rows = np.unique(np.asarray(self._centres[:, 1], dtype=np.float64))
+        rows.setflags(write=False)
+        return rows
 
     @property
     def centres_px(self) -> F64:

@@ -792,7 +792,7 @@ def _poly_fit(x, values, weights, mask, degree, coef):  # type: ignore[no-untype
     3×3, rows scaled to [-1, 1]). A singular system (fewer distinct rows than
     coefficients) is fitted with the highest degree it determines (the
     higher coefficients zero); ``coef`` rows beyond ``degree`` are left as
-    they are. Returns the degree fitted."""
+    they are."""
     for d in range(degree + 1, 0, -1):
         a = np.zeros((d, d))
         b = np.zeros((d, 2))
@@ -841,11 +841,10 @@ def _poly_fit(x, values, weights, mask, degree, coef):  # type: ignore[no-untype
                 for k in range(col + 1, d):
                     s -= a[col, k] * coef[k, j]
                 coef[col, j] = s / a[col, col]
-        return d - 1
+        return
     for k in range(degree + 1):
         coef[k, 0] = 0.0
         coef[k, 1] = 0.0
-    return -1
 
 
 @_jit
@@ -881,8 +880,8 @@ def trend_select(  # type: ignore[no-untyped-def]
     nan = math.nan
     if m < 3:
         return m, nan, nan, False
-    rows = np.empty(m)
-    _gather_1d(row_px, usable, rows)
+    rows = row_px[usable]
+    vec = vectors[usable]
     sorted_rows = np.sort(rows)
     levels = np.empty(m)
     n_lev = 0
@@ -907,13 +906,10 @@ def trend_select(  # type: ignore[no-untyped-def]
     for g in range(n_lev):
         for axis in range(2):
             c = 0
-            j = 0
-            for i in range(n):
-                if usable[i]:
-                    if group[j] == g:
-                        sel[c] = vectors[i, axis]
-                        c += 1
-                    j += 1
+            for k in range(m):
+                if group[k] == g:
+                    sel[c] = vec[k, axis]
+                    c += 1
             medians[g, axis] = np.median(sel[:c])
     x_lev = (levels - centre) / scale
     every = np.ones(n_lev, dtype=np.bool_)
@@ -924,18 +920,11 @@ def trend_select(  # type: ignore[no-untyped-def]
     _poly_residual(x_rows, vectors, coef, degree, residual)
     ones = np.ones(n)
     for _ in range(2):
-        reject_mad(residual, usable, threshold, floor, max_iter, out)
-        good = 0
-        for i in range(n):
-            good += 1 if out[i] else 0
+        good = reject_mad(residual, usable, threshold, floor, max_iter, out)
         if good < degree + 2:
             break
-        coef[:] = 0.0
         _poly_fit(x_rows, vectors, ones, out, degree, coef)
         _poly_residual(x_rows, vectors, coef, degree, residual)
-    good = 0
-    for i in range(n):
-        good += 1 if out[i] else 0
     dof = good - (degree + 1)
     if dof < 1 or degree == 0:
         return good, nan, nan, False
@@ -959,16 +948,6 @@ def trend_select(  # type: ignore[no-untyped-def]
     explained = 1.0 - rss_sum / max(rss0_sum, 1e-300)
     significant = gain / noise > f_min and explained >= explained_min
     return good, math.sqrt(rss[0] / dof), math.sqrt(rss[1] / dof), significant
-
-
-@_jit
-def _gather_1d(values, mask, out):  # type: ignore[no-untyped-def]
-    m = 0
-    for i in range(values.shape[0]):
-        if mask[i]:
-            out[m] = values[i]
-            m += 1
-    return m
 
 
 @_jit

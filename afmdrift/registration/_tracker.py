@@ -180,7 +180,7 @@ class DriftTracker:
         """Distinct rows of the block centres, px (empty before the first frame)."""
         if self._engine is None:
             return np.zeros(0)
-        return np.unique(np.asarray(self._engine.centres_px[:, 1], dtype=np.float64))
+        return self._engine.block_rows_px
 
     @property
     def position_px(self) -> tuple[float, float]:
