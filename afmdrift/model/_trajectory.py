@@ -49,9 +49,10 @@ causal (the daemon, and everything that reports what the daemon can do)
     marginalised out by a Schur complement, not frozen, so the estimate of
     the newest frame is that of solving every frame so far at once: the
     Kalman filter of this model, at a cost that does not grow with the
-    session (the dense algebra of each update, some 40 unknowns, is one
-    compiled call each for the solve and the marginalisation: as NumPy and
-    LAPACK calls it cost more in call overhead than in arithmetic). It uses
+    session (each update's rows, the dense algebra over some 40 unknowns and
+    the marginalisation are a few compiled calls: as per-term Python lists
+    and NumPy and LAPACK calls they cost more in overhead than in
+    arithmetic). It uses
     only what has arrived. Uncertainties are scaled by the
     running χ² per degree of freedom of the block-row constraints when that
     exceeds 1.
@@ -111,6 +112,9 @@ FREE_KNOT_SIGMA_NM = 1e3
 #: The known part of a row whose knots are all free (shared: never written).
 _ZERO2 = np.zeros(2)
 _ZERO2.setflags(write=False)
+#: The columns of a frame whose knots are not free (shared: never written).
+_NO_COLS = np.zeros(0, dtype=np.intp)
+_NO_COLS.setflags(write=False)
 #: Smallest standard uncertainty of a block-row mean, nm.
 MIN_SIGMA_NM = 1e-3
 
@@ -331,24 +335,106 @@ def _schur(
     return h_kk, g_new, True
 
 
-def _weighted_rows(
-    rows: list[tuple[list[tuple[int, float]], FloatArray | tuple[float, float], float]], n: int
-) -> tuple[FloatArray, FloatArray]:
-    """The rows ``Σ a·x = value ± sigma`` over ``n`` unknowns as a dense
-    design (rows, n) and values (rows, 2), each divided by its sigma."""
-    m = len(rows)
-    flat: list[int] = []
-    weights: list[float] = []
-    for k, (terms, _, sigma) in enumerate(rows):
-        for c, w in terms:
-            flat.append(k * n + c)
-            weights.append(w / sigma)
-    a = np.asarray(np.bincount(flat, weights=weights, minlength=m * n), dtype=np.float64).reshape(
-        m, n
-    )
-    y = np.array([r[1] for r in rows], dtype=np.float64).reshape(m, 2)
-    y /= np.array([r[2] for r in rows])[:, None]
-    return a, y
+@numba.njit(cache=True, nogil=True)
+def _knot_weights(knots: FloatArray, t: float) -> tuple[int, int, float, float]:
+    """:func:`_weights` (the same arithmetic), compiled."""
+    n = knots.size
+    if n == 1:
+        return 0, 0, 1.0, 0.0
+    k = min(max(int(np.searchsorted(knots, t)) - 1, 0), n - 2)
+    t0, t1 = knots[k], knots[k + 1]
+    h = t1 - t0
+    w = (t - t0) / h if h > 0 else 0.0
+    return k, k + 1, 1.0 - w, w
+
+
+@numba.njit(cache=True, nogil=True)
+def _smoothness_rows(
+    a: FloatArray,
+    y: FloatArray,
+    t: FloatArray,
+    cols: npt.NDArray[np.intp],
+    known: FloatArray,
+    breaks: FloatArray,
+    q: float,
+) -> int:
+    """The prior's rows over a chain of knots (times ``t``, increasing;
+    columns ``cols``, −1 for a known knot of value ``known``), written from
+    row 0 of ``a`` and ``y`` divided by their sigma: for three consecutive
+    knots a, b, c not across a break (one in (t_a, t_c]), ``(p_c − p_b)/h₂
+    − (p_b − p_a)/h₁ = 0 ± sqrt(q·(h₁ + h₂)/2)``. Returns the row count."""
+    r = 0
+    for s in range(t.size - 2):
+        h1, h2 = t[s + 1] - t[s], t[s + 2] - t[s + 1]
+        if h1 <= 0 or h2 <= 0:
+            continue
+        k = np.searchsorted(breaks, t[s], side="right")
+        if k < breaks.size and breaks[k] <= t[s + 2]:
+            continue
+        sigma = math.sqrt(q * 0.5 * (h1 + h2))
+        c0, c1 = 0.0, 0.0
+        for d in range(3):
+            w = 1.0 / h1 if d == 0 else (-1.0 / h1 - 1.0 / h2 if d == 1 else 1.0 / h2)
+            c = cols[s + d]
+            if c >= 0:
+                a[r, c] += w / sigma
+            else:
+                c0 += w * known[s + d, 0]
+                c1 += w * known[s + d, 1]
+        y[r, 0] = -c0 / sigma
+        y[r, 1] = -c1 / sigma
+        r += 1
+    return r
+
+
+@numba.njit(cache=True, nogil=True)
+def _constraint_rows(
+    a: FloatArray,
+    y: FloatArray,
+    row0: int,
+    knots: FloatArray,
+    cols: npt.NDArray[np.intp],
+    t_cur: FloatArray,
+    ref_knots: FloatArray,
+    ref_cols: npt.NDArray[np.intp],
+    ref_p: FloatArray,
+    t_ref: FloatArray,
+    values: FloatArray,
+    sigma: FloatArray,
+    ds: float,
+) -> None:
+    """Block-row constraints ``p(t_cur) − p(t_ref) + ds·b = value ± sigma``
+    as rows ``row0 ...`` of ``a`` and ``y`` (divided by sigma): the frame's
+    knots free (columns ``cols``), the reference's free (``ref_cols``) or,
+    when ``ref_cols`` is empty, known (``ref_p``); the bias is column 0."""
+    for m in range(t_cur.size):
+        r = row0 + m
+        s = max(sigma[m], MIN_SIGMA_NM) if not math.isnan(sigma[m]) else sigma[m]
+        i, j, wi, wj = _knot_weights(knots, t_cur[m])
+        if wi != 0.0:
+            a[r, cols[i]] += wi / s
+        if wj != 0.0:
+            a[r, cols[j]] += wj / s
+        ri, rj, rwi, rwj = _knot_weights(ref_knots, t_ref[m])
+        v0, v1 = values[m, 0], values[m, 1]
+        if ref_cols.size:
+            if rwi != 0.0:
+                a[r, ref_cols[ri]] += -rwi / s
+            if rwj != 0.0:
+                a[r, ref_cols[rj]] += -rwj / s
+        else:
+            c0, c1 = 0.0, 0.0
+            if rwi != 0.0:
+                c0 += -rwi * ref_p[ri, 0]
+                c1 += -rwi * ref_p[ri, 1]
+            if rwj != 0.0:
+                c0 += -rwj * ref_p[rj, 0]
+                c1 += -rwj * ref_p[rj, 1]
+            v0, v1 = v0 - c0, v1 - c1
+        if ds != 0.0:
+            a[r, 0] += ds / s
+        y[r, 0] = v0 / s
+        y[r, 1] = v1 / s
 
 
 _compiled = False
@@ -366,6 +452,12 @@ def _compile_kernels() -> None:
     g = np.zeros((3, 2))
     _extend_and_solve(h, g, 2, np.zeros(2), np.zeros((1, 5)), np.zeros((1, 2)), 0.0)
     _schur(np.eye(5), np.zeros((5, 2)), np.arange(3), np.arange(3, 5))
+    a, y = np.zeros((3, 5)), np.zeros((3, 2))
+    t, cols = np.arange(3.0), np.arange(3)
+    _smoothness_rows(a, y, t, cols, np.zeros((3, 2)), np.zeros(0), 1.0)
+    _constraint_rows(
+        a, y, 0, t, cols, t, t, cols, np.zeros((3, 2)), t, np.zeros((3, 2)), np.ones(3), 1.0
+    )
     _compiled = True
 
 
@@ -402,7 +494,6 @@ class DriftTrajectory:
         # the bias), their indices, and the last two knots in time.
         self._h = np.array([[1.0 / BIAS_PRIOR_NM**2]])
         self._g = np.zeros((1, 2))
-        self._idx: dict[tuple[int, int], int] = {}
         self._cols: dict[int, npt.NDArray[np.intp]] = {}  # a free frame's knot columns
         self._tail: list[tuple[float, tuple[int, int]]] = []
         self._chi2 = 0.0
@@ -435,7 +526,7 @@ class DriftTrajectory:
         """Add a frame (its knots and its constraints, which may only refer
         to frames already added) and return its causal estimate."""
         t = np.sort(np.asarray(knot_times_s, dtype=np.float64).reshape(-1))
-        if t.size == 0 or not np.all(np.isfinite(t)):
+        if t.size == 0 or not np.isfinite(t).all():
             raise ValueError(f"frame {key}: knot times must be finite, got {t!r}")
         if self.order and t[0] <= self.frames[self.order[-1]].t_s[-1]:
             raise ValueError(f"frame {key}: its knots start before the previous frame's end")
@@ -475,39 +566,55 @@ class DriftTrajectory:
             k_last, i_last = self._tail[-1][1]
             centre = self.frames[k_last].p[i_last]
         new_cols = np.arange(base, base + n_new)
-        for i in range(n_new):
-            self._idx[(frame.key, i)] = base + i
         self._cols[frame.key] = new_cols
-        rows: list[tuple[list[tuple[int, float]], FloatArray | tuple[float, float], float]] = []
-        # smoothness: the last two free knots before the frame, then its own
-        previous = [node for node in self._tail if node is not None][-2:]
+        # smoothness over the last two knots before the frame, then its own
+        previous = self._tail[-2:]
         chain = previous + [(float(frame.t_s[i]), (frame.key, i)) for i in range(n_new)]
-        for na, nb, nc in zip(chain, chain[1:], chain[2:], strict=False):
-            h1, h2 = nb[0] - na[0], nc[0] - nb[0]
-            if h1 <= 0 or h2 <= 0 or self._breaks_between(na[0], nc[0]):
-                continue
-            terms, const = self._terms_of_nodes(
-                ((na[1], 1.0 / h1), (nb[1], -1.0 / h1 - 1.0 / h2), (nc[1], 1.0 / h2))
-            )
-            target = _ZERO2 if const is _ZERO2 else -const
-            rows.append((terms, target, math.sqrt(self.q * 0.5 * (h1 + h2))))
         self._tail = chain[-2:]
-        first_data = len(rows)
-        for con in frame.constraints:
-            t1, c1 = self._terms_at(frame.key, con.t_s, 1.0)
-            t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0)
-            ds = 0.5 * (frame.sign - self.frames[con.ref_key].sign)
-            terms = t1 + t2 + ([(0, ds)] if ds != 0.0 else [])
-            if c1 is _ZERO2 and c2 is _ZERO2:
-                value: FloatArray | tuple[float, float] = con.value_nm
-            else:
-                value = np.asarray(con.value_nm, dtype=np.float64) - c1 - c2
-            rows.append((terms, value, max(con.sigma_nm, MIN_SIGMA_NM)))
-        n_data = len(rows) - first_data
-        if self.origin is not None and self.origin[0] == frame.key:
-            terms, const = self._terms_at(frame.key, self.origin[1], 1.0)
-            rows.append((terms, -const, GAUGE_SIGMA_NM))
-        a, y = _weighted_rows(rows, base + n_new)
+        cons = frame.constraints
+        gauge = self.origin is not None and self.origin[0] == frame.key
+        n_chain = len(chain)
+        a = np.zeros((max(0, n_chain - 2) + len(cons) + int(gauge), base + n_new))
+        y = np.zeros((a.shape[0], 2))
+        # smoothness (the previous knots may be known: marginalised or anchored)
+        t_chain = np.concatenate([[node[0] for node in previous], frame.t_s])
+        col_chain = np.concatenate(
+            [np.array([self._free_col(*node[1]) for node in previous], dtype=np.intp), new_cols]
+        )
+        known = np.zeros((n_chain, 2))
+        for q, (_, (k, i)) in enumerate(previous):
+            if col_chain[q] < 0:
+                known[q] = self.frames[k].p[i]
+        breaks = np.asarray(self.breaks, dtype=np.float64)
+        first_data = _smoothness_rows(a, y, t_chain, col_chain, known, breaks, self.q)
+        # the frame's block-row constraints, by reference frame
+        used = first_data
+        if cons:
+            t_cur = np.array([c.t_s for c in cons])
+            t_ref = np.array([c.t_ref_s for c in cons])
+            values = np.array([c.value_nm for c in cons], dtype=np.float64).reshape(-1, 2)
+            sigma = np.array([c.sigma_nm for c in cons], dtype=np.float64)
+            keys = np.array([c.ref_key for c in cons])
+            for ref_key in dict.fromkeys(keys.tolist()):
+                sel = keys == ref_key
+                ref = self.frames[ref_key]
+                ref_cols = self._cols.get(ref_key, _NO_COLS)
+                t_c = t_cur[sel]
+                _constraint_rows(
+                    a, y, used, frame.t_s, new_cols, t_c, ref.t_s, ref_cols, ref.p,
+                    t_ref[sel], values[sel], sigma[sel], 0.5 * (frame.sign - ref.sign),
+                )  # fmt: skip
+                used += t_c.size
+        n_data = used - first_data
+        if gauge:
+            # p = 0 at the session reference's mid-scan time (its knots are free)
+            assert self.origin is not None
+            i, j, wi, wj = _weights(self.origin[1], frame.t_list)
+            a[used, new_cols[i]] += wi / GAUGE_SIGMA_NM
+            if wj != 0.0:
+                a[used, new_cols[j]] += wj / GAUGE_SIGMA_NM
+            used += 1
+        a, y = a[:used], y[:used]
         # Solve, and the variances of what is reported: the bias, and this
         # frame's knots *with* the frame's bias shift ds·b (a down frame's p
         # alone is only known up to b; p + ds·b is what the data determine).
@@ -530,7 +637,7 @@ class DriftTrajectory:
             var = np.sum(report * (inv @ report), axis=0)
         if n_data:
             r = a[first_data : first_data + n_data] @ sol - y[first_data : first_data + n_data]
-            self._chi2 += float(np.sum(r * r))
+            self._chi2 += float(np.vdot(r, r))
             self._chi2_n += 2 * n_data
         scale = max(1.0, self._chi2 / self._chi2_n) if self._chi2_n else 1.0
         for k, cols in self._cols.items():
@@ -550,14 +657,12 @@ class DriftTrajectory:
         key: int,
         t: float,
         scale: float,
-        index: dict[tuple[int, int], int] | None = None,
-        fixed_var: list[float] | None = None,
+        index: dict[tuple[int, int], int],
+        fixed_var: list[float],
     ) -> tuple[list[tuple[int, float]], FloatArray]:
         """Terms of scale·p(t) in frame ``key``'s knots: knots in ``index``
-        (default: the causal state's free knots) as terms, the others
-        (marginalised, fixed or anchored) as constants, whose variances are
-        appended to ``fixed_var`` if given."""
-        idx_map = self._idx if index is None else index
+        as terms, the others (fixed or anchored) as constants, whose
+        variances are appended to ``fixed_var``."""
         f = self.frames[key]
         i, j, wi, wj = _weights(t, f.t_list)
         terms: list[tuple[int, float]] = []
@@ -565,27 +670,19 @@ class DriftTrajectory:
         for idx, w in ((i, wi), (j, wj)):
             if w == 0.0:
                 continue
-            c = idx_map.get((key, idx))
+            c = index.get((key, idx))
             if c is None:
                 const = const + scale * w * f.p[idx]
-                if fixed_var is not None:
-                    fixed_var.append(float(f.sigma[idx]) ** 2)
+                fixed_var.append(float(f.sigma[idx]) ** 2)
             else:
                 terms.append((c, scale * w))
         return terms, const
 
-    def _terms_of_nodes(
-        self, nodes: tuple[tuple[tuple[int, int], float], ...]
-    ) -> tuple[list[tuple[int, float]], FloatArray]:
-        terms: list[tuple[int, float]] = []
-        const = _ZERO2
-        for (k, i), w in nodes:
-            c = self._idx.get((k, i))
-            if c is None:
-                const = const + w * self.frames[k].p[i]
-            else:
-                terms.append((c, w))
-        return terms, const
+    def _free_col(self, key: int, i: int) -> int:
+        """Column of knot ``i`` of frame ``key`` in the causal state, −1 if
+        it is not free (marginalised or anchored)."""
+        cols = self._cols.get(key)
+        return -1 if cols is None else int(cols[i])
 
     def _marginalise(self, gone_keys: list[int]) -> None:
         """Marginalise the knots of frames ``gone_keys`` out (Schur complement)."""
@@ -605,8 +702,6 @@ class DriftTrajectory:
         self._h, self._g = h, g
         remap = np.full(n, -1)
         remap[keep] = np.arange(keep.size)
-        new_index = remap.tolist()
-        self._idx = {node: new_index[c] for node, c in self._idx.items() if new_index[c] >= 0}
         self._cols = {k: remap[c] for k, c in self._cols.items()}
         for key in gone_keys:
             self.frames[key].fixed = True
@@ -689,7 +784,8 @@ class DriftTrajectory:
         f = self.frames[key]
         shift = self._bias_shift(f) * self.bias
         xy = f.p + shift
-        sig = np.column_stack([f.sigma, f.sigma])
+        sig = np.empty((f.sigma.size, 2))
+        sig[:, 0] = sig[:, 1] = f.sigma
         i, j, wi, wj = _weights(f.t_mid_s, f.t_list)
         mid = wi * f.p[i] + wj * f.p[j] + shift
         mid_sigma = float(wi * f.sigma[i] + wj * f.sigma[j])
