@@ -444,9 +444,13 @@ class DriftPositions:
         means = np.empty((levels.size, 2))
         for a in (0, 1):
             means[:, a] = np.bincount(inverse, weights=vec[:, a], minlength=levels.size) / counts
+        # each block row's vector applies where its blocks' texture is, not
+        # at the windows' centre row (BlockField.weight_centres_px)
+        weight_rows = np.asarray(fld.weight_centres_px, dtype=np.float64)[valid, 1]
+        at = np.bincount(inverse, weights=weight_rows, minlength=levels.size) / counts
         timing_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction)
-        t_cur = timing_cur.times_at(levels + means[:, 1])
-        t_ref = timing_ref.times_at(levels)
+        t_cur = timing_cur.times_at(at + means[:, 1])
+        t_ref = timing_ref.times_at(at)
         px, py = frame.pixel_size_nm
         sigma_frame = float(meas.sigma_nm) if math.isfinite(meas.sigma_nm) else 0.0
         sigmas = sigma_frame * np.sqrt(vec.shape[0] / counts)

@@ -14,6 +14,7 @@ the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import os
@@ -54,6 +55,11 @@ CANDIDATE_RATIO = 0.7
 #: Absolute floor of the spectrum magnitude (its reciprocal, 1e30, is finite
 #: in float32; any textured block's spectrum is many orders above it).
 _MAG_FLOOR = 1e-30
+#: Largest entry of a block's measured window response (see
+#: BlockEngine.calibrate) that is still corrected: beyond it, a pixel of true
+#: shift reads as less than half a pixel, and correcting would double the
+#: block's noise.
+MAX_RESPONSE = 0.5
 #: Half-size of the neighbourhood suppressed around each accepted peak (px).
 NMS_RADIUS = 2
 #: Blocks per batch, the engine's unit of work: a batch goes through every
@@ -119,6 +125,13 @@ class ReferenceSpectra:
     left: IArr
     conj_spectra: npt.NDArray[np.int16]
     band_mag: F32
+    #: Per block, the inverse of ``I − B`` (n, 2, 2), ``B`` the block's
+    #: measured response to its content moving under its window (see
+    #: :meth:`BlockEngine.calibrate`); identity where not calibrated.
+    unbias: F64
+    #: Per block, the centre of its correlation weight relative to the
+    #: window's centre, ``(x, y)`` px (:func:`afmdrift.registration._kernels.weight_centroids`).
+    weight_offsets_px: F64
     derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
 
 
@@ -140,6 +153,9 @@ class BlockMeasurement:
     measured: BArr
     placed: BArr
     in_overlap: BArr
+    #: Where each block's vector applies ``(x, y)``, reference px: the centre
+    #: of its correlation weight (``ReferenceSpectra.weight_offsets_px``).
+    weight_centres_px: F64
     #: Number of measured blocks and the per-axis median ``(x, y)`` of their
     #: vectors (NaN if none).
     n_measured: int
@@ -311,6 +327,8 @@ class BlockEngine:
         self._ramp: F32 = ramp.astype(np.complex64).view(np.float32)
         self._ramp_shift = np.array([my, mx], dtype=np.intp)
         self._cur_band_mag: F32 = np.zeros((n, *band_shape), dtype=np.float32)
+        self._identity: F64 = np.tile(np.eye(2), (n, 1, 1))
+        self._identity.setflags(write=False)
         # Curvature κ of the window autocorrelation A(s) = Σ w(x) w(x+s) / Σ w²
         # near s = 0 (per axis): the correlation of windowed blocks is about
         # A(p)·C(p - d), so its maximum is pulled towards p = 0 unless A is
@@ -462,7 +480,8 @@ class BlockEngine:
         """Spectra of a new reference at the layout's grid positions: each
         block's window-weighted mean removed, normalised to ``S / (|S| + a)``
         (``a = max(eps_rel · max|S|, 1e-30)``), conjugated, times the phase
-        ramp, in int16 fixed point."""
+        ramp, in int16 fixed point; with each block's weight centre and
+        window response (:meth:`calibrate`)."""
         top, left = self.grid_positions()
         spectra = np.empty(self._fixed_shape, np.int16)
         band_mag = np.empty_like(self._cur_band_mag)
@@ -478,9 +497,7 @@ class BlockEngine:
             )
 
         self._each_batch(work)
-        return ReferenceSpectra(
-            grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=band_mag
-        )
+        return self._completed(grad, top, left, spectra, band_mag)
 
     def current_as_reference(self, grad: F32, top: IArr, left: IArr) -> ReferenceSpectra:
         """The frame of the last :meth:`measure` call (gradient ``grad``,
@@ -494,9 +511,81 @@ class BlockEngine:
             return self.reference(grad)
         spectra = self._current  # already conjugated and ramped
         self._current = np.empty_like(spectra)
-        return ReferenceSpectra(
-            grad=grad, top=top, left=left, conj_spectra=spectra, band_mag=self._cur_band_mag.copy()
+        return self._completed(grad, top, left, spectra, self._cur_band_mag.copy())
+
+    def _completed(
+        self, grad: F32, top: IArr, left: IArr, spectra: npt.NDArray[np.int16], band_mag: F32
+    ) -> ReferenceSpectra:
+        """A reference from its spectra: each block's weight centre
+        (:func:`afmdrift.registration._kernels.weight_centroids`) and window
+        response (:meth:`calibrate`) added."""
+        offsets = np.empty((self.layout.n_blocks, 2))
+        _kernels.weight_centroids(grad, top, left, self.window, offsets)
+        offsets.setflags(write=False)
+        ref = ReferenceSpectra(
+            grad=grad,
+            top=top,
+            left=left,
+            conj_spectra=spectra,
+            band_mag=band_mag,
+            unbias=self._identity,
+            weight_offsets_px=offsets,
         )
+        return self.calibrate(ref)
+
+    def calibrate(self, ref: ReferenceSpectra) -> ReferenceSpectra:
+        """``ref`` with each block's response to its content moving under its
+        window measured and inverted (``unbias``).
+
+        A block's window does not move with its content: it stays where the
+        rounded prior put it, so the content of the current frame sits up
+        to half a pixel off its place in the window. The correlation of the
+        two windowed blocks is then weighted by the window's product at the
+        content's positions, which pulls the peak towards zero shift where
+        the texture is not spread evenly over the window (a particle near
+        its centre on flat mica: a fifth of the offset, 0.1 px at half a
+        pixel). The window's average pull is divided out in the sub-pixel
+        step (:func:`afmdrift.registration._kernels.dft_subpixel`); what is
+        left depends on the block's own content, so it is measured: the
+        reference is registered against itself twice, with every window
+        moved by 1 px towards the image's centre along x, then along y (its
+        content then sits 1 px the other way under it), and the measured
+        vectors (zero for an unbiased block) give the response ``B`` (2×2:
+        the shift measured per pixel of true shift is ``I − B``). Measured
+        vectors are corrected by ``(I − B)⁻¹`` (in :meth:`measure`). A block
+        whose response is not measured or too weak to invert reliably (an
+        entry of ``B`` beyond ``MAX_RESPONSE``) is left uncorrected.
+
+        Cost: two block passes per reference (not per frame measured
+        against it).
+        """
+        n = self.layout.n_blocks
+        resp = np.zeros((n, 2, 2))  # resp[i, :, axis]: response to a move along axis
+        good = np.ones(n, dtype=bool)
+        rows, cols = self.layout.grad_shape
+        ey, ex = self.layout.ext
+        # each window moves by one pixel towards the image's centre, so none
+        # has to be clamped
+        inward = (
+            np.where(ref.left + ex / 2 <= cols / 2, 1, -1).astype(np.intp),
+            np.where(ref.top + ey / 2 <= rows / 2, 1, -1).astype(np.intp),
+        )
+        for axis in (0, 1):
+            step = inward[axis]
+            top = ref.top + (step if axis == 1 else 0)
+            left = ref.left + (step if axis == 0 else 0)
+            placed = (top >= 0) & (top <= rows - ey) & (left >= 0) & (left <= cols - ex)
+            meas = self._measure_windows(ref, ref.grad, top, left, placed, placed, 2.0)
+            # windows moved by ±1 px: the content sits at ∓1 px under them,
+            # read as ∓(I − B)·e, so the block's vector (zero if unbiased) is ±B·e
+            resp[:, :, axis] = step[:, None] * meas.vectors_px
+            good &= meas.measured & placed
+        good &= (np.abs(resp) <= MAX_RESPONSE).all(axis=(1, 2))
+        unbias = np.tile(np.eye(2), (n, 1, 1))
+        if good.any():
+            unbias[good] = np.linalg.inv(np.eye(2) - resp[good])
+        unbias.setflags(write=False)
+        return dataclasses.replace(ref, unbias=unbias)
 
     # -- measurement -----------------------------------------------------------
 
@@ -572,11 +661,30 @@ class BlockEngine:
         Returns the measurement and the window corners ``(top, left)`` used in
         the current frame (so its spectra can become the next reference).
         """
+        top, left, placed, near = self.positions_for(ref, prior_px)
+        result = self._measure_windows(
+            ref, grad, top, left, placed, near, search_px, heights=heights, check=check
+        )
+        return result, top, left
+
+    def _measure_windows(
+        self,
+        ref: ReferenceSpectra,
+        grad: F32,
+        top: IArr,
+        left: IArr,
+        placed: BArr,
+        near: BArr,
+        search_px: float | None,
+        *,
+        heights: npt.NDArray[np.floating] | None = None,
+        check: Callable[[FrameStats], None] | None = None,
+    ) -> BlockMeasurement:
+        """:meth:`measure` with the current frame's windows at ``(top, left)``
+        (``placed``, ``near``: see :meth:`positions_for`)."""
         my, mx = self.layout.max_shift
         if search_px is not None:
             my, mx = min(my, int(search_px)), min(mx, int(search_px))
-        top, left, placed, near = self.positions_for(ref, prior_px)
-
         peaks = _Peaks.empty(self.layout.n_blocks)
         search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
 
@@ -596,9 +704,10 @@ class BlockEngine:
         median = np.empty(2)
         n_measured = _kernels.assemble(
             top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
-            peaks.mse, peaks.peak, self._area, near, my, mx, vec, measured, confidence, median,
+            peaks.mse, peaks.peak, self._area, near, my, mx, ref.unbias, vec, measured, confidence,
+            median,
         )  # fmt: skip
-        result = BlockMeasurement(
+        return BlockMeasurement(
             centres_px=self._centres,
             vectors_px=vec,
             confidence=confidence,
@@ -606,10 +715,10 @@ class BlockEngine:
             measured=measured,
             placed=placed,
             in_overlap=near,
+            weight_centres_px=self._centres + ref.weight_offsets_px,
             n_measured=int(n_measured),
             median_px=(float(median[0]), float(median[1])),
         )
-        return result, top, left
 
     def _measure_batch(
         self,

@@ -131,6 +131,52 @@ def window_blocks(grad, top, left, window, out):  # type: ignore[no-untyped-def]
                 dst[c] = src[c] * w[c]
 
 
+@_jit_sums
+def weight_centroids(grad, top, left, window, out):  # type: ignore[no-untyped-def]
+    """Centre of each block's correlation weight, relative to its window's
+    centre: ``out[i] = (x, y)`` centroid of ``w² (g − ḡ)²`` over the window at
+    ``(top[i], left[i])`` of ``grad`` (``ḡ`` its window-weighted mean),
+    minus ``((Ex − 1)/2, (Ey − 1)/2)``; zeros for a block without texture.
+
+    A block's sub-pixel shift is the average of its content's local shifts
+    weighted about so; when the shift varies over the window (drift while
+    its rows are scanned), it is the shift at this point, not at the
+    window's centre.
+    """
+    n = top.size
+    ey, ex = window.shape
+    for i in range(n):
+        t = top[i]
+        le = left[i]
+        sw = 0.0
+        swg = 0.0
+        for r in range(ey):
+            for c in range(ex):
+                w = np.float64(window[r, c])
+                sw += w
+                swg += w * grad[t + r, le + c]
+        mean = swg / sw if sw > 0 else 0.0
+        s0 = 0.0
+        sx = 0.0
+        sy = 0.0
+        for r in range(ey):
+            row = 0.0
+            for c in range(ex):
+                w = np.float64(window[r, c])
+                d = grad[t + r, le + c] - mean
+                e = w * w * d * d
+                row += e
+                sx += e * c
+            s0 += row
+            sy += row * r
+        if s0 > 0 and math.isfinite(s0):
+            out[i, 0] = sx / s0 - 0.5 * (ex - 1)
+            out[i, 1] = sy / s0 - 0.5 * (ey - 1)
+        else:
+            out[i, 0] = 0.0
+            out[i, 1] = 0.0
+
+
 @_jit
 def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-untyped-def]
     """Subtract block ``i``'s window-weighted mean: the window's DFT (a few
@@ -1017,19 +1063,23 @@ def place_windows(  # type: ignore[no-untyped-def]
 
 @_jit
 def assemble(  # type: ignore[no-untyped-def]
-    top, left, ref_top, ref_left, sy, sx, fy, fx, ok, mse, peak, area, near, my, mx,
+    top, left, ref_top, ref_left, sy, sx, fy, fx, ok, mse, peak, area, near, my, mx, unbias,
     vectors, measured, confidence, median,
 ):  # fmt: skip
-    """Block vectors ``(x, y)`` = window move + integer peak + sub-pixel
-    offset, and whether each block was measured: window near its place, a
+    """Block vectors ``(x, y)`` = window move + ``unbias`` (n, 2, 2) times
+    (integer peak + sub-pixel offset), the shift under the window corrected
+    for the block's window response (``BlockEngine.calibrate``), and
+    whether each block was measured: window near its place, a
     verified (finite-MSE) peak inside the search (not on its edge), and a
     converged sub-pixel step. Also the peak ``confidence = peak / area``
     (the inverse FFT's scale), in place NaN for an infinite ``mse`` (no
     candidate verified), and the :func:`masked_medians` of the measured
     vectors. Returns the number of measured blocks."""
     for i in range(top.size):
-        vectors[i, 0] = (left[i] - ref_left[i]) + sx[i] + fx[i]
-        vectors[i, 1] = (top[i] - ref_top[i]) + sy[i] + fy[i]
+        rx = sx[i] + fx[i]
+        ry = sy[i] + fy[i]
+        vectors[i, 0] = (left[i] - ref_left[i]) + unbias[i, 0, 0] * rx + unbias[i, 0, 1] * ry
+        vectors[i, 1] = (top[i] - ref_top[i]) + unbias[i, 1, 0] * rx + unbias[i, 1, 1] * ry
         finite = np.isfinite(mse[i])
         measured[i] = near[i] and finite and ok[i] and abs(sy[i]) < my and abs(sx[i]) < mx
         if not finite:

@@ -251,6 +251,7 @@ def combine(
         mse=meas.mse.astype(dtype),
         measured=measured.copy(),
         valid=valid,
+        weight_centres_px=meas.weight_centres_px.astype(dtype),
     )
     px, py = pixel_size_nm
     reason = None
@@ -318,6 +319,7 @@ def _no_field(engine: BlockEngine, dtype: np.dtype[np.floating]) -> BlockField:
         mse=np.full(n, np.nan, dtype=dtype),
         measured=np.zeros(n, dtype=bool),
         valid=np.zeros(n, dtype=bool),
+        weight_centres_px=engine.centres_px.astype(dtype),
     )
 
 
@@ -626,7 +628,9 @@ def _measure_overlap(
     )
     f = inner.field
     offset = np.array([ca.start, ra.start], dtype=f.centres_px.dtype)
-    field = replace(f, centres_px=f.centres_px + offset)
+    field = replace(
+        f, centres_px=f.centres_px + offset, weight_centres_px=f.weight_centres_px + offset
+    )
     how = f"overlap of {rows - abs(dy)}×{cols - abs(dx)} px at the {coarse.describe()}"
     if not inner.valid:
         return replace(inner, field=field, prior_px=(float(dx), float(dy)), prior=how)

@@ -33,6 +33,14 @@ class BlockField:
         A usable peak was found inside the search range and overlap.
     valid : ndarray of bool, shape (n,)
         Measured and kept by the outlier rule: these blocks make the drift.
+    weight_centres_px : ndarray, shape (n, 2)
+        Where each block's vector applies ``(x, y)``, reference image pixels:
+        the centre of its correlation weight (the window squared times the
+        reference block's gradient energy), not the window's centre. When the
+        drift moves while the frame is scanned, a block measures the shift of
+        the rows its texture is in: a particle near the top of a window is
+        scanned up to 16 s before the window's centre row in a 512-line,
+        4 Hz frame.
     """
 
     centres_px: npt.NDArray[np.floating]
@@ -41,6 +49,7 @@ class BlockField:
     mse: npt.NDArray[np.floating]
     measured: npt.NDArray[np.bool_]
     valid: npt.NDArray[np.bool_]
+    weight_centres_px: npt.NDArray[np.floating]
 
 
 def _json_float(v: float) -> float | None:

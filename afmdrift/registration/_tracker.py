@@ -460,6 +460,7 @@ class DriftTracker:
             mse=f.mse,
             measured=f.measured,
             valid=f.valid,
+            weight_centres_px=f.weight_centres_px,
         )
         sx = math.hypot(meas.sigma_x_nm, self._rel_sigma_nm[0])
         sy = math.hypot(meas.sigma_y_nm, self._rel_sigma_nm[1])

@@ -67,9 +67,17 @@ def test_every_frame_after_offset_moves_is_accepted_and_on_the_truth(
     )
     true += -zero + 0.5 * (np.array([sign[k] for k in frame]) - sign[0])[:, None] * bias
     err = samples[:, 1:3] - true
-    assert np.sqrt(np.mean(err**2)) < 0.5
+    # 0.055 nm before each block's window response was divided out and its
+    # vector placed at its texture's scan time; 0.021 nm after
+    assert np.sqrt(np.mean(err**2)) < 0.04
     # p of measurements.csv is the same curve at mid-scan time
     xy = np.array([[float(r["x_nm"]), float(r["y_nm"])] for r in rows])
+    # and its increments between frames: 0.089 nm RMS before, 0.024 nm after
+    t_mid = np.array([session.frame(k).t_mid_s for k in range(len(session))])
+    p_true = np.column_stack([np.interp(t_mid, tt, tv[:, 0]), np.interp(t_mid, tt, tv[:, 1])])
+    p_true += 0.5 * (np.array([sign[k] for k in range(len(session))]) - sign[0])[:, None] * bias
+    increments = np.diff(xy, axis=0) - np.diff(p_true, axis=0)
+    assert np.sqrt(np.mean(increments**2)) < 0.05
     for k in (5, 15):
         mine = samples[frame == k]
         t_mid = session.frame(k).t_mid_s
