@@ -133,3 +133,14 @@ def test_a_block_vector_applies_where_its_texture_is() -> None:
     assert np.abs(centres[textured] - np.array(at)).max() < 3.0
     # while the windows' own centres are up to half a window away
     assert np.abs(engine.centres_px[textured] - np.array(at)).max() > ex / 4
+
+
+def test_three_point_peak_models_are_not_calibrated() -> None:
+    """Their pixel-locking bias is not linear in the shift: a response measured
+    at 1 px would be wrong at a fraction of one, so they are left as they are."""
+    rng = np.random.default_rng(3)
+    image = rough_texture((256, 256), pixel_size_nm=1.0, rng=rng, rms_nm=2.0)
+    cfg = config_for_image(RegistrationConfig(subpixel="sinc"), image)
+    engine = BlockEngine(image.shape, cfg)
+    ref = engine.reference(engine.prepare(image)[0].copy())
+    np.testing.assert_array_equal(ref.unbias, np.tile(np.eye(2), (engine.layout.n_blocks, 1, 1)))
