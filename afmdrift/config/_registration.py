@@ -90,6 +90,13 @@ class RegistrationConfig(BaseModel):
     subpixel_band: float = Field(
         0.25, gt=0, le=1, description="dft method: frequencies used, as a fraction of Nyquist."
     )
+    window_response: bool = Field(
+        True,
+        description="dft method: measure each reference block's response to its content "
+        "moving under its window and divide it out (two extra block passes per reference: "
+        "on re-anchoring with keyframes, on every frame with reference = consecutive; "
+        "docs/registration.md).",
+    )
     eps_rel: float = Field(
         1e-4,
         gt=0,

@@ -562,7 +562,7 @@ class BlockEngine:
         shift, so a response measured at 1 px does not hold at a fraction of
         one (it made ``sinc`` 0.13 px RMS wrong where it was 0.006 px).
         """
-        if self.config.subpixel != "dft":
+        if self.config.subpixel != "dft" or not self.config.window_response:
             return ref
         n = self.layout.n_blocks
         resp = np.zeros((n, 2, 2))  # resp[i, :, axis]: response to a move along axis

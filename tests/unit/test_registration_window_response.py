@@ -144,3 +144,14 @@ def test_three_point_peak_models_are_not_calibrated() -> None:
     engine = BlockEngine(image.shape, cfg)
     ref = engine.reference(engine.prepare(image)[0].copy())
     np.testing.assert_array_equal(ref.unbias, np.tile(np.eye(2), (engine.layout.n_blocks, 1, 1)))
+
+
+def test_the_window_response_can_be_turned_off() -> None:
+    """``window_response = false`` (for reference = consecutive, where every
+    frame pays the two calibration passes): no correction."""
+    rng = np.random.default_rng(1)
+    image = _sparse_particles(rng)
+    cfg = config_for_image(RegistrationConfig(window_response=False), image)
+    engine = BlockEngine(image.shape, cfg)
+    ref = engine.reference(engine.prepare(image)[0].copy())
+    np.testing.assert_array_equal(ref.unbias, np.tile(np.eye(2), (engine.layout.n_blocks, 1, 1)))
