@@ -462,10 +462,13 @@ class DriftPositions:
         if self._moves_during(events, timing_ref, timing_cur):
             grid = tracker.block_rows_px
             half = 0.5 * float(np.min(np.diff(grid))) if grid.size > 1 else 0.5 * frame.shape[0]
-            lo = np.concatenate([timing_cur.times_at(levels + means[:, 1] - half),
-                                 timing_ref.times_at(levels - half)])  # fmt: skip
-            hi = np.concatenate([timing_cur.times_at(levels + means[:, 1] + half),
-                                 timing_ref.times_at(levels + half)])  # fmt: skip
+            # the block rows' span, and the rows their vectors are timed at
+            below = np.minimum(levels - half, at)
+            above = np.maximum(levels + half, at)
+            lo = np.concatenate([timing_cur.times_at(below + means[:, 1]),
+                                 timing_ref.times_at(below)])  # fmt: skip
+            hi = np.concatenate([timing_cur.times_at(above + means[:, 1]),
+                                 timing_ref.times_at(above)])  # fmt: skip
             moved = np.any(offset_change_nm(hi, lo, events) != 0.0, axis=1)
             clean = ~(moved[: levels.size] | moved[levels.size :])
             if not clean.any():

@@ -155,3 +155,36 @@ def test_the_window_response_can_be_turned_off() -> None:
     engine = BlockEngine(image.shape, cfg)
     ref = engine.reference(engine.prepare(image)[0].copy())
     np.testing.assert_array_equal(ref.unbias, np.tile(np.eye(2), (engine.layout.n_blocks, 1, 1)))
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 40.0])
+def test_straight_edges_are_not_amplified(angle_deg: float) -> None:
+    """Regression (review): a straight terrace step reads nothing along itself
+    (the aperture problem), so its response is near 1 in that direction and
+    ``I − B`` near singular: the correction was allowed when every entry of
+    ``B`` was ≤ 0.5 (``B = [[.5, .5], [.5, .5]]`` made ``inv`` raise, 40°
+    steps gave 5× amplification). A block is now corrected only where no
+    direction reads less than half of itself: at most 2× its noise."""
+    size = 256
+    y, x = np.mgrid[:size, :size].astype(np.float64)
+    th = np.deg2rad(angle_deg)
+    u = x * np.cos(th) + y * np.sin(th)
+    image = 0.35 * np.floor(u / 90.0) + 0.35 / (1.0 + np.exp(-((u % 90.0) - 45.0) / 1.5))
+    image += 0.002 * np.random.default_rng(0).standard_normal(image.shape)
+    _, ref, _ = _engine_and_reference(image)
+    unbias = np.asarray(ref.unbias)
+    assert np.isfinite(unbias).all()
+    assert np.linalg.norm(unbias, 2, axis=(1, 2)).max() <= 2.0 + 1e-9
+
+
+def test_calibrating_a_calibrated_reference_measures_it_afresh() -> None:
+    """Regression (review): ``calibrate`` measured through the reference's own
+    correction, so a second call undid the first."""
+    rng = np.random.default_rng(3)
+    image = rough_texture(
+        (256, 256), pixel_size_nm=1.0, rng=rng, rms_nm=2.0, correlation_length_nm=20.0
+    )
+    engine, ref, _ = _engine_and_reference(image)
+    again = engine.calibrate(ref)
+    np.testing.assert_allclose(again.unbias, ref.unbias, atol=1e-9)
+    assert np.abs(np.asarray(ref.unbias) - np.eye(2)).max() > 0.1  # there is a correction
