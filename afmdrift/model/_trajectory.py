@@ -145,10 +145,6 @@ class _Frame:
     sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
     fixed: bool = False
     anchor: bool = False  # known, not measured: never re-solved
-    t_list: list[float] = field(default_factory=list)  # t_s as floats (interpolation)
-
-    def __post_init__(self) -> None:
-        self.t_list = self.t_s.tolist()
 
 
 @dataclass(frozen=True, slots=True)
@@ -168,19 +164,6 @@ class FrameTrajectory:
     sigma_nm: FloatArray
     mid_nm: FloatArray
     mid_sigma_nm: float
-
-
-def _weights(t: float, knots: list[float]) -> tuple[int, int, float, float]:
-    """Indices and weights of the linear interpolation (or extrapolation) of
-    a frame's knots (times, increasing) at ``t``."""
-    n = len(knots)
-    if n == 1:
-        return 0, 0, 1.0, 0.0
-    k = min(max(bisect.bisect_left(knots, t) - 1, 0), n - 2)
-    t0, t1 = knots[k], knots[k + 1]
-    h = t1 - t0
-    w = (t - t0) / h if h > 0 else 0.0
-    return k, k + 1, 1.0 - w, w
 
 
 @numba.njit(cache=True, nogil=True)
@@ -337,7 +320,8 @@ def _schur(
 
 @numba.njit(cache=True, nogil=True)
 def _knot_weights(knots: FloatArray, t: float) -> tuple[int, int, float, float]:
-    """:func:`_weights` (the same arithmetic), compiled."""
+    """Indices and weights of the linear interpolation (or extrapolation) of
+    a frame's knots (times, increasing) at ``t``."""
     n = knots.size
     if n == 1:
         return 0, 0, 1.0, 0.0
@@ -454,6 +438,7 @@ def _compile_kernels() -> None:
     _schur(np.eye(5), np.zeros((5, 2)), np.arange(3), np.arange(3, 5))
     a, y = np.zeros((3, 5)), np.zeros((3, 2))
     t, cols = np.arange(3.0), np.arange(3)
+    _knot_weights(t, 1.5)
     _smoothness_rows(a, y, t, cols, np.zeros((3, 2)), np.zeros(0), 1.0)
     _constraint_rows(
         a, y, 0, t, cols, t, t, cols, np.zeros((3, 2)), t, np.zeros((3, 2)), np.ones(3), 1.0
@@ -609,7 +594,7 @@ class DriftTrajectory:
         if gauge:
             # p = 0 at the session reference's mid-scan time (its knots are free)
             assert self.origin is not None
-            i, j, wi, wj = _weights(self.origin[1], frame.t_list)
+            i, j, wi, wj = _knot_weights(frame.t_s, self.origin[1])
             a[used, new_cols[i]] += wi / GAUGE_SIGMA_NM
             if wj != 0.0:
                 a[used, new_cols[j]] += wj / GAUGE_SIGMA_NM
@@ -664,7 +649,7 @@ class DriftTrajectory:
         as terms, the others (fixed or anchored) as constants, whose
         variances are appended to ``fixed_var``."""
         f = self.frames[key]
-        i, j, wi, wj = _weights(t, f.t_list)
+        i, j, wi, wj = _knot_weights(f.t_s, t)
         terms: list[tuple[int, float]] = []
         const = _ZERO2  # shared, never written: most knots are free
         for idx, w in ((i, wi), (j, wj)):
@@ -786,7 +771,7 @@ class DriftTrajectory:
         xy = f.p + shift
         sig = np.empty((f.sigma.size, 2))
         sig[:, 0] = sig[:, 1] = f.sigma
-        i, j, wi, wj = _weights(f.t_mid_s, f.t_list)
+        i, j, wi, wj = _knot_weights(f.t_s, f.t_mid_s)
         mid = wi * f.p[i] + wj * f.p[j] + shift
         mid_sigma = float(wi * f.sigma[i] + wj * f.sigma[j])
         return FrameTrajectory(

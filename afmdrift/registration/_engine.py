@@ -131,9 +131,9 @@ class ReferenceSpectra:
     #: measured response to its content moving under its window (see
     #: :meth:`BlockEngine.calibrate`); identity where not calibrated.
     unbias: F64
-    #: Per block, the centre of its correlation weight relative to the
-    #: window's centre, ``(x, y)`` px (:func:`afmdrift.registration._kernels.weight_centroids`).
-    weight_offsets_px: F64
+    #: Per block, the centre of its correlation weight ``(x, y)``, reference
+    #: px (:func:`afmdrift.registration._kernels.weight_centroids`).
+    weight_centres_px: F64
     derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
 
 
@@ -156,7 +156,7 @@ class BlockMeasurement:
     placed: BArr
     in_overlap: BArr
     #: Where each block's vector applies ``(x, y)``, reference px: the centre
-    #: of its correlation weight (``ReferenceSpectra.weight_offsets_px``).
+    #: of its correlation weight (``ReferenceSpectra.weight_centres_px``).
     weight_centres_px: F64
     #: Number of measured blocks and the per-axis median ``(x, y)`` of their
     #: vectors (NaN if none).
@@ -523,7 +523,8 @@ class BlockEngine:
         response (:meth:`calibrate`) added."""
         offsets = np.empty((self.layout.n_blocks, 2))
         _kernels.weight_centroids(grad, top, left, self.window, offsets)
-        offsets.setflags(write=False)
+        centres = self._centres + offsets
+        centres.setflags(write=False)
         ref = ReferenceSpectra(
             grad=grad,
             top=top,
@@ -531,7 +532,7 @@ class BlockEngine:
             conj_spectra=spectra,
             band_mag=band_mag,
             unbias=self._identity,
-            weight_offsets_px=offsets,
+            weight_centres_px=centres,
         )
         return self.calibrate(ref)
 
@@ -594,7 +595,7 @@ class BlockEngine:
             # read as ∓(I − B)·e, so the block's vector (zero if unbiased) is ±B·e
             resp[:, :, axis] = step[:, None] * meas.vectors_px
             good &= meas.measured & placed
-        gain = np.eye(2) - np.where(good[:, None, None], resp, 0.0)  # I − B
+        gain = np.eye(2) - resp  # I − B
         good &= np.isfinite(gain).all(axis=(1, 2))
         gain[~good] = np.eye(2)
         good &= np.linalg.svd(gain, compute_uv=False)[:, -1] >= 1.0 - MAX_RESPONSE
@@ -732,7 +733,7 @@ class BlockEngine:
             measured=measured,
             placed=placed,
             in_overlap=near,
-            weight_centres_px=self._centres + ref.weight_offsets_px,
+            weight_centres_px=ref.weight_centres_px,
             n_measured=int(n_measured),
             median_px=(float(median[0]), float(median[1])),
         )

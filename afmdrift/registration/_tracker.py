@@ -60,7 +60,7 @@ from afmdrift.registration._measure import (
     invalid_result,
     register,
 )
-from afmdrift.registration._result import BlockField, DriftResult
+from afmdrift.registration._result import DriftResult
 
 if TYPE_CHECKING:
     from afmdrift.records import Frame
@@ -453,15 +453,7 @@ class DriftTracker:
         px, py = self.pixel_size_nm
         prev = self._rel
         f = meas.field
-        field = BlockField(
-            centres_px=f.centres_px,
-            vectors_px=f.vectors_px - np.array(prev, dtype=f.vectors_px.dtype),
-            confidence=f.confidence,
-            mse=f.mse,
-            measured=f.measured,
-            valid=f.valid,
-            weight_centres_px=f.weight_centres_px,
-        )
+        field = replace(f, vectors_px=f.vectors_px - np.array(prev, dtype=f.vectors_px.dtype))
         sx = math.hypot(meas.sigma_x_nm, self._rel_sigma_nm[0])
         sy = math.hypot(meas.sigma_y_nm, self._rel_sigma_nm[1])
         dx = meas.dx_px - prev[0]

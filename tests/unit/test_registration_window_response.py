@@ -125,7 +125,7 @@ def test_a_block_vector_applies_where_its_texture_is() -> None:
     image += 0.001 * np.random.default_rng(0).standard_normal((size, size))
     engine, ref, grad = _engine_and_reference(image)
     ex = engine.layout.ext[1]
-    centres = engine.centres_px + np.asarray(ref.weight_offsets_px)
+    centres = np.asarray(ref.weight_centres_px)
     textured = _textured(engine, grad, ref)
     assert textured.any()
     # every window holding the particle puts its vector at the particle
