@@ -42,7 +42,6 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
-from scipy.optimize import minimize_scalar
 
 from afmdrift.config import NNConfig, PhysicsConfig
 from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
@@ -184,6 +183,11 @@ class PhysicsPredictor(_LoggingPredictor):
         self.last_residual = np.zeros(2)
         self.residual_sd = np.full(2, math.nan)
         self._missing_logged: set[str] = set()
+        # scipy.optimize (0.3 s to import) loads with the first physics model,
+        # not with every command that imports afmdrift.model.
+        from scipy.optimize import minimize_scalar
+
+        self._minimize_scalar = minimize_scalar
         self.residual_net = None
         if self.config.residual == "nn":
             from afmdrift.model._nn import NNSeriesModel
@@ -319,7 +323,7 @@ class PhysicsPredictor(_LoggingPredictor):
                         step = float(grid[1] - grid[0]) if grid.size > 1 else 0.1
                         lo = max(float(grid[0]), best_log - step)
                         hi = min(float(grid[-1]), best_log + step)
-                    res = minimize_scalar(
+                    res = self._minimize_scalar(
                         obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
                     )
                     if float(res.fun) <= best_val:

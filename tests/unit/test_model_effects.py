@@ -612,3 +612,35 @@ def test_a_loop_through_the_inverse_play_holds_the_image_on_a_simulated_scanner(
         shown[through] = np.asarray(image)[20:]
     assert np.abs(shown[False]).max() > 2.0
     assert np.abs(shown[True]).max() < 1e-6
+
+
+def test_commands_that_load_the_model_do_not_import_scipy_signal_or_optimize() -> None:
+    """``afmdrift measure`` loads the model package: scipy.signal (0.8 s) and
+    scipy.optimize (0.3 s) were imported with it, most of the command's
+    start-up. The physics model imports scipy.optimize when it is made."""
+    import subprocess
+
+    code = (
+        "import sys, afmdrift.model, afmdrift.pipeline, afmdrift.cli._measure; "
+        "print(sorted(m for m in ('scipy.signal', 'scipy.optimize') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout.strip() == "[]"
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 5000])
+def test_first_order_lag_matches_its_recursion_exactly(n: int) -> None:
+    """The thermal-lag filter (formerly ``scipy.signal.lfilter([1 − a], [1,
+    −a], zi=[a·x₀])``) gives the same bits as that filter."""
+    from scipy.signal import lfilter
+
+    from afmdrift.model._effects import _first_order_lag
+
+    rng = np.random.default_rng(n)
+    values = np.cumsum(rng.standard_normal(n)) * 3.0 + 20.0
+    for tau in (0.5, 30.0, 1e4):
+        a = float(np.exp(-1.0 / tau))
+        expected, _ = lfilter([1.0 - a], [1.0, -a], values, zi=np.array([a * values[0]]))
+        np.testing.assert_array_equal(_first_order_lag(values, a), expected)
