@@ -277,7 +277,8 @@ def _load_npy(path: Path) -> npt.NDArray[np.float64]:
     if not isinstance(data, np.ndarray) or data.dtype.kind not in "iuf":
         raise ImageFileError(f"{path}: expected a numeric array, got {getattr(data, 'dtype', '?')}")
     _check_size(path, data.shape)
-    return np.asarray(data, dtype=np.float64)
+    # one copy into memory (the frames are views of it), closing the mapping
+    return np.array(data, dtype=np.float64)
 
 
 def _check_size(path: Path, shape: tuple[int, ...]) -> None:
@@ -308,9 +309,13 @@ def _read_array(
     stack = data if data.ndim == 3 else data[np.newaxis]
     if not np.all(np.isfinite(stack)):
         raise ImageFileError(f"{path}: {what} contains non-finite heights")
+    # Frames are views of one float64 stack: a long stack is not held twice.
+    stack = np.ascontiguousarray(stack, dtype=np.float64)
+    if factor != 1.0:
+        stack = stack * factor
     return [
         AfmImage(
-            heights_nm=np.ascontiguousarray(stack[i] * factor),
+            heights_nm=stack[i],
             pixel_size_nm=pixel_size_nm,
             path=path,
             frame=i if data.ndim == 3 else None,

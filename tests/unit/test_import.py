@@ -166,3 +166,29 @@ def test_cli_import_attaches_a_lab_event_log_with_its_own_kinds(
     capsys.readouterr()
     assert main([*args, "--force", "--events", str(tmp_path / "missing.csv")]) == 2
     assert "missing.csv: event log not found" in capsys.readouterr().err
+
+
+def test_a_stack_file_is_held_once(tmp_path: Path) -> None:
+    """``afmdrift measure STACK.npy``: the reader's frames are views of one
+    float64 stack, and the session keeps that stack instead of copying it
+    (a copy of a long stack cost half a second and doubled the memory)."""
+    from afmdrift.io import load_stack
+    from afmdrift.session import session_from_images
+
+    rng = np.random.default_rng(0)
+    stack = rng.standard_normal((5, 64, 80)).astype(np.float32)
+    path = tmp_path / "stack.npy"
+    np.save(path, stack)
+    images = load_stack(path, pixel_size_nm=2.0)
+    session = session_from_images(images, frame_time_s=1.0)
+    np.testing.assert_array_equal(session.frames, stack.astype(np.float64))
+    assert session.frames.dtype == np.float64
+    assert all(np.shares_memory(session.frames, im.heights_nm) for im in images)
+    # heights in µm are scaled once, into the stack the frames share
+    scaled = load_stack(path, pixel_size_nm=2.0, height_unit="um")
+    np.testing.assert_allclose(scaled[3].heights_nm, 1e3 * stack[3].astype(np.float64))
+    # frames given in another order (or from separate files) are copied, in
+    # the order given
+    reordered = session_from_images(images[::-1], frame_time_s=1.0)
+    assert not np.shares_memory(reordered.frames, images[0].heights_nm)
+    np.testing.assert_array_equal(reordered.frames, stack[::-1].astype(np.float64))
