@@ -18,7 +18,8 @@ pruned inverse real FFT of every block, split into the engine's batches and
 taken in turn by the engine's threads; see ``bench_registration.py``).
 Printed: medians, the ratios measure/tracker and measure/FFT floor, and frames
 per second. Then the whole command (``afmdrift measure STACK.npy``, start-up
-and file reading included) is run once on the 512² stack, as a user runs it.
+and file reading included) is run once on the 512² stack saved as float32,
+as a user runs it: its wall time and peak resident memory.
 
 The command-line process runs OpenBLAS on one thread (``afmdrift.cli``); this
 benchmark sets the same before NumPy loads, so the in-process figures are
@@ -124,22 +125,40 @@ def run(kind: str, n: int, rng: np.random.Generator) -> dict[str, float]:
     }
 
 
-def command_wall_s(n: int, rng: np.random.Generator) -> tuple[float, int]:
-    """Wall time of ``afmdrift measure STACK.npy`` on an ``n``-frame 512² stack."""
+def command_wall_s(n: int, rng: np.random.Generator) -> tuple[float, int, float]:
+    """Wall time (s), JSON lines and peak resident memory (MB) of ``afmdrift
+    measure STACK.npy`` on an ``n``-frame 512² float32 stack."""
     frames, pixel = stack("512", n, rng)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "stack.npy"
         np.save(path, np.stack(frames).astype(np.float32))
+        del frames
         exe = Path(sys.executable).with_name("afmdrift")
+        out_path = Path(tmp) / "out.jsonl"
         t0 = time.perf_counter()
-        out = subprocess.run(
-            [str(exe), "measure", str(path), "--pixel-size-nm", str(pixel)],
-            capture_output=True,
-            text=True,
-            check=False,
-        )
+        with out_path.open("w") as sink:
+            proc = subprocess.Popen(
+                [str(exe), "measure", str(path), "--pixel-size-nm", str(pixel)],
+                stdout=sink,
+                stderr=subprocess.DEVNULL,
+            )
+            # The command's high-water resident memory, read while it runs:
+            # its rusage would count this (large) process's pages, which the
+            # child shares until it executes the command.
+            peak_kb = 0
+            status = Path(f"/proc/{proc.pid}/status")
+            while proc.poll() is None:
+                try:
+                    for line in status.read_text().splitlines():
+                        if line.startswith("VmHWM:"):
+                            peak_kb = max(peak_kb, int(line.split()[1]))
+                except (OSError, ValueError):
+                    pass
+                time.sleep(0.01)
         wall = time.perf_counter() - t0
-    return wall, out.stdout.count("\n")
+        out = out_path.read_text()
+    peak_mb = peak_kb / 1024 if peak_kb else float("nan")
+    return wall, out.count("\n"), peak_mb
 
 
 def main() -> None:
@@ -157,11 +176,11 @@ def main() -> None:
             f"FFT floor {r['fft_ms']:.2f} ms; measure/tracker {r['measure_over_tracker']:.2f}x, "
             f"measure/FFT floor {r['measure_over_fft']:.2f}x"
         )
-    wall, lines = command_wall_s(args.frames, rng)
+    wall, lines, peak_mb = command_wall_s(args.frames, rng)
     print(
-        f"afmdrift measure STACK.npy (512², {args.frames} frames): {wall:.2f} s wall, "
+        f"afmdrift measure STACK.npy (512², {args.frames} frames, float32): {wall:.2f} s wall, "
         f"{lines} JSON lines, {1e3 * wall / max(1, args.frames - 1):.1f} ms per frame "
-        "with start-up and reading"
+        f"with start-up and reading; peak resident memory {peak_mb:.0f} MB"
     )
 
 
