@@ -241,7 +241,9 @@ def load_image(
             f"{path}: frame {frame} out of range "
             f"(file has {len(images)} frame(s), 0..{len(images) - 1})"
         )
-    return images[frame]
+    # its own heights, not a view that keeps the whole stack in memory
+    chosen = images[frame]
+    return dataclasses.replace(chosen, heights_nm=chosen.heights_nm.copy())
 
 
 def load_stack(
@@ -277,8 +279,8 @@ def _load_npy(path: Path) -> npt.NDArray[np.float64]:
     if not isinstance(data, np.ndarray) or data.dtype.kind not in "iuf":
         raise ImageFileError(f"{path}: expected a numeric array, got {getattr(data, 'dtype', '?')}")
     _check_size(path, data.shape)
-    # one copy into memory (the frames are views of it), closing the mapping
-    return np.array(data, dtype=np.float64)
+    # one C-ordered copy into memory (the frames are views of it), closing the mapping
+    return np.array(data, dtype=np.float64, order="C")
 
 
 def _check_size(path: Path, shape: tuple[int, ...]) -> None:
@@ -312,7 +314,8 @@ def _read_array(
     # Frames are views of one float64 stack: a long stack is not held twice.
     stack = np.ascontiguousarray(stack, dtype=np.float64)
     if factor != 1.0:
-        stack = stack * factor
+        # the readers' arrays are their own: scaled in place, not copied again
+        np.multiply(stack, factor, out=stack)
     return [
         AfmImage(
             heights_nm=stack[i],

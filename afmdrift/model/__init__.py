@@ -30,6 +30,7 @@ from afmdrift.model._effects import (
     offset_through_play,
     play_gaps,
     step_through_play,
+    warm_up_effects,
 )
 from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
 from afmdrift.model._families import (
@@ -128,6 +129,7 @@ __all__ = [
     "step_through_play",
     "term_class",
     "truth_frame_mean",
+    "warm_up_effects",
 ]
 
 

@@ -46,7 +46,7 @@ import numpy.typing as npt
 from afmdrift.config import NNConfig, PhysicsConfig
 from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
-from afmdrift.model._effects import EffectTerm
+from afmdrift.model._effects import EffectTerm, warm_up_effects
 from afmdrift.model._families import resolve_terms
 
 __all__ = [
@@ -184,10 +184,12 @@ class PhysicsPredictor(_LoggingPredictor):
         self.residual_sd = np.full(2, math.nan)
         self._missing_logged: set[str] = set()
         # scipy.optimize (0.3 s to import) loads with the first physics model,
-        # not with every command that imports afmdrift.model.
+        # not with every command that imports afmdrift.model; the terms'
+        # kernels compile now, not at the first fit.
         from scipy.optimize import minimize_scalar
 
         self._minimize_scalar = minimize_scalar
+        warm_up_effects()
         self.residual_net = None
         if self.config.residual == "nn":
             from afmdrift.model._nn import NNSeriesModel

@@ -52,6 +52,7 @@ from afmdrift.model import (
     events_of_kind,
     offset_through_play,
     play_gaps,
+    warm_up_effects,
 )
 from afmdrift.pipeline import FramePipeline
 from afmdrift.records import EventKind, InstrumentInfo
@@ -208,6 +209,8 @@ class DriftService:
             # after an install) and stall the offset stream mid-run.
             warm_s = await self._in_worker(functools.partial(warm_up, self.config.registration))
             log.info("registration kernels ready in %.2f s", warm_s)
+            # ... and the effect terms' (the play compensation runs on the loop)
+            await self._in_worker(warm_up_effects)
             await self._resume_from_store()
             publisher = Publisher(
                 self.svc.pub_endpoint, ctx=ctx, sndhwm=self.svc.sndhwm, curve=curve_keys

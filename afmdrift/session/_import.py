@@ -92,7 +92,11 @@ def session_from_images(
 ) -> Session:
     """The in-memory :class:`Session` of images already read, timed as
     :func:`import_files` times them (it calls this); ``afmdrift measure`` on a
-    stack uses it too."""
+    stack uses it too.
+
+    When the images are, in order, the frames of one float64 stack (as a
+    stack file's reader gives them), the session's ``frames`` is that stack:
+    it shares memory with the images' heights. Otherwise it is a copy."""
     images = list(images)
     if not images:
         raise SessionError("import: no images")

@@ -192,3 +192,24 @@ def test_a_stack_file_is_held_once(tmp_path: Path) -> None:
     reordered = session_from_images(images[::-1], frame_time_s=1.0)
     assert not np.shares_memory(reordered.frames, images[0].heights_nm)
     np.testing.assert_array_equal(reordered.frames, stack[::-1].astype(np.float64))
+
+
+def test_one_frame_of_a_stack_file_does_not_keep_the_stack(tmp_path: Path) -> None:
+    """``FILE:i`` gives the frame its own heights (a view would hold the
+    whole float64 stack for as long as the frame lives); a Fortran-ordered
+    ``.npy`` is read into one C-ordered stack whose frames the session
+    shares (not copied once more to make it contiguous)."""
+    from afmdrift.io import load_image, load_stack
+    from afmdrift.session import session_from_images
+
+    stack = np.random.default_rng(1).standard_normal((4, 48, 40))
+    path = tmp_path / "stack.npy"
+    np.save(path, np.asfortranarray(stack))
+    one = load_image(f"{path}:2", pixel_size_nm=1.0)
+    np.testing.assert_array_equal(one.heights_nm, stack[2])
+    assert one.heights_nm.base is None
+    images = load_stack(path, pixel_size_nm=1.0)
+    assert all(im.heights_nm.flags.c_contiguous for im in images)
+    session = session_from_images(images, frame_time_s=1.0)
+    np.testing.assert_array_equal(session.frames, stack)
+    assert np.shares_memory(session.frames, images[3].heights_nm)
