@@ -288,10 +288,12 @@ class FramePipeline:
             frame, seq=seq, events=self.history.events, prediction_nm=pred[0],
             n_fed=self.n_fed, held=held,
         )  # fmt: skip
-        fed = self._feed_model(frame, pos, seq=seq, held=hold, t_now_s=t_now_s)
+        observed = _observed(frame, pos)
+        fed = self._feed_model(frame, pos, observed, seq=seq, held=hold, t_now_s=t_now_s)
         record = _frame_record(
-            frame, pos, pred, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason, started=started
-        )
+            frame, pos, pred, observed, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason,
+            started=started,
+        )  # fmt: skip
         return FrameOutcome(
             record=record,
             curve=self.curve,
@@ -321,6 +323,7 @@ class FramePipeline:
         self,
         frame: Frame,
         pos: FramePosition,
+        observed: tuple[float, FloatArray, float],
         *,
         seq: int,
         held: str | None,
@@ -333,7 +336,7 @@ class FramePipeline:
             reason = held
         fed = pos.fed
         if fed:
-            t, xy, sigma = _observed(frame, pos)
+            t, xy, sigma = observed
             obs = Observation(
                 t_s=t,
                 x_nm=float(xy[0]),
@@ -417,6 +420,7 @@ def _frame_record(
     frame: Frame,
     pos: FramePosition,
     pred: tuple[npt.NDArray[np.float64], float],
+    observed: tuple[float, FloatArray, float],
     *,
     seq: int,
     epoch: int,
@@ -424,10 +428,11 @@ def _frame_record(
     reason: str,
     started: float,
 ) -> FrameRecord:
-    """The store row of a processed frame."""
+    """The store row of a processed frame (``observed``: what it tells the
+    model, :func:`_observed`)."""
     finished = time.time()
     m, p, offset = pos.m, pos.p, pos.offset
-    obs_t, obs_xy, obs_sigma = _observed(frame, pos)
+    obs_t, obs_xy, obs_sigma = observed
     return FrameRecord(
         seq=seq,
         instrument_frame=frame.index,

@@ -218,3 +218,47 @@ def test_the_model_is_fed_the_latest_sample_weighted_by_the_frames_own_registrat
         assert rec.obs_sigma_nm == pytest.approx(pos.measurement_sigma)
         assert rec.obs_sigma_nm != pytest.approx(rec.sigma_nm)
     assert checked >= 3
+
+
+@pytest.mark.parametrize("n_valid", [0, 1, 2, 37])
+def test_field_summary_is_the_mean_spread_and_median_of_the_valid_blocks(n_valid: int) -> None:
+    """summarise_field (one compiled pass): the population mean and standard
+    deviation of the valid blocks' vectors and their median confidence, in
+    nm; invalid blocks (NaN vectors) never enter."""
+    from types import SimpleNamespace
+
+    from afmdrift.pipeline import summarise_field
+    from afmdrift.registration import BlockField
+
+    rng = np.random.default_rng(n_valid)
+    n = 64
+    valid = np.zeros(n, dtype=bool)
+    valid[rng.choice(n, n_valid, replace=False)] = True
+    vectors = rng.normal(3.0, 0.2, (n, 2)).astype(np.float32)
+    vectors[~valid] = np.nan
+    confidence = rng.uniform(0.0, 1.0, n).astype(np.float32)
+    z = np.zeros((n, 2), dtype=np.float32)
+    fld = BlockField(
+        centres_px=z, vectors_px=vectors, confidence=confidence, mse=np.zeros(n),
+        measured=valid.copy(), valid=valid, weight_centres_px=z,
+    )  # fmt: skip
+    summary = summarise_field(SimpleNamespace(field=fld), (2.0, 0.5))
+    assert summary is not None
+    assert (summary.total_blocks, summary.valid_blocks) == (n, n_valid)
+    if n_valid == 0:
+        assert summary.mean_dx_nm is None
+        assert summary.median_confidence is None
+        return
+    good = vectors[valid].astype(np.float64)
+    expected = (
+        good[:, 0].mean() * 2.0, good[:, 1].mean() * 0.5,
+        good[:, 0].std() * 2.0, good[:, 1].std() * 0.5,
+        float(np.median(confidence[valid].astype(np.float64))),
+    )  # fmt: skip
+    got = (
+        summary.mean_dx_nm, summary.mean_dy_nm, summary.std_dx_nm, summary.std_dy_nm,
+        summary.median_confidence,
+    )  # fmt: skip
+    np.testing.assert_allclose(np.array(got, dtype=float), expected, rtol=1e-12, atol=1e-15)
+    # the summary serialises as the wire model it is
+    assert f'"valid_blocks":{n_valid}' in summary.model_dump_json()
