@@ -37,14 +37,12 @@ feed the model.
 from __future__ import annotations
 
 import bisect
-import functools
 import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import numba
 import numpy as np
 import numpy.typing as npt
 
@@ -132,91 +130,6 @@ def _sorted_unique(values: FloatArray) -> FloatArray:
     return v[keep]
 
 
-@numba.njit(cache=True, nogil=True)
-def _block_rows(valid, vectors, centres, weight_centres, levels, counts, means, at):  # type: ignore[no-untyped-def]
-    """The valid blocks grouped by grid row, into the starts of the outputs:
-    the distinct rows ``levels`` (sorted) and, per row, the number of its
-    blocks, their mean vector (px) and the mean row of their weight centres
-    (each sum in block order). Returns ``(valid blocks, rows)``.
-
-    valid : (n,) bool; vectors, centres, weight_centres : (n, 2) float64 (x, y).
-    """
-    n = valid.size
-    rows = np.empty(n)
-    m = 0
-    for i in range(n):
-        if valid[i]:
-            rows[m] = centres[i, 1]
-            m += 1
-    rows = np.sort(rows[:m])
-    n_levels = 0
-    for j in range(m):
-        if j == 0 or rows[j] != rows[j - 1]:
-            levels[n_levels] = rows[j]
-            n_levels += 1
-    counts[:n_levels] = 0.0
-    means[:n_levels] = 0.0
-    at[:n_levels] = 0.0
-    for i in range(n):
-        if valid[i]:
-            k = np.searchsorted(levels[:n_levels], centres[i, 1])
-            counts[k] += 1.0
-            means[k, 0] += vectors[i, 0]
-            means[k, 1] += vectors[i, 1]
-            at[k] += weight_centres[i, 1]
-    for k in range(n_levels):
-        means[k, 0] /= counts[k]
-        means[k, 1] /= counts[k]
-        at[k] /= counts[k]
-    return m, n_levels
-
-
-@numba.njit(cache=True, nogil=True)
-def _field_stats(valid, vectors, confidence, out):  # type: ignore[no-untyped-def]
-    """Of the valid blocks: mean vector ``out[0:2]`` and population standard
-    deviation ``out[2:4]`` (px, two passes), median confidence ``out[4]``.
-    Returns their number (``out`` untouched when none)."""
-    n = valid.size
-    m = 0
-    sx = 0.0
-    sy = 0.0
-    conf = np.empty(n)
-    for i in range(n):
-        if valid[i]:
-            sx += vectors[i, 0]
-            sy += vectors[i, 1]
-            conf[m] = confidence[i]
-            m += 1
-    if m == 0:
-        return 0
-    mx = sx / m
-    my = sy / m
-    qx = 0.0
-    qy = 0.0
-    for i in range(n):
-        if valid[i]:
-            qx += (vectors[i, 0] - mx) ** 2
-            qy += (vectors[i, 1] - my) ** 2
-    c = np.sort(conf[:m])
-    out[0] = mx
-    out[1] = my
-    out[2] = math.sqrt(qx / m)
-    out[3] = math.sqrt(qy / m)
-    out[4] = 0.5 * (c[(m - 1) // 2] + c[m // 2])
-    return m
-
-
-@functools.cache
-def _compile_kernels() -> None:
-    """Compile (or load from Numba's disk cache) this module's kernels when
-    the first position component is made, not at a daemon's first measured
-    frame (a compile holds the GIL)."""
-    z = np.zeros((1, 2))
-    one = np.ones(1, dtype=bool)
-    _block_rows(one, z, z, z, np.empty(1), np.empty(1), np.empty((1, 2)), np.empty(1))
-    _field_stats(one, z, np.zeros(1), np.empty(5))
-
-
 def _sign(direction: ScanDirection) -> int:
     return 1 if direction is ScanDirection.UP else -1
 
@@ -237,7 +150,6 @@ class DriftPositions:
         tracker_factory: TrackerFactory | None = None,
         keep_trajectory: bool = False,
     ) -> None:
-        _compile_kernels()
         self.config = config
         self._tracker_factory = tracker_factory or self._default_tracker_factory
         self._tracker: DriftTracker | None = None
@@ -521,28 +433,11 @@ class DriftPositions:
             return None
         meas = step.measurement
         fld = meas.field
-        valid = np.ascontiguousarray(fld.valid, dtype=bool)
-        vectors = np.ascontiguousarray(fld.vectors_px, dtype=np.float64)
-        n_blocks = valid.size
-        levels, counts, at = np.empty((3, n_blocks))
-        means = np.empty((n_blocks, 2))
-        n_valid, n_levels = _block_rows(
-            valid,
-            vectors,
-            np.ascontiguousarray(fld.centres_px, dtype=np.float64),
-            # each block row's vector applies where its blocks' texture is,
-            # not at the windows' centre row (BlockField.weight_centres_px)
-            np.ascontiguousarray(fld.weight_centres_px, dtype=np.float64),
-            levels,
-            counts,
-            means,
-            at,
-        )
+        # each block row's vector applies where its blocks' texture is, not
+        # at the windows' centre row (BlockField.weight_centres_px)
+        n_valid, levels, counts, means, at = fld.valid_row_means_px()
         if n_valid == 0:
             return None
-        levels, counts, means, at = (
-            levels[:n_levels], counts[:n_levels], means[:n_levels], at[:n_levels]
-        )  # fmt: skip
         timing_cur = _Timing(frame.t_start_s, frame.t_end_s, frame.shape[0], frame.direction)
         t_cur = timing_cur.times_at(at + means[:, 1])
         t_ref = timing_ref.times_at(at)
@@ -578,7 +473,8 @@ class DriftPositions:
             )
             for k in np.nonzero(clean)[0]
         ]
-        return out, float(vectors[valid, 1].mean())
+        valid = np.asarray(fld.valid, dtype=bool)
+        return out, float(np.asarray(fld.vectors_px, dtype=np.float64)[valid, 1].mean())
 
     def _place_measured(
         self,
@@ -636,28 +532,24 @@ def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummar
     fld = getattr(inc, "field", None)
     if fld is None:
         return None
-    valid = np.ascontiguousarray(fld.valid, dtype=bool).reshape(-1)
-    stats = np.empty(5)
-    n = int(
-        _field_stats(
-            valid,
-            np.ascontiguousarray(fld.vectors_px, dtype=np.float64).reshape(-1, 2),
-            np.ascontiguousarray(fld.confidence, dtype=np.float64).reshape(-1),
-            stats,
-        )
-    )
+    # the mean and (population) spread of the blocks the drift was combined from
+    n, stats = fld.valid_mean_std_px(ddof=0)
+    valid = np.asarray(fld.valid, dtype=bool).reshape(-1)
+    conf = np.sort(np.asarray(fld.confidence, dtype=np.float64).reshape(-1)[valid])
+    median = 0.5 * (float(conf[(n - 1) // 2]) + float(conf[n // 2])) if n else math.nan
     px, py = pixel_size_nm
 
     def finite(v: float) -> float | None:
         return v if math.isfinite(v) else None
 
-    # Computed here from finite-checked numbers: no validation needed.
+    # Numbers computed here (NaN where no block is valid, None on the wire):
+    # the model needs no validation.
     return FieldSummary.model_construct(
         total_blocks=int(valid.size),
         valid_blocks=n,
-        mean_dx_nm=finite(float(stats[0]) * px) if n else None,
-        mean_dy_nm=finite(float(stats[1]) * py) if n else None,
-        std_dx_nm=finite(float(stats[2]) * abs(px)) if n else None,
-        std_dy_nm=finite(float(stats[3]) * abs(py)) if n else None,
-        median_confidence=finite(float(stats[4])) if n else None,
+        mean_dx_nm=finite(float(stats[0]) * px),
+        mean_dy_nm=finite(float(stats[1]) * py),
+        std_dx_nm=finite(float(stats[2]) * abs(px)),
+        std_dy_nm=finite(float(stats[3]) * abs(py)),
+        median_confidence=finite(median),
     )

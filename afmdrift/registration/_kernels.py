@@ -47,6 +47,8 @@ __all__ = [
     "place_windows",
     "reject_mad",
     "reject_paper",
+    "row_groups",
+    "row_means",
     "select_blocks",
     "trend_select",
     "usable_blocks",
@@ -906,6 +908,61 @@ def _poly_residual(x, vectors, coef, degree, residual):  # type: ignore[no-untyp
 
 
 @_jit
+def row_groups(rows, levels, group):  # type: ignore[no-untyped-def]
+    """The distinct values of ``rows`` (block rows, px) into the start of
+    ``levels``, sorted, and each row's index among them into ``group``;
+    returns their number. rows, levels : (m,) float64; group : (m,) intp."""
+    sorted_rows = np.sort(rows)
+    n_lev = 0
+    for k in range(rows.size):
+        if n_lev == 0 or sorted_rows[k] != levels[n_lev - 1]:
+            levels[n_lev] = sorted_rows[k]
+            n_lev += 1
+    for k in range(rows.size):
+        group[k] = np.searchsorted(levels[:n_lev], rows[k])
+    return n_lev
+
+
+@_jit
+def row_means(valid, vectors, row_px, weight_row_px, levels, counts, means, at):  # type: ignore[no-untyped-def]
+    """The ``valid`` blocks grouped by their row (:func:`row_groups`), into
+    the starts of the outputs: the distinct rows ``levels`` and, per row,
+    the number of its blocks, their mean vector and the mean of their
+    ``weight_row_px`` (each sum in block order). Returns ``(valid blocks,
+    rows)``.
+
+    valid : (n,) bool; vectors : (n, 2) float64; row_px, weight_row_px : (n,)
+    float64.
+    """
+    n = valid.size
+    rows = np.empty(n)
+    m = 0
+    for i in range(n):
+        if valid[i]:
+            rows[m] = row_px[i]
+            m += 1
+    group = np.empty(m, dtype=np.intp)
+    n_lev = row_groups(rows[:m], levels, group)
+    counts[:n_lev] = 0.0
+    means[:n_lev] = 0.0
+    at[:n_lev] = 0.0
+    k = 0
+    for i in range(n):
+        if valid[i]:
+            g = group[k]
+            k += 1
+            counts[g] += 1.0
+            means[g, 0] += vectors[i, 0]
+            means[g, 1] += vectors[i, 1]
+            at[g] += weight_row_px[i]
+    for g in range(n_lev):
+        means[g, 0] /= counts[g]
+        means[g, 1] /= counts[g]
+        at[g] /= counts[g]
+    return m, n_lev
+
+
+@_jit
 def trend_select(  # type: ignore[no-untyped-def]
     vectors, row_px, usable, threshold, floor, max_iter, max_degree, f_min, explained_min, out
 ):
@@ -928,13 +985,9 @@ def trend_select(  # type: ignore[no-untyped-def]
         return m, nan, nan, False
     rows = row_px[usable]
     vec = vectors[usable]
-    sorted_rows = np.sort(rows)
     levels = np.empty(m)
-    n_lev = 0
-    for k in range(m):
-        if n_lev == 0 or sorted_rows[k] != levels[n_lev - 1]:
-            levels[n_lev] = sorted_rows[k]
-            n_lev += 1
+    group = np.empty(m, dtype=np.intp)
+    n_lev = row_groups(rows, levels, group)
     levels = levels[:n_lev]
     degree = min(max_degree, n_lev - 1, max(0, (m - 2) // 3))
     scale = max(levels[-1] - levels[0], 1.0)
@@ -945,7 +998,6 @@ def trend_select(  # type: ignore[no-untyped-def]
     # per block row: the median of its usable blocks, weighted by their number
     medians = np.empty((n_lev, 2))
     counts = np.zeros(n_lev)
-    group = np.searchsorted(levels, rows)
     for k in range(m):
         counts[group[k]] += 1.0
     sel = np.empty(m)
@@ -1027,15 +1079,15 @@ def select_blocks(  # type: ignore[no-untyped-def]
 ):  # fmt: skip
     """The frame's valid blocks in one call: :func:`usable_blocks`, then the
     outlier rule (:func:`reject_mad` if ``mad``, else :func:`reject_paper`)
-    into ``valid``, then :func:`masked_mean_std` of the valid blocks into
-    ``stats``. Returns ``(available, valid count)``."""
+    into ``valid``, then :func:`masked_mean_std` (sample deviation) of the valid
+    blocks into ``stats``. Returns ``(available, valid count)``."""
     usable = np.empty_like(measured)
     available = usable_blocks(measured, placed, in_overlap, min_blocks, usable)
     if mad:
         n_valid = reject_mad(vectors, usable, threshold, floor, max_iter, valid)
     else:
         n_valid = reject_paper(vectors, usable, epsilon, valid)
-    masked_mean_std(vectors, valid, stats)
+    masked_mean_std(vectors, valid, 1, stats)
     return available, n_valid
 
 
@@ -1089,10 +1141,11 @@ def assemble(  # type: ignore[no-untyped-def]
 
 
 @_jit
-def masked_mean_std(vectors, mask, out):  # type: ignore[no-untyped-def]
-    """Per-column mean (``out[0:2]``) and sample standard deviation
-    (``out[2:4]``, ``ddof = 1``; NaN below two rows) of the rows of
-    ``vectors`` (n, 2) where ``mask``; two passes, as NumPy's ``std``."""
+def masked_mean_std(vectors, mask, ddof, out):  # type: ignore[no-untyped-def]
+    """Per-column mean (``out[0:2]``) and standard deviation (``out[2:4]``,
+    divided by ``m − ddof`` as NumPy's ``std``; NaN unless more than ``ddof``
+    rows) of the ``m`` rows of ``vectors`` (n, 2) where ``mask``; two passes,
+    the sums in row order."""
     m = 0
     sx = 0.0
     sy = 0.0
@@ -1111,8 +1164,8 @@ def masked_mean_std(vectors, mask, out):  # type: ignore[no-untyped-def]
             qy += (vectors[i, 1] - my) ** 2
     out[0] = mx
     out[1] = my
-    out[2] = math.sqrt(qx / (m - 1)) if m > 1 else np.nan
-    out[3] = math.sqrt(qy / (m - 1)) if m > 1 else np.nan
+    out[2] = math.sqrt(qx / (m - ddof)) if m > ddof else np.nan
+    out[3] = math.sqrt(qy / (m - ddof)) if m > ddof else np.nan
 
 
 @_jit

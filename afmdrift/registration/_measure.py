@@ -220,7 +220,7 @@ def combine(
         n_valid = int(
             _kernels.reject_mad(vec, usable, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, valid)
         )
-        _kernels.masked_mean_std(vec, valid, stats)
+        _kernels.masked_mean_std(vec, valid, 1, stats)
         mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
         need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
         trend_valid = np.empty_like(measured)
@@ -234,7 +234,7 @@ def combine(
             # the rows explains the blocks better than one mean does.
             valid[:] = trend_valid
             n_valid, spread_x, spread_y = n_trend, tx, ty
-            _kernels.masked_mean_std(vec, valid, stats)
+            _kernels.masked_mean_std(vec, valid, 1, stats)
             mean_x, mean_y = float(stats[0]), float(stats[1])
     else:
         available, n_valid = _kernels.select_blocks(
@@ -708,5 +708,8 @@ def warm_up(config: RegistrationConfig | None = None) -> float:
     for dtype in (np.float32, np.float64):
         ref = base[4:260, 4:260].astype(dtype)
         cur = base[2:258, 5:261].astype(dtype)  # a shift of (1, 2) px
-        measure_drift(ref, cur, pixel_size_nm=1.0, config=cfg, prior_px=(0.0, 0.0))
+        result = measure_drift(ref, cur, pixel_size_nm=1.0, config=cfg, prior_px=(0.0, 0.0))
+        # what the position component reads of every measured frame
+        result.field.valid_row_means_px()
+        result.field.valid_mean_std_px(ddof=0)
     return time.perf_counter() - start

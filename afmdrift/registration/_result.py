@@ -51,6 +51,45 @@ class BlockField:
     valid: npt.NDArray[np.bool_]
     weight_centres_px: npt.NDArray[np.floating]
 
+    def valid_mean_std_px(self, *, ddof: int) -> tuple[int, npt.NDArray[np.float64]]:
+        """The number of valid blocks, and their mean vector ``[0:2]`` and
+        standard deviation ``[2:4]`` (``(x, y)``, px; ``ddof`` as NumPy's
+        ``std``, NaN where undefined): the kernel the frame's drift is
+        combined with."""
+        from afmdrift.registration import _kernels
+
+        valid = np.ascontiguousarray(self.valid, dtype=bool).reshape(-1)
+        vectors = np.ascontiguousarray(self.vectors_px, dtype=np.float64).reshape(-1, 2)
+        out = np.empty(4)
+        _kernels.masked_mean_std(vectors, valid, ddof, out)
+        return int(np.count_nonzero(valid)), out
+
+    def valid_row_means_px(
+        self,
+    ) -> tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64],
+               npt.NDArray[np.float64]]:  # fmt: skip
+        """The valid blocks grouped by grid row (the rows the trend rule fits
+        over): their number, and per row (sorted) the row, its number of
+        blocks, their mean vector ``(x, y)`` and the mean row of their
+        weight centres (where the row's vector applies), all px."""
+        from afmdrift.registration import _kernels
+
+        valid = np.ascontiguousarray(self.valid, dtype=bool).reshape(-1)
+        n = valid.size
+        levels, counts, at = np.empty((3, n))
+        means = np.empty((n, 2))
+        n_valid, n_rows = _kernels.row_means(
+            valid,
+            np.ascontiguousarray(self.vectors_px, dtype=np.float64).reshape(-1, 2),
+            np.ascontiguousarray(self.centres_px[:, 1], dtype=np.float64),
+            np.ascontiguousarray(self.weight_centres_px[:, 1], dtype=np.float64),
+            levels,
+            counts,
+            means,
+            at,
+        )
+        return int(n_valid), levels[:n_rows], counts[:n_rows], means[:n_rows], at[:n_rows]
+
 
 def _json_float(v: float) -> float | None:
     return v if math.isfinite(v) else None

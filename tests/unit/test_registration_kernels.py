@@ -259,20 +259,21 @@ def test_warm_up_runs_the_kernels_for_any_configuration(config: dict[str, object
     assert 0.0 <= seconds < 300.0
 
 
+@pytest.mark.parametrize("ddof", [1, 0])
 @pytest.mark.parametrize("count", [0, 1, 2, 5, 64])
-def test_masked_mean_std_matches_numpy(count: int) -> None:
+def test_masked_mean_std_matches_numpy(count: int, ddof: int) -> None:
     vectors = RNG.normal([3.0, -2.0], [0.4, 0.1], size=(64, 2))
     mask = np.zeros(64, dtype=bool)
     mask[RNG.choice(64, count, replace=False)] = True
     out = np.empty(4)
-    _kernels.masked_mean_std(vectors, mask, out)
+    _kernels.masked_mean_std(vectors, mask, ddof, out)
     sel = vectors[mask]
     if count > 0:
         np.testing.assert_allclose(out[:2], sel.mean(axis=0), rtol=1e-13)
     else:
         assert np.isnan(out[:2]).all()
-    if count > 1:
-        np.testing.assert_allclose(out[2:], sel.std(axis=0, ddof=1), rtol=1e-12)
+    if count > ddof:
+        np.testing.assert_allclose(out[2:], sel.std(axis=0, ddof=ddof), rtol=1e-12, atol=1e-15)
     else:
         assert np.isnan(out[2:]).all()
 
