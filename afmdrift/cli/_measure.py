@@ -341,8 +341,13 @@ def track_stack(
     )
     px, py = session.meta.pixel_size_nm
     timed = all(im.timestamp is not None for im in frames)
-    for k, frame in enumerate(session.iter_frames()):
-        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s)
+    frames_in = session.iter_frames()
+    upcoming = next(frames_in, None)
+    k = -1
+    while upcoming is not None:
+        frame, upcoming, k = upcoming, next(frames_in, None), k + 1
+        # The next frame's blocks are measured while this one is placed.
+        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming)
         if k == 0:
             continue
         r, pos = outcome.record, outcome.position

@@ -268,6 +268,7 @@ class FramePipeline:
         detected_wall_s: float | None = None,
         t_now_s: float | None = None,
         hold: str | None = None,
+        next_frame: Frame | None = None,
     ) -> FrameOutcome:
         """Run the whole pipeline on one frame. Bad input never raises; it is recorded.
 
@@ -279,21 +280,30 @@ class FramePipeline:
         measured and recorded but must not feed the model (for example: the
         event log could not be read up to it, so commanded moves may be
         missing from its drift position; or ``"paused"`` by the operator).
+        ``next_frame``: the frame the next call will be given, when the
+        caller has it already (a stack, a recording): its block pass then runs
+        on the registration engine's workers while this frame's position and
+        record are made (see :meth:`DriftPositions.locate`), and is complete
+        when this call returns. Results are the same as without it.
         """
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
         held = hold is not None
-        pos = self.positions.locate(
-            frame, seq=seq, events=self.history.events, prediction_nm=pred[0],
-            n_fed=self.n_fed, held=held,
-        )  # fmt: skip
-        observed = _observed(frame, pos)
-        fed = self._feed_model(frame, pos, observed, seq=seq, held=hold, t_now_s=t_now_s)
-        record = _frame_record(
-            frame, pos, pred, observed, seq=seq, epoch=epoch, fed=fed.fed, reason=fed.reason,
-            started=started,
-        )  # fmt: skip
+        try:
+            pos = self.positions.locate(
+                frame, seq=seq, events=self.history.events, prediction_nm=pred[0],
+                n_fed=self.n_fed, held=held, next_frame=next_frame,
+            )  # fmt: skip
+            observed = _observed(frame, pos)
+            fed = self._feed_model(frame, pos, observed, seq=seq, held=hold, t_now_s=t_now_s)
+            record = _frame_record(
+                frame, pos, pred, observed, seq=seq, epoch=epoch, fed=fed.fed,
+                reason=fed.reason, started=started,
+            )  # fmt: skip
+        finally:
+            if next_frame is not None:
+                self.positions.finish_ahead()
         return FrameOutcome(
             record=record,
             curve=self.curve,

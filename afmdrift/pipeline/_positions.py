@@ -247,9 +247,19 @@ class DriftPositions:
         prediction_nm: FloatArray,
         n_fed: int,
         held: bool,
+        next_frame: Frame | None = None,
     ) -> FramePosition:
-        """Register ``frame`` and place it (see the module docstring)."""
+        """Register ``frame`` and place it (see the module docstring).
+
+        With ``next_frame`` (the frame the next call will be given), its
+        registration starts once this frame's is done, and runs on the
+        engine's workers while this frame is placed
+        (:meth:`DriftTracker.measure_ahead`); :meth:`finish_ahead` completes
+        it. Results are the same as without it.
+        """
         step, reason, tracker = self._register(frame, seq, events)
+        if next_frame is not None:
+            self._register_ahead(next_frame, frame, events)
         t = frame.t_mid_s
         if self.t_ref_s is None and not reason:
             self.t_ref_s = t
@@ -298,6 +308,28 @@ class DriftPositions:
             self._tracker, self._tracker_key, self._reset_requested = tracker, key, False
             self._keys = {}
         return step, "", tracker
+
+    def _register_ahead(self, frame: Frame, last: Frame, events: Sequence[Event]) -> None:
+        """Start registering ``frame`` against the current tracker, with the
+        commanded motion :meth:`_register` will give it if ``last`` (the frame
+        just registered) is remembered; if that turns out otherwise, or
+        events arrive before it, the update differs and measures afresh."""
+        tracker = self._tracker
+        if (
+            tracker is None
+            or self._reset_requested
+            or (frame.shape, frame.pixel_size_nm) != self._tracker_key
+        ):
+            return
+        d = offset_change_nm(frame.t_mid_s, last.t_mid_s, events)[0]
+        moved = (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
+        tracker.measure_ahead(frame.heights_nm, moved_px=moved)
+
+    def finish_ahead(self) -> None:
+        """Complete the registration :meth:`locate` started for the next
+        frame, so that no worker runs on (see :meth:`DriftTracker.finish_ahead`)."""
+        if self._tracker is not None:
+            self._tracker.finish_ahead()
 
     def _knot_times(self, tracker: DriftTracker, timing: _Timing, dy_px: float) -> FloatArray:
         """Scan times of the block rows of a frame whose content sits ``dy_px``

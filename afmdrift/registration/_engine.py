@@ -19,6 +19,7 @@ import functools
 import itertools
 import os
 import threading
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
+from afmdrift.errors import InputError
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import (
     BlockLayout,
@@ -39,7 +41,7 @@ from afmdrift.registration._blocks import (
     gradient_shape,
     raised_cosine,
 )
-from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
+from afmdrift.registration._fftw import BatchedRealFFT, fftwf, resolve_wisdom_path
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
@@ -84,14 +86,20 @@ BATCH_WINDOW_PX2 = 128 * 128
 
 _pool_lock = threading.Lock()
 _pools: dict[int, ThreadPoolExecutor] = {}
+#: Engines that started a pass ahead (see BlockEngine.measure_ahead).
+_ahead_engines: weakref.WeakSet[BlockEngine] = weakref.WeakSet()
 
 
 def _forget_pools_after_fork() -> None:
     # A forked child has none of the parent's worker threads: a pool taken
-    # over from the parent would queue work that never runs.
+    # over from the parent would queue work that never runs, and a pass it
+    # had started ahead would never end.
     global _pool_lock
     _pool_lock = threading.Lock()
     _pools.clear()
+    for engine in list(_ahead_engines):
+        engine._ahead = None
+    _ahead_engines.clear()
 
 
 os.register_at_fork(after_in_child=_forget_pools_after_fork)
@@ -212,7 +220,9 @@ class BlockEngine:
     of 128² windows). With
     ``config.threads > 1`` the calling thread and pool workers take the
     batches in turn, each with its own single-threaded FFTW plans and work
-    arrays (pyFFTW and the compiled kernels release the GIL). Every block is
+    arrays: a thread's share of a measuring pass is one compiled call that
+    runs the FFTs itself and holds no GIL (:func:`_kernels.measure_batches`);
+    :meth:`measure_ahead` starts a frame's pass before it is asked for. Every block is
     computed on its own, with plans of the same size (which FFTW's wisdom
     makes the same algorithm), so which thread does which batch never
     changes the results.
@@ -257,10 +267,18 @@ class BlockEngine:
         self._batches = batch_split(n, batch_blocks(lay.ext))
         self._threads = min(config.threads, len(self._batches))
         dft = config.subpixel == "dft"
-        sizes = sorted({b.stop - b.start for b in self._batches})
-        self._work: tuple[dict[int, _Work], ...] = tuple(
-            {
-                size: _Work(
+        # Each thread's work arrays hold the largest batch; the plans of the
+        # smaller batches are made on their first blocks.
+        sizes = sorted({b.stop - b.start for b in self._batches}, reverse=True)
+
+        def thread_work() -> dict[int, _Work]:
+            # Aligned as the FFT arrays are, so that the compiled sums over it
+            # take the same order on every thread (their vectorised loops
+            # depend on the address's alignment).
+            band = _aligned_zeros((sizes[0] if dft else 0, *band_shape)).view(np.float32)
+            works: dict[int, _Work] = {}
+            for size in sizes:
+                works[size] = _Work(
                     fft=BatchedRealFFT(
                         size,
                         (ey, ex),
@@ -268,13 +286,40 @@ class BlockEngine:
                         planner=config.fftw_planner,
                         wisdom_path=wisdom,
                         out_rows=2 * lay.max_shift[0] + 1,
+                        share=works[sizes[0]].fft if works else None,
                     ),
-                    band=np.zeros((size if dft else 0, *band_shape), np.complex64).view(np.float32),
+                    band=band[:size] if dft else band,
                 )
-                for size in sizes
-            }
-            for _ in range(self._threads)
+            return works
+
+        self._work: tuple[dict[int, _Work], ...] = tuple(
+            thread_work() for _ in range(self._threads)
         )
+        # What each thread passes to the compiled pass (measure_batches): the
+        # batches, their sizes' plans, its work arrays.
+        self._batch_table = (
+            np.array([b.start for b in self._batches], dtype=np.intp),
+            np.array([b.stop for b in self._batches], dtype=np.intp),
+            np.array([sizes.index(b.stop - b.start) for b in self._batches], dtype=np.intp),
+        )
+        fftw = fftwf()
+        self._execute = np.array(
+            [fftw.execute_r2c, fftw.execute_c2c, fftw.execute_c2r], dtype=np.uint64
+        )
+        self._thread_args: tuple[tuple[object, ...], ...] = tuple(
+            (
+                np.stack([work[size].fft.plans for size in sizes]),
+                work[sizes[0]].fft.pointers,
+                work[sizes[0]].fft.real,
+                work[sizes[0]].fft.spectrum.view(np.float32),
+                work[sizes[0]].fft.out,
+                work[sizes[0]].band,
+            )
+            for work in self._work
+        )
+        self._subpixel_code = _kernels.SUBPIXEL_CODES[config.subpixel]
+        #: A pass started ahead of its frame's measure call (see measure_ahead).
+        self._ahead: _Pass | None = None
         # The periodic raised cosine has a DFT with only a few non-zero terms;
         # removing the window-weighted block mean is a subtraction on them.
         wspec = np.fft.rfft2(self.window.astype(np.float64))
@@ -362,6 +407,7 @@ class BlockEngine:
         raises, no further batch is started and the exception propagates once
         the workers have stopped.
         """
+        self._drop_ahead()
         batches = self._batches
         order = itertools.count()  # next() is atomic: it holds the GIL
         opened = threading.Event()
@@ -676,14 +722,170 @@ class BlockEngine:
         does the other rows and the check, so the worker's start and part of
         the gradient pass overlap.
 
+        If :meth:`measure_ahead` started this very pass (the same ``ref``,
+        ``grad`` and ``heights`` objects, prior and search), its result is
+        used; it is the same as computing it now.
+
         Returns the measurement and the window corners ``(top, left)`` used in
         the current frame (so its spectra can become the next reference).
         """
+        ahead = self._ahead
+        if ahead is not None and ahead.matches(ref, grad, heights, prior_px, search_px):
+            self._ahead = None
+            return self._finish(ahead), ahead.top, ahead.left
         top, left, placed, near = self.positions_for(ref, prior_px)
-        result = self._measure_windows(
-            ref, grad, top, left, placed, near, search_px, heights=heights, check=check
+        p = self._start(ref, grad, top, left, placed, near, search_px, heights, check)
+        p.prior_px = prior_px
+        return self._finish(p), top, left
+
+    def measure_ahead(
+        self,
+        ref: ReferenceSpectra,
+        grad: F32,
+        *,
+        prior_px: tuple[float, float],
+        heights: npt.NDArray[np.floating],
+        check: Callable[[FrameStats], None],
+        search_px: float | None = None,
+    ) -> bool:
+        """Start :meth:`measure` of a frame that will be measured next, and
+        return while the engine's workers go on with it (without the GIL, so
+        the caller's Python runs beside them).
+
+        The gradient image and ``check`` run now; if the check refuses the
+        frame, nothing is started (the later :meth:`measure` refuses it
+        again) and False is returned. The pass is completed by the
+        :meth:`measure` call with the same arguments, or by
+        :meth:`finish_ahead`; any other use of the engine drops it first.
+        """
+        top, left, placed, near = self.positions_for(ref, prior_px)
+        try:
+            p = self._start(ref, grad, top, left, placed, near, search_px, heights, check)
+        except InputError:
+            return False
+        p.prior_px, p.heights = prior_px, heights
+        self._ahead = p
+        _ahead_engines.add(self)
+        return True
+
+    def finish_ahead(self) -> None:
+        """Complete a pass started by :meth:`measure_ahead` on this thread
+        too, and keep its result for the :meth:`measure` call it is for:
+        afterwards no worker of this engine is running."""
+        ahead = self._ahead
+        if ahead is not None and ahead.result is None:
+            ahead.result = self._finish(ahead)
+
+    def _drop_ahead(self) -> None:
+        """Stop and forget a pass started ahead that no call used."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is not None and ahead.result is None:
+            ahead.counter[0] = len(self._batches)  # no further batch is taken
+            ahead.opened.set()
+            _join(ahead.workers)
+
+    def _start(
+        self,
+        ref: ReferenceSpectra,
+        grad: F32,
+        top: IArr,
+        left: IArr,
+        placed: BArr,
+        near: BArr,
+        search_px: float | None,
+        heights: npt.NDArray[np.floating] | None,
+        check: Callable[[FrameStats], None] | None,
+    ) -> _Pass:
+        """Start a block pass with the current frame's windows at ``(top,
+        left)`` (``placed``, ``near``: see :meth:`positions_for`): the pool
+        workers start on the batches (:func:`_kernels.measure_batches`, one
+        call each, without the GIL); the calling thread joins in
+        :meth:`_finish`. With ``heights``, the gradient image is made and
+        checked here first (see :meth:`measure`)."""
+        self._drop_ahead()
+        my, mx = self.layout.max_shift
+        if search_px is not None:
+            my, mx = min(my, int(search_px)), min(mx, int(search_px))
+        peaks = _Peaks.empty(self.layout.n_blocks)
+        search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
+        common = (
+            grad, top, left, self.window, *self._spectrum_args, ref.conj_spectra, ref.band_mag,
+            self._ramp, self._no_spectra if self._current is None else self._current,
+            self._cur_band_mag, search, self.config.peaks, CANDIDATE_RATIO, NMS_RADIUS, ref.grad,
+            ref.top, ref.left, self._inner, self._mse_rows, self._mse_cols, self._fy, self._fx,
+            self._ramp_shift, self._envelope, self._subpixel_code, self._area,
+            peaks.sy, peaks.sx, peaks.peak, peaks.mse, peaks.fx, peaks.fy, peaks.ok,
+        )  # fmt: skip
+        p = _Pass(
+            ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
+            near=near, my=my, mx=mx, peaks=peaks, common=common,
+        )  # fmt: skip
+        rest = None
+        if heights is not None:
+            if check is None:
+                raise ValueError("a new frame's heights come with their check")
+            rest = self._gradient_first(heights, grad, top, check)
+        if self._threads > 1:
+            pool = _worker_pool(self._threads - 1)
+            p.workers = [pool.submit(self._run_worker, p, t) for t in range(1, self._threads)]
+        try:
+            if rest is not None:
+                rest()
+        except BaseException:
+            p.counter[0] = len(self._batches)
+            p.opened.set()
+            _join(p.workers)
+            raise
+        p.opened.set()
+        return p
+
+    def _batches_of(self, p: _Pass, t: int, *, first_only: bool) -> None:
+        """Thread ``t``'s share of pass ``p`` (see :func:`_kernels.measure_batches`)."""
+        _kernels.measure_batches(
+            p.counter, first_only, *self._batch_table, self._execute, self._thread_args[t],
+            p.common,
+        )  # fmt: skip
+
+    def _run_worker(self, p: _Pass, t: int) -> None:
+        # Only the first batch's rows of the gradient exist before `opened`.
+        self._batches_of(p, t, first_only=True)
+        p.opened.wait()
+        self._batches_of(p, t, first_only=False)
+
+    def _finish(self, p: _Pass) -> BlockMeasurement:
+        """The calling thread takes batches of ``p`` until none is left,
+        waits for the workers, and assembles the block vectors."""
+        if p.result is not None:
+            return p.result
+        try:
+            self._batches_of(p, 0, first_only=False)
+        finally:
+            # The workers write into shared arrays: never return (or raise)
+            # while one is still running.
+            _join(p.workers)
+        n = self.layout.n_blocks
+        peaks, my, mx, top, left, ref = p.peaks, p.my, p.mx, p.top, p.left, p.ref
+        vec = np.empty((n, 2), dtype=np.float64)
+        measured = np.empty(n, dtype=bool)
+        confidence = np.empty(n, dtype=np.float64)
+        median = np.empty(2)
+        n_measured = _kernels.assemble(
+            top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
+            peaks.mse, peaks.peak, self._area, p.near, my, mx, ref.unbias, vec, measured,
+            confidence, median,
+        )  # fmt: skip
+        return BlockMeasurement(
+            centres_px=self._centres,
+            vectors_px=vec,
+            confidence=confidence,
+            mse=peaks.mse,
+            measured=measured,
+            placed=p.placed,
+            in_overlap=p.near,
+            weight_centres_px=ref.weight_centres_px,
+            n_measured=int(n_measured),
+            median_px=(float(median[0]), float(median[1])),
         )
-        return result, top, left
 
     def _measure_windows(
         self,
@@ -694,129 +896,71 @@ class BlockEngine:
         placed: BArr,
         near: BArr,
         search_px: float | None,
-        *,
-        heights: npt.NDArray[np.floating] | None = None,
-        check: Callable[[FrameStats], None] | None = None,
     ) -> BlockMeasurement:
         """:meth:`measure` with the current frame's windows at ``(top, left)``
         (``placed``, ``near``: see :meth:`positions_for`)."""
-        my, mx = self.layout.max_shift
-        if search_px is not None:
-            my, mx = min(my, int(search_px)), min(mx, int(search_px))
-        peaks = _Peaks.empty(self.layout.n_blocks)
-        search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
+        return self._finish(self._start(ref, grad, top, left, placed, near, search_px, None, None))
 
-        def work(sl: slice, arrays: _Work) -> None:
-            self._measure_batch(sl, arrays, ref, grad, top, left, search, peaks)
 
-        if heights is None:
-            self._each_batch(work)
-        else:
-            if check is None:
-                raise ValueError("a new frame's heights come with their check")
-            self._each_batch(work, before=self._gradient_first(heights, grad, top, check))
-        n = self.layout.n_blocks
-        vec = np.empty((n, 2), dtype=np.float64)
-        measured = np.empty(n, dtype=bool)
-        confidence = np.empty(n, dtype=np.float64)
-        median = np.empty(2)
-        n_measured = _kernels.assemble(
-            top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
-            peaks.mse, peaks.peak, self._area, near, my, mx, ref.unbias, vec, measured, confidence,
-            median,
-        )  # fmt: skip
-        return BlockMeasurement(
-            centres_px=self._centres,
-            vectors_px=vec,
-            confidence=confidence,
-            mse=peaks.mse,
-            measured=measured,
-            placed=placed,
-            in_overlap=near,
-            weight_centres_px=ref.weight_centres_px,
-            n_measured=int(n_measured),
-            median_px=(float(median[0]), float(median[1])),
-        )
+def _aligned_zeros(shape: tuple[int, ...]) -> npt.NDArray[np.complex64]:
+    """Zeros (complex64) at a 64-byte aligned address."""
+    raw = np.zeros(int(np.prod(shape)) * 8 + 64, dtype=np.uint8)
+    start = -raw.ctypes.data % 64
+    return raw[start : start + int(np.prod(shape)) * 8].view(np.complex64).reshape(shape)
 
-    def _measure_batch(
+
+def _join(workers: list[Future[None]]) -> None:
+    """Wait for every worker; then raise the first one's exception, if any."""
+    for f in workers:
+        f.exception()
+    for f in workers:
+        f.result()
+
+
+@dataclass(eq=False)
+class _Pass:
+    """A block pass in flight: what it measures (``ref``, ``grad``, the
+    frame's ``heights`` and the prior and search it was started for), its
+    windows, its results, and the threads' shared batch counter."""
+
+    ref: ReferenceSpectra
+    grad: F32
+    search_px: float | None
+    top: IArr
+    left: IArr
+    placed: BArr
+    near: BArr
+    my: int
+    mx: int
+    peaks: _Peaks
+    #: The arguments of measure_batches after the thread's own.
+    common: tuple[object, ...]
+    heights: npt.NDArray[np.floating] | None = None
+    prior_px: tuple[float, float] | None = None
+    counter: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    #: Set once the gradient image is complete: workers may then take any batch.
+    opened: threading.Event = field(default_factory=threading.Event)
+    workers: list[Future[None]] = field(default_factory=list)
+    result: BlockMeasurement | None = None
+
+    def matches(
         self,
-        sl: slice,
-        arrays: _Work,
         ref: ReferenceSpectra,
         grad: F32,
-        top: IArr,
-        left: IArr,
-        search: IArr,
-        out: _Peaks,
-    ) -> None:
-        """Spectra, correlation, candidate peaks, MSE verification and
-        sub-pixel offsets of blocks ``sl``, written to their slices of
-        ``out`` (``top``, ``left``: window corners of every block in the
-        current frame; ``search``: half-widths ``(ry, rx)`` of the peak search
-        followed by the layout's ``(my, mx)``)."""
-        cfg = self.config
-        fft = arrays.fft
-        self._forward(sl, fft, grad, top, left)
-        _kernels.normalise_cross(
-            fft.spectrum.view(np.float32),
-            *self._spectrum_args,
-            ref.conj_spectra[sl],
-            ref.band_mag[sl],
-            self._ramp,
-            self._no_spectra if self._current is None else self._current[sl],
-            self._cur_band_mag[sl],
-            arrays.band,
+        heights: npt.NDArray[np.floating] | None,
+        prior_px: tuple[float, float],
+        search_px: float | None,
+    ) -> bool:
+        """Whether this is the pass :meth:`BlockEngine.measure` would compute
+        for these arguments."""
+        return (
+            self.ref is ref
+            and self.grad is grad
+            and self.heights is not None
+            and self.heights is heights
+            and self.prior_px == prior_px
+            and self.search_px == search_px
         )
-        fft.inverse()
-        corr = fft.out  # (batch, 2my + 1, ex): shifts -m..m at 0..2m, scaled by ey·ex
-        _kernels.peaks_and_subpixel(
-            corr,
-            search,
-            cfg.peaks,
-            CANDIDATE_RATIO,
-            NMS_RADIUS,
-            grad,
-            ref.grad,
-            ref.top[sl],
-            ref.left[sl],
-            top[sl],
-            left[sl],
-            self._inner,
-            self._mse_rows,
-            self._mse_cols,
-            arrays.band,  # no blocks unless subpixel == "dft"
-            self._fy,
-            self._fx,
-            self._ramp_shift,
-            self._envelope,
-            out.sy[sl],
-            out.sx[sl],
-            out.peak[sl],
-            out.mse[sl],
-            out.fx[sl],
-            out.fy[sl],
-            out.ok[sl],
-        )
-        if cfg.subpixel != "dft":
-            self._subpixel_3pt(corr, sl, out)
-
-    def _subpixel_3pt(self, corr: F32, sl: slice, out: _Peaks) -> None:
-        """Sub-pixel offsets of blocks ``sl`` from the three samples around
-        the integer peak along each axis (``sinc``, ``parabolic`` or
-        ``gaussian``; see :func:`_subpixel`). ``corr``: the batch's shifted
-        correlation (shift ``-m`` at index 0)."""
-        ey, ex = self.layout.ext
-        my, mx = self.layout.max_shift
-        rows = np.arange(corr.shape[0])
-        ny = np.clip(out.sy[sl, None] + my + np.array([-1, 0, 1]), 0, 2 * my)
-        nx = np.clip(out.sx[sl, None] + mx + np.array([-1, 0, 1]), 0, 2 * mx)
-        nb = corr[rows[:, None, None], ny[:, :, None], nx[:, None, :]].astype(np.float64)
-        nb /= ey * ex
-        fy, ok_y = _subpixel(nb[:, :, 1], self.config.subpixel)
-        fx, ok_x = _subpixel(nb[:, 1, :], self.config.subpixel)
-        out.fy[sl] = fy
-        out.fx[sl] = fx
-        out.ok[sl] = ok_x & ok_y
 
 
 def batch_blocks(ext: tuple[int, int]) -> int:
@@ -836,28 +980,3 @@ def batch_split(n: int, size: int = BATCH_BLOCKS) -> tuple[slice, ...]:
     starts = [*range(0, tail_start, size), *range(tail_start, n, half)]
     stops = [*starts[1:], n]
     return tuple(slice(a, b) for a, b in zip(starts, stops, strict=True))
-
-
-def _subpixel(c: F64, method: str) -> tuple[F64, BArr]:
-    """Sub-pixel offset of a peak from its three samples ``c[:, 0..2]``
-    (left, centre, right). Returns the offset in px and a validity mask."""
-    cm, c0, cp = c[:, 0], c[:, 1], c[:, 2]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if method == "sinc":
-            # Foroosh, Zerubia & Berthod (2002): the phase-correlation peak of a
-            # sub-pixel shift is a Dirichlet kernel, so a side sample over its
-            # sum with the centre gives the offset.
-            right = cp >= cm
-            side = np.where(right, cp, cm)
-            frac = side / (side + c0)
-            frac = np.where(side > 0, frac, 0.0)
-            off = np.where(right, frac, -frac)
-        elif method == "parabolic":
-            den = cm - 2.0 * c0 + cp
-            off = np.where(den < 0, 0.5 * (cm - cp) / den, 0.0)
-        else:  # gaussian
-            lm, l0, lp = (np.log(np.maximum(v, 1e-12)) for v in (cm, c0, cp))
-            den = lm - 2.0 * l0 + lp
-            off = np.where(den < 0, 0.5 * (lm - lp) / den, 0.0)
-    ok = np.isfinite(off) & (np.abs(off) <= 1.0) & (c0 > 0)
-    return np.where(ok, off, 0.0), ok

@@ -1,7 +1,13 @@
 """FFTW plans and wisdom for the batched block transforms.
 
 Plans are built once per block-stack shape by :class:`BatchedRealFFT` and kept
-with their aligned input and output arrays. FFTW *wisdom* (the planner's
+with their aligned input and output arrays. They are made and executed
+through FFTW's C interface (``fftwf_plan_many_dft_r2c``, ``fftwf_plan_guru_*``
+and the new-array execute functions ``fftwf_execute_dft_*``; FFTW manual,
+"New-array Execute Functions") in the single-precision library that pyFFTW
+loads, so that compiled code can run them without the GIL (see
+:func:`afmdrift.registration._kernels.measure_batches`); pyFFTW provides the
+library, aligned arrays and the wisdom in memory. FFTW *wisdom* (the planner's
 measurements) is loaded once per process from a file and written back after
 new plans were made, so the second run of afmdrift plans in milliseconds.
 
@@ -14,10 +20,15 @@ disables wisdom. A missing, corrupt or unwritable file only logs a message.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import functools
 import logging
 import os
 import tempfile
 import threading
+import weakref
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -25,20 +36,21 @@ import numpy as np
 import numpy.typing as npt
 import pyfftw
 
-__all__ = ["BatchedRealFFT", "default_wisdom_path", "resolve_wisdom_path"]
+__all__ = ["BatchedRealFFT", "Fftwf", "default_wisdom_path", "fftwf", "resolve_wisdom_path"]
 
 _log = logging.getLogger(__name__)
 
 _MAGIC = b"afmdrift-fftw-wisdom 1\n"
-_lock = threading.Lock()
+# Reentrant: a plan finalizer (_destroy) may run from garbage collection
+# while this thread plans.
+_lock = threading.RLock()
 _loaded: set[Path] = set()
 
 Planner = Literal["estimate", "measure", "patient"]
-_FLAGS: dict[str, str] = {
-    "estimate": "FFTW_ESTIMATE",
-    "measure": "FFTW_MEASURE",
-    "patient": "FFTW_PATIENT",
-}
+# Planner flags of fftw3.h.
+_FLAGS: dict[str, int] = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
+_DESTROY_INPUT = 1
+_BACKWARD = 1
 
 
 def default_wisdom_path() -> Path:
@@ -106,6 +118,122 @@ def _save_wisdom(path: Path) -> None:
         _log.info("cannot write FFTW wisdom %s: %s", path, err.strerror or err)
 
 
+class _IODim(ctypes.Structure):
+    """``fftwf_iodim``: length, input stride and output stride (elements)."""
+
+    _fields_ = [("n", ctypes.c_int), ("is_", ctypes.c_int), ("os", ctypes.c_int)]
+
+
+def _dims(*dims: tuple[int, int, int]) -> ctypes.Array[_IODim]:
+    return (_IODim * len(dims))(*(_IODim(*d) for d in dims))
+
+
+@dataclass(frozen=True)
+class Fftwf:
+    """The single-precision FFTW library pyFFTW loaded (see :func:`fftwf`).
+
+    ``execute_*`` are the addresses of FFTW's new-array execute functions
+    (``fftwf_execute_dft_r2c``, ``fftwf_execute_dft``,
+    ``fftwf_execute_dft_c2r``, each ``(plan, in, out)``), for compiled code
+    that calls them without the GIL."""
+
+    lib: ctypes.CDLL
+    #: The library's threads part (``fftwf_plan_with_nthreads``), if found.
+    threads: ctypes.CDLL | None
+    execute_r2c: int
+    execute_c2c: int
+    execute_c2r: int
+
+
+def _loaded_path(stem: str) -> str | None:
+    """Path of the loaded shared library whose file name is ``stem`` followed
+    by ``-`` or ``.`` (``/proc/self/maps``; None where there is none)."""
+    try:
+        with open("/proc/self/maps", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                parts = line.split(maxsplit=5)
+                if len(parts) < 6:
+                    continue
+                path = parts[5].strip()
+                name = os.path.basename(path)
+                if name.startswith((stem + "-", stem + ".")):
+                    return path
+    except OSError:
+        return None
+    return None
+
+
+def _library_path(stem: str) -> str | None:
+    """The ``stem`` library pyFFTW loaded: as mapped into this process, else
+    beside pyFFTW's package (its wheels' layout), else on the system path."""
+    path = _loaded_path(stem)
+    if path is not None:
+        return path
+    base = Path(pyfftw.__file__).parent
+    for folder, pattern in (
+        (base.parent / "pyfftw.libs", f"{stem}-*.so*"),
+        (base / ".dylibs", f"{stem}*.dylib"),
+    ):
+        found = sorted(folder.glob(pattern)) if folder.is_dir() else []
+        if found:
+            return str(found[0])
+    return ctypes.util.find_library(stem.removeprefix("lib"))
+
+
+@functools.cache
+def fftwf() -> Fftwf:
+    """The single-precision FFTW library (loaded once; pyFFTW has loaded it
+    already, so its plans, wisdom and ours are the same library's)."""
+    path = _library_path("libfftw3f")
+    if path is None:
+        raise ImportError("cannot find the single-precision FFTW library (libfftw3f) pyFFTW uses")
+    lib = ctypes.CDLL(path)
+    p, i, u = ctypes.c_void_p, ctypes.c_int, ctypes.c_uint
+    dims = ctypes.POINTER(_IODim)
+    ints = ctypes.POINTER(ctypes.c_int)
+    many = [i, ints, i, p, p, i, i, p, p, i, i, u]
+    for name, restype, argtypes in (
+        ("fftwf_plan_many_dft_r2c", p, many),
+        ("fftwf_plan_guru_dft", p, [i, dims, i, dims, p, p, i, u]),
+        ("fftwf_plan_guru_dft_c2r", p, [i, dims, i, dims, p, p, u]),
+        ("fftwf_execute_dft_r2c", None, [p, p, p]),
+        ("fftwf_execute_dft", None, [p, p, p]),
+        ("fftwf_execute_dft_c2r", None, [p, p, p]),
+        ("fftwf_destroy_plan", None, [p]),
+    ):
+        fn = getattr(lib, name)
+        fn.restype, fn.argtypes = restype, argtypes
+    threads: ctypes.CDLL | None = None
+    for stem in ("libfftw3f_omp", "libfftw3f_threads"):
+        tpath = _library_path(stem)
+        if tpath is not None:
+            threads = ctypes.CDLL(tpath)
+            threads.fftwf_init_threads.restype = i
+            threads.fftwf_plan_with_nthreads.argtypes = [i]
+            threads.fftwf_plan_with_nthreads.restype = None
+            threads.fftwf_init_threads()
+            break
+
+    def address(fn: ctypes._CFuncPtr) -> int:  # type: ignore[name-defined]
+        value = ctypes.cast(fn, ctypes.c_void_p).value
+        assert value is not None
+        return value
+
+    return Fftwf(
+        lib=lib,
+        threads=threads,
+        execute_r2c=address(lib.fftwf_execute_dft_r2c),
+        execute_c2c=address(lib.fftwf_execute_dft),
+        execute_c2r=address(lib.fftwf_execute_dft_c2r),
+    )
+
+
+def _destroy(lib: ctypes.CDLL, plans: tuple[int, ...]) -> None:
+    with _lock:  # FFTW's planner and plan destruction are not thread-safe
+        for plan in plans:
+            lib.fftwf_destroy_plan(plan)
+
+
 class BatchedRealFFT:
     """Forward and inverse 2-D real FFTs over a stack of equal blocks.
 
@@ -116,18 +244,20 @@ class BatchedRealFFT:
     block_shape : (int, int)
         ``(rows, cols)`` of each block.
     threads : int
-        FFTW threads.
+        FFTW threads (more than one needs FFTW's threads library).
     planner : {"estimate", "measure", "patient"}
         FFTW planner effort.
     wisdom_path : Path or None
         Wisdom file to load before and update after planning.
-
+    share : BatchedRealFFT, optional
+        Plan on the first ``n_blocks`` blocks of its arrays instead of new
+        ones (plans for several batch sizes on one set of work arrays).
     out_rows : int, optional
         Rows of the inverse transform's output that are needed, from the
-        first (default: all). Fewer rows make :meth:`inverse` a pruned
-        transform: the column transforms run over the whole spectrum, the
-        row transforms only for the first ``out_rows`` rows (with half the
-        rows, about 30 % less work than the full 2-D inverse).
+        first (default: all). The inverse is a column transform over the
+        whole spectrum followed by row transforms of only the first
+        ``out_rows`` rows (with half the rows, about 30 % less work than the
+        full 2-D inverse).
 
     Attributes
     ----------
@@ -141,7 +271,18 @@ class BatchedRealFFT:
     out : ndarray, shape (n_blocks, out_rows, cols), float32
         Output of :meth:`inverse` (``real`` itself when all rows are
         needed).
+    plans : ndarray, shape (3,), uint64
+        The FFTW plans: forward, inverse over columns (in place), inverse
+        over the first ``out_rows`` rows.
+    pointers : ndarray, shape (3,), uint64
+        Addresses of ``real``, ``spectrum`` and ``out``: with ``plans`` and
+        :class:`Fftwf`'s execute functions, what compiled code needs to run
+        the transforms itself.
     """
+
+    real: npt.NDArray[np.float32]
+    spectrum: npt.NDArray[np.complex64]
+    out: npt.NDArray[np.float32]
 
     def __init__(
         self,
@@ -152,74 +293,77 @@ class BatchedRealFFT:
         planner: Planner = "measure",
         wisdom_path: Path | None = None,
         out_rows: int | None = None,
+        share: BatchedRealFFT | None = None,
     ) -> None:
         rows, cols = block_shape
-        spec_shape = (n_blocks, rows, cols // 2 + 1)
-        self.real: npt.NDArray[np.float32] = pyfftw.empty_aligned(
-            (n_blocks, rows, cols), dtype="float32"
-        )
-        self.spectrum: npt.NDArray[np.complex64] = pyfftw.empty_aligned(spec_shape, "complex64")
-        pruned = out_rows is not None and out_rows < rows
-        self.out: npt.NDArray[np.float32] = (
-            pyfftw.empty_aligned((n_blocks, out_rows, cols), dtype="float32")
-            if pruned
-            else self.real
-        )
-        flags = (_FLAGS[planner], "FFTW_DESTROY_INPUT")
+        half = cols // 2 + 1
+        keep = rows if out_rows is None else min(out_rows, rows)
+        if share is not None:
+            if share.real.shape[0] < n_blocks or share.out.shape[1:] != (keep, cols):
+                raise ValueError("a shared BatchedRealFFT needs as many blocks and the same shape")
+            self.real = share.real[:n_blocks]
+            self.spectrum = share.spectrum[:n_blocks]
+            self.out = share.out[:n_blocks]
+        else:
+            self.real = pyfftw.empty_aligned((n_blocks, rows, cols), dtype="float32")
+            self.spectrum = pyfftw.empty_aligned((n_blocks, rows, half), "complex64")
+            self.out = (
+                pyfftw.empty_aligned((n_blocks, keep, cols), dtype="float32")
+                if keep < rows
+                else self.real
+            )
+        lib = fftwf()
+        self._lib = lib.lib
+        if threads > 1 and lib.threads is None:
+            raise ValueError("FFTW's threads library was not found: use threads=1")
+        flags = _FLAGS[planner] | _DESTROY_INPUT
+        real, spec, out = (a.ctypes.data for a in (self.real, self.spectrum, self.out))
         with _lock:
             if wisdom_path is not None:
                 _load_wisdom(wisdom_path)
             before = pyfftw.export_wisdom()
-            self._forward = pyfftw.FFTW(
-                self.real,
-                self.spectrum,
-                axes=(1, 2),
-                direction="FFTW_FORWARD",
-                flags=flags,
-                threads=threads,
-            )
-            self._inverse: tuple[pyfftw.FFTW, ...]
-            if pruned:
-                self._inverse = (
-                    pyfftw.FFTW(
-                        self.spectrum,
-                        self.spectrum,
-                        axes=(1,),
-                        direction="FFTW_BACKWARD",
-                        flags=flags,
-                        threads=threads,
+            if lib.threads is not None:
+                lib.threads.fftwf_plan_with_nthreads(threads)
+            try:
+                shape = (ctypes.c_int * 2)(rows, cols)
+                plans = (
+                    self._lib.fftwf_plan_many_dft_r2c(
+                        2, shape, n_blocks, real, None, 1, rows * cols, spec, None, 1, rows * half,
+                        flags,
                     ),
-                    pyfftw.FFTW(
-                        self.spectrum[:, :out_rows, :],
-                        self.out,
-                        axes=(2,),
-                        direction="FFTW_BACKWARD",
-                        flags=flags,
-                        threads=threads,
+                    self._lib.fftwf_plan_guru_dft(
+                        1, _dims((rows, half, half)), 2,
+                        _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
+                        spec, spec, _BACKWARD, flags,
                     ),
-                )
-            else:
-                self._inverse = (
-                    pyfftw.FFTW(
-                        self.spectrum,
-                        self.real,
-                        axes=(1, 2),
-                        direction="FFTW_BACKWARD",
-                        flags=flags,
-                        threads=threads,
+                    self._lib.fftwf_plan_guru_dft_c2r(
+                        1, _dims((cols, 1, 1)), 2,
+                        _dims((n_blocks, rows * half, keep * cols), (keep, half, cols)),
+                        spec, out, flags,
                     ),
-                )
+                )  # fmt: skip
+            finally:
+                if lib.threads is not None:
+                    lib.threads.fftwf_plan_with_nthreads(1)
+            made = tuple(int(q) for q in plans if q)
+            weakref.finalize(self, _destroy, self._lib, made)
+            if len(made) < len(plans):
+                raise RuntimeError(f"FFTW could not plan {n_blocks} blocks of {rows}×{cols}")
             if wisdom_path is not None and pyfftw.export_wisdom() != before:
                 _save_wisdom(wisdom_path)
+        self.plans = np.array(made, dtype=np.uint64)
+        self.pointers = np.array([real, spec, out], dtype=np.uint64)
         self.real.fill(0.0)
         self.out.fill(0.0)
 
     def forward(self) -> None:
         """``spectrum = rfft2(real)`` over the last two axes (unnormalised)."""
-        self._forward.execute()
+        real, spec, _ = self.pointers.tolist()
+        self._lib.fftwf_execute_dft_r2c(int(self.plans[0]), real, spec)
 
     def inverse(self) -> None:
         """``out = irfft2(spectrum)[:, :out_rows] · rows · cols`` (unnormalised;
         destroys ``spectrum``)."""
-        for plan in self._inverse:
-            plan.execute()
+        _, spec, out = self.pointers.tolist()
+        self._lib.fftwf_execute_dft(int(self.plans[1]), spec, spec)
+        self._lib.fftwf_execute_dft_c2r(int(self.plans[2]), spec, out)

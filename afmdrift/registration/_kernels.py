@@ -23,6 +23,10 @@ Results do not depend on the thread count: every block is computed on its
 own, in a fixed order, and the split into batches is fixed by the frame
 layout.
 
+:func:`measure_batches` runs a thread's whole share of a measuring pass,
+FFTs included (FFTW's execute functions called through their addresses),
+in one call: no GIL is taken between batches.
+
 The kernels are compiled on first use and cached on disk by Numba
 (``__pycache__`` beside this file, or ``$NUMBA_CACHE_DIR``).
 """
@@ -30,9 +34,13 @@ The kernels are compiled on first use and cached on disk by Numba
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numba
 import numpy as np
+from llvmlite import ir
+from numba import types
+from numba.extending import intrinsic
 
 __all__ = [
     "assemble",
@@ -40,6 +48,7 @@ __all__ = [
     "gradient_x",
     "masked_mean_std",
     "masked_medians",
+    "measure_batches",
     "normalise_cross",
     "normalise_reference",
     "peaks_and_subpixel",
@@ -50,6 +59,7 @@ __all__ = [
     "row_groups",
     "row_means",
     "select_blocks",
+    "subpixel_3pt",
     "trend_select",
     "usable_blocks",
     "window_blocks",
@@ -1201,3 +1211,195 @@ def usable_blocks(measured, placed, in_overlap, min_blocks, out):  # type: ignor
         out[i] = measured[i]
         available += 1 if in_overlap[i] else 0
     return available
+
+
+# -- the block pass as one call per thread ---------------------------------------
+
+#: ``method`` codes of :func:`subpixel_3pt` (``config.subpixel``; ``dft`` is 0).
+SUBPIXEL_CODES = {"dft": 0, "sinc": 1, "parabolic": 2, "gaussian": 3}
+
+
+def _fftw_execute_typing(typingctx, fn, plan, src, dst):  # type: ignore[no-untyped-def]
+    """Call the C function at address ``fn`` with the pointers ``(plan, src,
+    dst)`` (all integers): one of FFTW's new-array execute functions. The
+    address is a run-time value, so functions calling this stay cacheable."""
+    if not all(isinstance(t, types.Integer) for t in (fn, plan, src, dst)):
+        return None
+    sig = types.void(fn, plan, src, dst)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        ptr = ir.IntType(8).as_pointer()
+        fnty = ir.FunctionType(ir.VoidType(), [ptr, ptr, ptr])
+        target = builder.inttoptr(args[0], fnty.as_pointer())
+        builder.call(target, [builder.inttoptr(a, ptr) for a in args[1:]])
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+_fftw_execute: Any = intrinsic(_fftw_execute_typing)
+
+
+def _fetch_add_typing(typingctx, counter):  # type: ignore[no-untyped-def]
+    """Atomically add 1 to ``counter[0]`` (int64); returns its old value."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+        return None
+    sig = types.int64(counter)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        one = context.get_constant(types.int64, 1)
+        return builder.atomic_rmw("add", ary.data, one, "seq_cst")
+
+    return sig, codegen
+
+
+_fetch_add: Any = intrinsic(_fetch_add_typing)
+
+
+def _claim_first_typing(typingctx, counter):  # type: ignore[no-untyped-def]
+    """Atomically set ``counter[0]`` from 0 to 1; returns whether it was 0."""
+    if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+        return None
+    sig = types.boolean(counter)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        zero = context.get_constant(types.int64, 0)
+        one = context.get_constant(types.int64, 1)
+        pair = builder.cmpxchg(ary.data, zero, one, "seq_cst", "seq_cst")
+        return builder.extract_value(pair, 1)
+
+    return sig, codegen
+
+
+_claim_first: Any = intrinsic(_claim_first_typing)
+
+
+@_jit
+def _three_point(cm, c0, cp, method):  # type: ignore[no-untyped-def]
+    """Sub-pixel offset of a peak from its samples left, centre and right
+    (``method``: 1 sinc, 2 parabolic, 3 gaussian), and whether it is usable.
+
+    sinc: Foroosh, Zerubia & Berthod (2002): the phase-correlation peak of a
+    sub-pixel shift is a Dirichlet kernel, so a side sample over its sum with
+    the centre gives the offset. parabolic and gaussian: the vertex of a
+    parabola through the samples (gaussian: through their logarithms)."""
+    off = 0.0
+    if method == 1:
+        right = cp >= cm
+        side = cp if right else cm
+        if side > 0:
+            off = side / (side + c0)
+        if not right:
+            off = -off
+    elif method == 2:
+        den = cm - 2.0 * c0 + cp
+        if den < 0:
+            off = 0.5 * (cm - cp) / den
+    else:
+        lm = math.log(max(cm, 1e-12))
+        l0 = math.log(max(c0, 1e-12))
+        lp = math.log(max(cp, 1e-12))
+        den = lm - 2.0 * l0 + lp
+        if den < 0:
+            off = 0.5 * (lm - lp) / den
+    ok = math.isfinite(off) and abs(off) <= 1.0 and c0 > 0
+    return (off if ok else 0.0), ok
+
+
+@_jit
+def subpixel_3pt(corr, method, scale, my, mx, sy, sx, out_fy, out_fx, out_ok):  # type: ignore[no-untyped-def]
+    """Sub-pixel offsets of each block's integer peak ``(sy, sx)`` from the
+    three samples around it along each axis (:func:`_three_point`), in the
+    shifted correlation ``corr`` (shift ``-m`` at index 0; ``scale``: its
+    value for identical blocks). Neighbours beyond ``0..2m`` are clamped."""
+    for i in range(corr.shape[0]):
+        cy = sy[i] + my
+        cx = sx[i] + mx
+        ym, yp = max(cy - 1, 0), min(cy + 1, 2 * my)
+        xm, xp = max(cx - 1, 0), min(cx + 1, 2 * mx)
+        c0 = np.float64(corr[i, cy, cx]) / scale
+        fy, ok_y = _three_point(
+            np.float64(corr[i, ym, cx]) / scale, c0, np.float64(corr[i, yp, cx]) / scale, method
+        )
+        fx, ok_x = _three_point(
+            np.float64(corr[i, cy, xm]) / scale, c0, np.float64(corr[i, cy, xp]) / scale, method
+        )
+        out_fy[i] = fy
+        out_fx[i] = fx
+        out_ok[i] = ok_x and ok_y
+
+
+@_jit
+def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-untyped-def]
+    """Blocks ``a:b`` through every step: window, forward FFT, normalised
+    cross-power spectrum, pruned inverse FFT, candidate peaks with their MSE
+    check, sub-pixel offsets (``thread``, ``common``: see
+    :func:`measure_batches`)."""
+    plans, pointers, real, spec, corr, band = thread
+    (
+        grad, top, left, window, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx,
+        ref_conj, ref_band_mag, ramp, keep, cur_band_mag,
+        search, npeaks, ratio, nms, ref_grad, ref_top, ref_left, inner, mse_rows, mse_cols,
+        fy, fx, ramp_shift, envelope, method, scale,
+        out_sy, out_sx, out_peak, out_mse, out_fx, out_fy, out_ok,
+    ) = common  # fmt: skip
+    nb = b - a
+    window_blocks(grad, top[a:b], left[a:b], window, real[:nb])
+    _fftw_execute(execute[0], plans[kind, 0], pointers[0], pointers[1])
+    normalise_cross(
+        spec[:nb], w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx,
+        ref_conj[a:b], ref_band_mag[a:b], ramp, keep[a:b] if keep.shape[0] > 0 else keep,
+        cur_band_mag[a:b], band[:nb] if band.shape[0] > 0 else band,
+    )  # fmt: skip
+    _fftw_execute(execute[1], plans[kind, 1], pointers[1], pointers[1])
+    _fftw_execute(execute[2], plans[kind, 2], pointers[1], pointers[2])
+    peaks_and_subpixel(
+        corr[:nb], search, npeaks, ratio, nms, grad, ref_grad, ref_top[a:b], ref_left[a:b],
+        top[a:b], left[a:b], inner, mse_rows, mse_cols,
+        band[:nb] if band.shape[0] > 0 else band, fy, fx, ramp_shift, envelope,
+        out_sy[a:b], out_sx[a:b], out_peak[a:b], out_mse[a:b], out_fx[a:b], out_fy[a:b],
+        out_ok[a:b],
+    )  # fmt: skip
+    if method != 0:
+        subpixel_3pt(
+            corr[:nb], method, scale, ramp_shift[0], ramp_shift[1],
+            out_sy[a:b], out_sx[a:b], out_fy[a:b], out_fx[a:b], out_ok[a:b],
+        )  # fmt: skip
+
+
+@_jit
+def measure_batches(  # type: ignore[no-untyped-def]
+    counter, first_only, starts, stops, kinds, execute, thread, common
+):
+    """One thread's share of a block pass, without the GIL: batches ``i``
+    (blocks ``starts[i]:stops[i]``) taken in turn from the shared
+    ``counter`` (int64, one element) until none is left; with
+    ``first_only``, only batch 0, if no thread has taken it yet.
+
+    ``thread``: the thread's own FFTW plans and work arrays, ``(plans,
+    pointers, real, spec, corr, band)``: ``plans[kinds[i]]`` are the
+    forward, column-inverse and row-inverse plans for batch ``i``'s size,
+    all on the work arrays (room for the largest batch), whose addresses are
+    ``pointers``; ``spec`` is the spectrum as interleaved float32, ``corr``
+    the inverse's output. ``execute``: FFTW's execute functions (see
+    :class:`afmdrift.registration._fftw.Fftwf`). ``common``: the arguments
+    of :func:`window_blocks`, :func:`normalise_cross`,
+    :func:`peaks_and_subpixel` and :func:`subpixel_3pt` (``method``:
+    :data:`SUBPIXEL_CODES`) that all threads share, in the order
+    :class:`afmdrift.registration._engine.BlockEngine` builds them; their
+    per-block arrays cover every block of the frame."""
+    n = starts.size
+    while True:
+        if first_only:
+            if not _claim_first(counter):
+                return
+            i = 0
+        else:
+            i = _fetch_add(counter)
+            if i >= n:
+                return
+        _measure_batch(starts[i], stops[i], kinds[i], execute, thread, common)
+        if first_only:
+            return

@@ -47,6 +47,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
+from afmdrift.errors import InputError
 from afmdrift.registration._blocks import FrameStats, config_for_image
 from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
 from afmdrift.registration._errors import NearlyBlankError, RegistrationError
@@ -227,17 +228,7 @@ class DriftTracker:
                 f"{self._engine.image_shape}; call reset() to start over"
             )
         engine = self._engine_for(heights)
-        # Reuse the last frame's gradient buffer unless that frame became the
-        # reference (which keeps its gradient image).
-        spare = self._spare
-        if (
-            spare is None
-            or spare.shape != engine.layout.grad_shape
-            or (self._ref is not None and spare is self._ref.grad)
-        ):
-            spare = None
-        grad = spare if spare is not None else np.empty(engine.layout.grad_shape, np.float32)
-        self._spare = grad
+        grad = self._gradient_buffer(engine)
         if self._ref is None:
             self._check(heights, grad, engine.prepare(heights, out=grad)[1])
             self._ref = engine.reference(grad)
@@ -250,7 +241,90 @@ class DriftTracker:
         assert moved is not None
         return self._step(engine, self._ref, grad, heights, moved)
 
+    def measure_ahead(
+        self, image: npt.ArrayLike | Frame, *, moved_px: tuple[float, float] = (0.0, 0.0)
+    ) -> bool:
+        """Start registering the frame the next :meth:`update` will be given,
+        and return while the engine's workers measure its blocks without the
+        GIL: a caller with frames in hand (a stack, a movie) runs its own
+        Python for the frame before meanwhile.
+
+        The next :meth:`update` with the same array (the same object) and
+        ``moved_px`` completes the pass and gives what it would have given
+        without it; any other call drops the pass. Nothing is started (False
+        is returned) for the first frame, for a frame the checks refuse (the
+        update refuses it), and where the coarse alignment must come first
+        (no motion known yet). Call :meth:`finish_ahead` before leaving the
+        tracker alone for long: it completes the pass on the calling thread
+        too, so that no worker runs on.
+        """
+        engine, ref = self._engine, self._ref
+        if engine is None or ref is None:
+            return False
+        try:
+            heights = self._heights(image)
+            moved = check_prior(moved_px)
+        except InputError:
+            return False
+        if moved is None or heights.shape != engine.image_shape:
+            return False
+        expected = self._expected(moved)[1]
+        if expected is None:
+            return False
+        grad = self._gradient_buffer(engine)
+        return engine.measure_ahead(
+            ref,
+            grad,
+            prior_px=expected,
+            heights=heights,
+            check=functools.partial(self._check, heights, grad),
+        )
+
+    def finish_ahead(self) -> None:
+        """Complete a pass started by :meth:`measure_ahead` (on the calling
+        thread too) and keep it for the :meth:`update` it is for."""
+        if self._engine is not None:
+            self._engine.finish_ahead()
+
     # -- internals ---------------------------------------------------------------
+
+    def _gradient_buffer(self, engine: BlockEngine) -> npt.NDArray[np.float32]:
+        """The array the next frame's gradient image goes into: the last
+        frame's, unless that frame became the reference (which keeps its
+        gradient image)."""
+        spare = self._spare
+        if (
+            spare is None
+            or spare.shape != engine.layout.grad_shape
+            or (self._ref is not None and spare is self._ref.grad)
+        ):
+            spare = np.empty(engine.layout.grad_shape, np.float32)
+        self._spare = spare
+        return spare
+
+    def _expected(
+        self, moved: tuple[float, float]
+    ) -> tuple[tuple[float, float], tuple[float, float] | None, bool]:
+        """For the next frame: the predicted position relative to the
+        reference (px), where its windows go (None: not known, the coarse
+        alignment decides), and whether any motion is known."""
+        cfg = self.config
+        gap = self._count - self._last_index
+        prior = (
+            self._rel[0] + self._velocity[0] * gap + moved[0],
+            self._rel[1] + self._velocity[1] * gap + moved[1],
+        )
+        motion_known = self._motion_known or moved != (0.0, 0.0)
+        expected: tuple[float, float] | None = prior if motion_known else None
+        if (
+            expected is not None
+            and cfg.reference == "consecutive"
+            and max(abs(prior[0]), abs(prior[1])) <= REFINE_PX
+        ):
+            # Small expected motion: leave the windows on the grid, so that
+            # this frame's spectra can serve as the next reference unchanged.
+            expected = (0.0, 0.0)
+        return prior, expected, motion_known
 
     def _heights(self, image: Any) -> npt.NDArray[np.floating]:
         if hasattr(image, "heights_nm") and hasattr(image, "pixel_size_nm"):
@@ -303,20 +377,7 @@ class DriftTracker:
         cfg = self.config
         index = self._count
         gap = index - self._last_index
-        prior = (
-            self._rel[0] + self._velocity[0] * gap + moved[0],
-            self._rel[1] + self._velocity[1] * gap + moved[1],
-        )
-        motion_known = self._motion_known or moved != (0.0, 0.0)
-        expected: tuple[float, float] | None = prior if motion_known else None
-        if (
-            expected is not None
-            and cfg.reference == "consecutive"
-            and max(abs(prior[0]), abs(prior[1])) <= REFINE_PX
-        ):
-            # Small expected motion: leave the windows on the grid, so that
-            # this frame's spectra can serve as the next reference unchanged.
-            expected = (0.0, 0.0)
+        prior, expected, motion_known = self._expected(moved)
         found = register(
             engine,
             ref,

@@ -79,3 +79,21 @@ def test_config_setting_selects_the_wisdom_file(tmp_path: Path) -> None:
     path = tmp_path / "engine.wis"
     BlockEngine((96, 130), RegistrationConfig(gradient="x", fftw_wisdom=str(path)))
     assert path.is_file()
+
+
+def test_a_plan_freed_while_this_thread_plans_does_not_deadlock() -> None:
+    """Plans are destroyed by a finalizer that takes the planner lock; garbage
+    collection can run it on a thread that holds the lock (while it plans)."""
+    import gc
+    import threading
+
+    def plan_while_an_old_plan_is_collected() -> None:
+        old = BatchedRealFFT(2, (40, 36), planner="estimate", wisdom_path=None)
+        with _fftw._lock:
+            del old
+            gc.collect()
+
+    t = threading.Thread(target=plan_while_an_old_plan_is_collected, daemon=True)
+    t.start()
+    t.join(timeout=30)
+    assert not t.is_alive(), "the plan finalizer deadlocked on the planner lock"
