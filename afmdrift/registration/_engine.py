@@ -937,6 +937,7 @@ class _Pass:
     common: tuple[object, ...]
     heights: npt.NDArray[np.floating] | None = None
     prior_px: tuple[float, float] | None = None
+    #: The next batch to take.
     counter: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     #: Set once the gradient image is complete: workers may then take any batch.
     opened: threading.Event = field(default_factory=threading.Event)

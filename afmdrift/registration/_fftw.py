@@ -353,17 +353,23 @@ class BatchedRealFFT:
                 _save_wisdom(wisdom_path)
         self.plans = np.array(made, dtype=np.uint64)
         self.pointers = np.array([real, spec, out], dtype=np.uint64)
+        # the execute calls' arguments, as ctypes pointers made once
+        ptr = ctypes.c_void_p
+        self._forward_args = (ptr(made[0]), ptr(real), ptr(spec))
+        self._inverse_args = (
+            (ptr(made[1]), ptr(spec), ptr(spec)),
+            (ptr(made[2]), ptr(spec), ptr(out)),
+        )
         self.real.fill(0.0)
         self.out.fill(0.0)
 
     def forward(self) -> None:
         """``spectrum = rfft2(real)`` over the last two axes (unnormalised)."""
-        real, spec, _ = self.pointers.tolist()
-        self._lib.fftwf_execute_dft_r2c(int(self.plans[0]), real, spec)
+        self._lib.fftwf_execute_dft_r2c(*self._forward_args)
 
     def inverse(self) -> None:
         """``out = irfft2(spectrum)[:, :out_rows] · rows · cols`` (unnormalised;
         destroys ``spectrum``)."""
-        _, spec, out = self.pointers.tolist()
-        self._lib.fftwf_execute_dft(int(self.plans[1]), spec, spec)
-        self._lib.fftwf_execute_dft_c2r(int(self.plans[2]), spec, out)
+        columns, rows = self._inverse_args
+        self._lib.fftwf_execute_dft(*columns)
+        self._lib.fftwf_execute_dft_c2r(*rows)
