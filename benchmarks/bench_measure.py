@@ -1,6 +1,6 @@
 """Speed of ``afmdrift measure STACK``, the path users run on recorded stacks.
 
-Run: ``.venv/bin/python benchmarks/bench_measure.py [--frames N] [--movie-frames M]``
+Run: ``.venv/bin/python benchmarks/bench_measure.py [--frames N] [--movie-frames M] [--block N]``
 
 Two streams, each timed frame by frame and interleaved so that all figures
 see the same machine load:
@@ -17,8 +17,17 @@ same frame, and the bare FFTW transforms the frame needs (one forward and one
 pruned inverse real FFT of every block, split into the engine's batches and
 taken in turn by the engine's threads; see ``bench_registration.py``).
 Printed: medians, the ratios measure/tracker and measure/FFT floor, and frames
-per second. Then the whole command (``afmdrift measure STACK.npy``, start-up
-and file reading included) is run once on the 512² stack saved as float32,
+per second.
+
+``--block N`` alternates the three paths in rounds of N frames instead, each
+round back to back as a stream runs (``afmdrift measure`` measures frame
+after frame). Frame by frame, each path's worker thread sits idle or busy
+with another engine's data for the other two paths' 5 ms before every
+frame, which a streaming user never has; on this VM a measure step after a
+5 ms pause takes 0.3-0.5 ms longer (``RESULTS.md``, 2026-11-26).
+
+Then the whole command (``afmdrift measure STACK.npy``, start-up and file
+reading included) is run once on the 512² stack saved as float32,
 as a user runs it: its wall time and peak resident memory.
 
 The command-line process runs OpenBLAS on one thread (``afmdrift.cli``); this
@@ -86,7 +95,9 @@ def images(frames: list[np.ndarray], pixel: float) -> list[AfmImage]:
     ]
 
 
-def run(kind: str, n: int, rng: np.random.Generator) -> dict[str, float]:
+def run(kind: str, n: int, rng: np.random.Generator, block: int = 1) -> dict[str, float]:
+    """Time the three paths on one stream, alternating in rounds of
+    ``block`` frames (1: frame by frame)."""
     frames, pixel = stack(kind, n, rng)
     config = AfmdriftConfig()
     cfg = config_for_image(config.registration, frames[0])
@@ -98,15 +109,19 @@ def run(kind: str, n: int, rng: np.random.Generator) -> dict[str, float]:
     fft_ms: list[float] = []
     valid = 0
     tracker.update(frames[0])
-    for k in range(1, n):
-        t0 = time.perf_counter()
-        doc = next(steps)
-        measure_ms.append(1e3 * (time.perf_counter() - t0))
-        valid += bool(doc["valid"])
-        t0 = time.perf_counter()
-        tracker.update(frames[k])
-        tracker_ms.append(1e3 * (time.perf_counter() - t0))
-        fft_ms.append(1e3 * bare.time()[0])
+    for start in range(1, n, block):
+        ks = range(start, min(n, start + block))
+        for _ in ks:
+            t0 = time.perf_counter()
+            doc = next(steps)
+            measure_ms.append(1e3 * (time.perf_counter() - t0))
+            valid += bool(doc["valid"])
+        for k in ks:
+            t0 = time.perf_counter()
+            tracker.update(frames[k])
+            tracker_ms.append(1e3 * (time.perf_counter() - t0))
+        for _ in ks:
+            fft_ms.append(1e3 * bare.time()[0])
     # the first frames compile and plan: leave them out
     skip = min(5, len(measure_ms) // 4)
     m = statistics.median(measure_ms[skip:])
@@ -165,10 +180,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=120, help="512² frames (120)")
     ap.add_argument("--movie-frames", type=int, default=600, help="200² frames (600)")
+    ap.add_argument(
+        "--block", type=int, default=1, help="frames per round of each path (1: interleaved)"
+    )
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     for kind, n in (("512", args.frames), ("200", args.movie_frames)):
-        r = run(kind, n, rng)
+        r = run(kind, n, rng, max(1, args.block))
         print(
             f"{kind}² ({r['blocks']:.0f} px blocks), {r['frames']:.0f} frames, "
             f"{r['valid']:.0f} valid: measure {r['measure_ms']:.2f} ms/frame "
