@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import itertools
+import logging
 import os
 import threading
 import weakref
@@ -44,6 +45,8 @@ from afmdrift.registration._blocks import (
 from afmdrift.registration._fftw import BatchedRealFFT, fftwf, resolve_wisdom_path
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
+
+_log = logging.getLogger(__name__)
 
 F32 = npt.NDArray[np.float32]
 F64 = npt.NDArray[np.float64]
@@ -272,9 +275,9 @@ class BlockEngine:
         sizes = sorted({b.stop - b.start for b in self._batches}, reverse=True)
 
         def thread_work() -> dict[int, _Work]:
-            # Aligned as the FFT arrays are, so that the compiled sums over it
-            # take the same order on every thread (their vectorised loops
-            # depend on the address's alignment).
+            # 64-byte aligned on every thread, so that the compiled sums over
+            # it take the same order whichever thread measures a batch (their
+            # vectorised loops depend on the address's alignment).
             band = _aligned_zeros((sizes[0] if dft else 0, *band_shape)).view(np.float32)
             works: dict[int, _Work] = {}
             for size in sizes:
@@ -456,6 +459,8 @@ class BlockEngine:
         :class:`~afmdrift.registration._blocks.FrameStats` the frame checks
         need, in one pass where compiled (see
         :func:`~afmdrift.registration._blocks.gradient_and_stats`)."""
+        if out is not None:
+            self._drop_ahead()  # its workers may read this buffer
         return gradient_and_stats(heights, self.prefilter, out=out)
 
     def _gradient_first(
@@ -464,22 +469,21 @@ class BlockEngine:
         grad: F32,
         top: IArr,
         check: Callable[[FrameStats], None],
-    ) -> Callable[[], None]:
-        """The gradient image of a new frame and its check, for
-        :meth:`_each_batch`: with the compiled x gradient on several threads,
-        its rows down to the bottom of the first batch's windows (``top``:
-        the current frame's window corners) are done here, the rest and the
-        check in the returned function; otherwise all of it there."""
+    ) -> tuple[Callable[[], None], bool]:
+        """The gradient image of a new frame and its check, for :meth:`_start`:
+        with the compiled x gradient on several threads, the rows the first
+        batch reads (:meth:`_first_batch_rows`; ``top``: the current frame's
+        window corners) are done here, the rest and the check in the returned
+        function; otherwise all of it there. Returns the function and whether
+        the first batch's rows are done (workers may start on it)."""
         if self._threads <= 1 or not compiled_gradient(heights, self.prefilter):
 
             def whole() -> None:
                 check(self.prepare(heights, out=grad)[1])
 
-            return whole
-        # Every read of the current gradient by a batch (windowing, MSE
-        # verification) lies within its windows' rows.
+            return whole, False
         rows = int(heights.shape[0])
-        split = min(rows, int(top[self._batches[0]].max()) + self.layout.ext[0])
+        split = self._first_batch_rows(top, rows)
         _, head = gradient_and_stats(heights[:split], "x", out=grad[:split])
 
         def rest() -> None:
@@ -493,7 +497,16 @@ class BlockEngine:
                 )
             check(stats)
 
-        return rest
+        return rest, True
+
+    def _first_batch_rows(self, top: IArr, rows: int) -> int:
+        """Rows of the current gradient image the first batch reads, from the
+        first (``top``: the current frame's window corners): its windows, and
+        the inner blocks its MSE check compares at any shift of the search
+        (down to ``max_shift`` rows below them)."""
+        ey = self.layout.ext[0]
+        mse_bottom = int(self._inner[0]) + int(self._mse_rows[-1]) + self.layout.max_shift[0] + 1
+        return min(rows, int(top[self._batches[0]].max()) + max(ey, mse_bottom))
 
     # -- spectra ---------------------------------------------------------------
 
@@ -555,6 +568,7 @@ class BlockEngine:
         and are reused (no FFT); otherwise they are computed again,
         identically, by :meth:`reference`.
         """
+        self._drop_ahead()  # it would write the spectra kept here
         if self._current is None:
             return self.reference(grad)
         spectra = self._current  # already conjugated and ramped
@@ -782,7 +796,10 @@ class BlockEngine:
         if ahead is not None and ahead.result is None:
             ahead.counter[0] = len(self._batches)  # no further batch is taken
             ahead.opened.set()
-            _join(ahead.workers)
+            # Its result is not wanted: a worker's error is logged here
+            # rather than raised from the unrelated call that dropped it.
+            for error in _wait(ahead.workers):
+                _log.error("a block pass started ahead failed", exc_info=error)
 
     def _start(
         self,
@@ -820,21 +837,27 @@ class BlockEngine:
             ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
             near=near, my=my, mx=mx, peaks=peaks, common=common,
         )  # fmt: skip
-        rest = None
+        rest: Callable[[], None] | None = None
         if heights is not None:
             if check is None:
                 raise ValueError("a new frame's heights come with their check")
-            rest = self._gradient_first(heights, grad, top, check)
-        if self._threads > 1:
-            pool = _worker_pool(self._threads - 1)
-            p.workers = [pool.submit(self._run_worker, p, t) for t in range(1, self._threads)]
+            rest, head_ready = self._gradient_first(heights, grad, top, check)
+            if not head_ready:
+                # No row exists yet: all of it, and the check, before any
+                # worker reads it.
+                rest()
+                rest = None
         try:
+            if self._threads > 1:
+                pool = _worker_pool(self._threads - 1)
+                for t in range(1, self._threads):
+                    p.workers.append(pool.submit(self._run_worker, p, t))
             if rest is not None:
                 rest()
         except BaseException:
             p.counter[0] = len(self._batches)
             p.opened.set()
-            _join(p.workers)
+            _wait(p.workers)
             raise
         p.opened.set()
         return p
@@ -909,12 +932,16 @@ def _aligned_zeros(shape: tuple[int, ...]) -> npt.NDArray[np.complex64]:
     return raw[start : start + int(np.prod(shape)) * 8].view(np.complex64).reshape(shape)
 
 
+def _wait(workers: list[Future[None]]) -> list[BaseException]:
+    """Wait for every worker; return their exceptions."""
+    return [e for e in (f.exception() for f in workers) if e is not None]
+
+
 def _join(workers: list[Future[None]]) -> None:
     """Wait for every worker; then raise the first one's exception, if any."""
-    for f in workers:
-        f.exception()
-    for f in workers:
-        f.result()
+    errors = _wait(workers)
+    if errors:
+        raise errors[0]
 
 
 @dataclass(eq=False)

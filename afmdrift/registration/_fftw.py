@@ -4,8 +4,8 @@ Plans are built once per block-stack shape by :class:`BatchedRealFFT` and kept
 with their aligned input and output arrays. They are made and executed
 through FFTW's C interface (``fftwf_plan_many_dft_r2c``, ``fftwf_plan_guru_*``
 and the new-array execute functions ``fftwf_execute_dft_*``; FFTW manual,
-"New-array Execute Functions") in the single-precision library that pyFFTW
-loads, so that compiled code can run them without the GIL (see
+"New-array Execute Functions") of the single-precision library pyFFTW uses
+(see :func:`fftwf`), so that compiled code can run them without the GIL (see
 :func:`afmdrift.registration._kernels.measure_batches`); pyFFTW provides the
 library, aligned arrays and the wisdom in memory. FFTW *wisdom* (the planner's
 measurements) is loaded once per process from a file and written back after
@@ -21,7 +21,6 @@ disables wisdom. A missing, corrupt or unwritable file only logs a message.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import functools
 import logging
 import os
@@ -130,7 +129,7 @@ def _dims(*dims: tuple[int, int, int]) -> ctypes.Array[_IODim]:
 
 @dataclass(frozen=True)
 class Fftwf:
-    """The single-precision FFTW library pyFFTW loaded (see :func:`fftwf`).
+    """The single-precision FFTW library pyFFTW uses (see :func:`fftwf`).
 
     ``execute_*`` are the addresses of FFTW's new-array execute functions
     (``fftwf_execute_dft_r2c``, ``fftwf_execute_dft``,
@@ -138,81 +137,53 @@ class Fftwf:
     that calls them without the GIL."""
 
     lib: ctypes.CDLL
-    #: The library's threads part (``fftwf_plan_with_nthreads``), if found.
+    #: Where ``fftwf_plan_with_nthreads`` is, if FFTW has threads.
     threads: ctypes.CDLL | None
     execute_r2c: int
     execute_c2c: int
     execute_c2r: int
 
 
-def _loaded_path(stem: str) -> str | None:
-    """Path of the loaded shared library whose file name is ``stem`` followed
-    by ``-`` or ``.`` (``/proc/self/maps``; None where there is none)."""
-    try:
-        with open("/proc/self/maps", encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                parts = line.split(maxsplit=5)
-                if len(parts) < 6:
-                    continue
-                path = parts[5].strip()
-                name = os.path.basename(path)
-                if name.startswith((stem + "-", stem + ".")):
-                    return path
-    except OSError:
-        return None
-    return None
-
-
-def _library_path(stem: str) -> str | None:
-    """The ``stem`` library pyFFTW loaded: as mapped into this process, else
-    beside pyFFTW's package (its wheels' layout), else on the system path."""
-    path = _loaded_path(stem)
-    if path is not None:
-        return path
-    base = Path(pyfftw.__file__).parent
-    for folder, pattern in (
-        (base.parent / "pyfftw.libs", f"{stem}-*.so*"),
-        (base / ".dylibs", f"{stem}*.dylib"),
-    ):
-        found = sorted(folder.glob(pattern)) if folder.is_dir() else []
-        if found:
-            return str(found[0])
-    return ctypes.util.find_library(stem.removeprefix("lib"))
-
-
 @functools.cache
 def fftwf() -> Fftwf:
-    """The single-precision FFTW library (loaded once; pyFFTW has loaded it
-    already, so its plans, wisdom and ours are the same library's)."""
-    path = _library_path("libfftw3f")
-    if path is None:
-        raise ImportError("cannot find the single-precision FFTW library (libfftw3f) pyFFTW uses")
-    lib = ctypes.CDLL(path)
+    """The single-precision FFTW library pyFFTW uses (loaded once).
+
+    Its functions are looked up through pyFFTW's own extension module: the
+    dynamic linker searches that module's dependencies, so these are the
+    functions of the very library (and threads library) pyFFTW loaded, and
+    its plans, wisdom and ours are one library's. The planner is made
+    thread-safe (``fftwf_make_planner_thread_safe``), so that afmdrift's
+    planning and any pyFFTW use in another thread cannot meet in it."""
+    lib = ctypes.CDLL(pyfftw.pyfftw.__file__)
     p, i, u = ctypes.c_void_p, ctypes.c_int, ctypes.c_uint
     dims = ctypes.POINTER(_IODim)
     ints = ctypes.POINTER(ctypes.c_int)
     many = [i, ints, i, p, p, i, i, p, p, i, i, u]
-    for name, restype, argtypes in (
-        ("fftwf_plan_many_dft_r2c", p, many),
-        ("fftwf_plan_guru_dft", p, [i, dims, i, dims, p, p, i, u]),
-        ("fftwf_plan_guru_dft_c2r", p, [i, dims, i, dims, p, p, u]),
-        ("fftwf_execute_dft_r2c", None, [p, p, p]),
-        ("fftwf_execute_dft", None, [p, p, p]),
-        ("fftwf_execute_dft_c2r", None, [p, p, p]),
-        ("fftwf_destroy_plan", None, [p]),
-    ):
-        fn = getattr(lib, name)
-        fn.restype, fn.argtypes = restype, argtypes
-    threads: ctypes.CDLL | None = None
-    for stem in ("libfftw3f_omp", "libfftw3f_threads"):
-        tpath = _library_path(stem)
-        if tpath is not None:
-            threads = ctypes.CDLL(tpath)
-            threads.fftwf_init_threads.restype = i
-            threads.fftwf_plan_with_nthreads.argtypes = [i]
-            threads.fftwf_plan_with_nthreads.restype = None
-            threads.fftwf_init_threads()
-            break
+    try:
+        for name, restype, argtypes in (
+            ("fftwf_plan_many_dft_r2c", p, many),
+            ("fftwf_plan_guru_dft", p, [i, dims, i, dims, p, p, i, u]),
+            ("fftwf_plan_guru_dft_c2r", p, [i, dims, i, dims, p, p, u]),
+            ("fftwf_execute_dft_r2c", None, [p, p, p]),
+            ("fftwf_execute_dft", None, [p, p, p]),
+            ("fftwf_execute_dft_c2r", None, [p, p, p]),
+            ("fftwf_destroy_plan", None, [p]),
+        ):
+            fn = getattr(lib, name)
+            fn.restype, fn.argtypes = restype, argtypes
+    except AttributeError as err:
+        raise ImportError(f"pyFFTW's FFTW library lacks a function afmdrift needs: {err}") from None
+    threads: ctypes.CDLL | None = lib
+    try:
+        lib.fftwf_init_threads.restype = i
+        lib.fftwf_plan_with_nthreads.argtypes = [i]
+        lib.fftwf_plan_with_nthreads.restype = None
+        lib.fftwf_make_planner_thread_safe.restype = None
+    except AttributeError:
+        threads = None  # an FFTW built without threads: one thread per plan
+    if threads is not None:
+        lib.fftwf_init_threads()
+        lib.fftwf_make_planner_thread_safe()
 
     def address(fn: ctypes._CFuncPtr) -> int:  # type: ignore[name-defined]
         value = ctypes.cast(fn, ctypes.c_void_p).value
@@ -299,7 +270,11 @@ class BatchedRealFFT:
         half = cols // 2 + 1
         keep = rows if out_rows is None else min(out_rows, rows)
         if share is not None:
-            if share.real.shape[0] < n_blocks or share.out.shape[1:] != (keep, cols):
+            if (
+                share.real.shape[0] < n_blocks
+                or share.real.shape[1:] != (rows, cols)
+                or share.out.shape[1:] != (keep, cols)
+            ):
                 raise ValueError("a shared BatchedRealFFT needs as many blocks and the same shape")
             self.real = share.real[:n_blocks]
             self.spectrum = share.spectrum[:n_blocks]

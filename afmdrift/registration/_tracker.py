@@ -253,8 +253,9 @@ class DriftTracker:
         ``moved_px`` completes the pass and gives what it would have given
         without it; any other call drops the pass. Nothing is started (False
         is returned) for the first frame, for a frame the checks refuse (the
-        update refuses it), and where the coarse alignment must come first
-        (no motion known yet). Call :meth:`finish_ahead` before leaving the
+        update refuses it), for heights that are not a float array (each
+        call converts them anew), and where the coarse alignment must come
+        first (no motion known yet). Call :meth:`finish_ahead` before leaving the
         tracker alone for long: it completes the pass on the calling thread
         too, so that no worker runs on.
         """
@@ -265,6 +266,11 @@ class DriftTracker:
             heights = self._heights(image)
             moved = check_prior(moved_px)
         except InputError:
+            return False
+        given = image.heights_nm if hasattr(image, "heights_nm") else image
+        if heights is not given:
+            # converted (not a float array): the update converts it anew, and
+            # a pass on this copy would never be the one it asks for
             return False
         if moved is None or heights.shape != engine.image_shape:
             return False

@@ -131,6 +131,17 @@ def test_a_frame_the_check_refuses_is_not_started_and_the_update_still_refuses_i
     assert step.accepted
 
 
+def test_heights_each_update_converts_anew_are_not_started_ahead() -> None:
+    frames = [np.round(f * 100).astype(np.int32) for f in _frames(3)]
+    tracker = DriftTracker(pixel_size_nm=2.0, config=RegistrationConfig(threads=2))
+    tracker.update(frames[0])
+    tracker.update(frames[1])
+    assert not tracker.measure_ahead(frames[2])  # a pass on a copy no update asks for
+    step = tracker.update(frames[2])
+    assert step is not None
+    assert step.accepted
+
+
 def test_tracker_steps_are_bit_for_bit_the_same_with_passes_started_ahead() -> None:
     frames = _frames(12, shape=(300, 280), seed=2)
     cfg = RegistrationConfig(threads=2)
@@ -243,8 +254,9 @@ def test_plans_on_shared_arrays_equal_plans_on_their_own() -> None:
         fft.inverse()
     assert np.array_equal(small.out, alone.out)
     np.testing.assert_allclose(alone.out / (48 * 40), x[:, :21], atol=1e-5)
-    with pytest.raises(ValueError, match="shared"):
-        BatchedRealFFT(8, (48, 40), planner="estimate", wisdom_path=None, out_rows=21, share=big)
+    for n, shape in ((8, (48, 40)), (2, (64, 40)), (2, (48, 36))):
+        with pytest.raises(ValueError, match="shared"):
+            BatchedRealFFT(n, shape, planner="estimate", wisdom_path=None, out_rows=21, share=big)
 
 
 def test_a_child_forked_while_a_pass_runs_ahead_measures_on_its_own() -> None:

@@ -236,19 +236,27 @@ def test_tracker_rejects_bad_pixel_size() -> None:
         DriftTracker(pixel_size_nm=(1.0, math.nan))
 
 
-@pytest.mark.parametrize("reference", ["keyframe", "consecutive"])
-def test_results_are_bit_for_bit_independent_of_the_thread_count(reference: str) -> None:
+@pytest.mark.parametrize(
+    ("reference", "gradient"),
+    [("keyframe", "x"), ("consecutive", "x"), ("keyframe", "levelled"), ("keyframe", "y")],
+)
+def test_results_are_bit_for_bit_independent_of_the_thread_count(
+    reference: str, gradient: str
+) -> None:
     """Guards against the thread count (or which thread takes which batch of
     blocks) leaking into the numbers: 512×640 frames hold 80 blocks in twelve
     batches of two sizes, and 1, 2 and 3 threads must give identical block fields and
-    positions, for the tracker and for measure_drift."""
+    positions, for the tracker and for measure_drift. With a pre-filter other
+    than the compiled x gradient, the whole gradient image comes before any
+    worker starts (a worker once measured the first batch on the previous
+    frame's gradient)."""
     t = np.arange(10)
     path = np.column_stack([2.5 * t, 1.0 * np.sin(t)])
     frames = _sequence(path, shape=(512, 640), seed=3)
-    assert BlockEngine((512, 640), RegistrationConfig(gradient="x")).n_batches == 12
+    assert BlockEngine((512, 640), RegistrationConfig(gradient=gradient)).n_batches == 12
     runs = []
     for threads in (1, 2, 3):
-        cfg = RegistrationConfig(threads=threads, reference=reference)
+        cfg = RegistrationConfig(threads=threads, reference=reference, gradient=gradient)
         tracker = DriftTracker(pixel_size_nm=2.0, config=cfg)
         out: list[object] = []
         for frame in frames:
@@ -284,3 +292,17 @@ def test_forked_child_can_measure_after_the_parent_started_its_worker_pool() -> 
             os._exit(2)
     _, status = os.waitpid(pid, 0)
     assert os.waitstatus_to_exitcode(status) == 0, "child failed or hung (SIGALRM = -14)"
+
+
+def test_the_first_batch_rows_cover_what_its_mse_check_reads() -> None:
+    """The calling thread writes these rows of the gradient before a worker
+    starts on the first batch: its windows and, at any shift of the search,
+    the inner blocks its MSE check compares."""
+    cfg = RegistrationConfig(gradient="x", max_shift_px=60)
+    engine = BlockEngine((512, 512), cfg)
+    top = engine.grid_positions()[0]
+    first = engine._batches[0]
+    rows = engine._first_batch_rows(top, 512)
+    deepest_mse = int(engine._inner[0]) + int(engine._mse_rows[-1]) + 60
+    assert rows >= int(top[first].max()) + deepest_mse + 1
+    assert rows >= int(top[first].max()) + engine.layout.ext[0]
