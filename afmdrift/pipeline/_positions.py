@@ -293,9 +293,7 @@ class DriftPositions:
         if tracker is None or new_reference:
             tracker = self._tracker_factory(frame.pixel_size_nm)
         elif self._last_t_s is not None:
-            # Content moves by −ΔO for a commanded offset move of +ΔO.
-            d = offset_change_nm(frame.t_mid_s, self._last_t_s, events)[0]
-            moved = (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
+            moved = _content_moved_px(frame, self._last_t_s, events)
         try:
             step = tracker.update(frame.heights_nm, moved_px=moved)
         except InputError as err:
@@ -321,8 +319,7 @@ class DriftPositions:
             or (frame.shape, frame.pixel_size_nm) != self._tracker_key
         ):
             return
-        d = offset_change_nm(frame.t_mid_s, last.t_mid_s, events)[0]
-        moved = (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
+        moved = _content_moved_px(frame, last.t_mid_s, events)
         tracker.measure_ahead(frame.heights_nm, moved_px=moved)
 
     def finish_ahead(self) -> None:
@@ -557,6 +554,14 @@ class DriftPositions:
                 f"service.min_valid_blocks={min_blocks}"
             )
         pos.fed = not low and not held and bool(np.all(np.isfinite(pos.m)))
+
+
+def _content_moved_px(frame: Frame, since_s: float, events: Sequence[Event]) -> tuple[float, float]:
+    """How far the commanded offset moved the image content ``(x, y)`` from
+    ``since_s`` to ``frame``'s mid-scan time, px: content moves by −ΔO for a
+    commanded move of +ΔO (the tracker's ``moved_px``)."""
+    d = offset_change_nm(frame.t_mid_s, since_s, events)[0]
+    return (-float(d[0]) / frame.pixel_size_nm[0], -float(d[1]) / frame.pixel_size_nm[1])
 
 
 def summarise_field(inc: Any, pixel_size_nm: tuple[float, float]) -> FieldSummary | None:

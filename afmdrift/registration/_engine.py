@@ -397,60 +397,32 @@ class BlockEngine:
         """Number of block batches (the unit of work of the engine's threads)."""
         return len(self._batches)
 
-    def _each_batch(
-        self, work: Callable[[slice, _Work], None], *, before: Callable[[], None] | None = None
-    ) -> None:
-        """``work(blocks, arrays)`` for every batch of blocks; on ``threads``
-        threads (the caller's among them) that take the batches in turn, each
-        with its own work arrays.
-
-        ``before`` runs on the calling thread once the pool workers (one
-        fewer than ``threads``) have started and before the caller takes a
-        batch; meanwhile the workers may take only the first batch. If it
-        raises, no further batch is started and the exception propagates once
-        the workers have stopped.
-        """
+    def _each_batch(self, work: Callable[[slice, _Work], None]) -> None:
+        """``work(blocks, arrays)`` for every batch of blocks, from Python; on
+        ``threads`` threads (the caller's among them) that take the batches in
+        turn, each with its own work arrays (the reference spectra; a
+        measuring pass is one compiled call per thread, see :meth:`_start`)."""
         self._drop_ahead()
         batches = self._batches
         order = itertools.count()  # next() is atomic: it holds the GIL
-        opened = threading.Event()
-        failed = False
 
         def run(t: int) -> None:
             arrays = self._work[t]
             while (i := next(order)) < len(batches):
-                if i > 0 and not opened.is_set():
-                    opened.wait()
-                if failed:
-                    return
                 sl = batches[i]
                 work(sl, arrays[sl.stop - sl.start])
-
-        def open_batches() -> None:
-            nonlocal failed
-            try:
-                if before is not None:
-                    before()
-            except BaseException:
-                failed = True
-                raise
-            finally:
-                opened.set()
 
         futures: list[Future[None]] = []
         if self._threads > 1:
             pool = _worker_pool(self._threads - 1)
             futures = [pool.submit(run, t) for t in range(1, self._threads)]
         try:
-            open_batches()
             run(0)
         finally:
             # The workers write into shared arrays: never return (or raise)
             # while one is still running.
-            for f in futures:
-                f.exception()
-        for f in futures:
-            f.result()  # a worker's exception
+            _wait(futures)
+        _join(futures)  # a worker's exception
 
     def prepare(
         self, heights: npt.NDArray[np.floating], *, out: F32 | None = None
@@ -749,7 +721,6 @@ class BlockEngine:
             return self._finish(ahead), ahead.top, ahead.left
         top, left, placed, near = self.positions_for(ref, prior_px)
         p = self._start(ref, grad, top, left, placed, near, search_px, heights, check)
-        p.prior_px = prior_px
         return self._finish(p), top, left
 
     def measure_ahead(

@@ -52,7 +52,6 @@ __all__ = [
     "measure_batches",
     "normalise_cross",
     "normalise_reference",
-    "peaks_and_subpixel",
     "pick_peaks",
     "place_windows",
     "reject_mad",
@@ -764,61 +763,6 @@ def dft_subpixel(  # type: ignore[no-untyped-def]
 
 
 @_jit
-def peaks_and_subpixel(  # type: ignore[no-untyped-def]
-    corr,
-    search,
-    peaks,
-    ratio,
-    nms,
-    grad,
-    ref_grad,
-    ref_top,
-    ref_left,
-    top,
-    left,
-    inner,
-    mse_rows,
-    mse_cols,
-    band,
-    fy,
-    fx,
-    shift,
-    envelope,
-    out_sy,
-    out_sx,
-    out_peak,
-    out_mse,
-    out_fx,
-    out_fy,
-    out_ok,
-):
-    """:func:`pick_peaks`, then :func:`dft_subpixel` if ``band`` has blocks
-    (one call, so the calling thread gives up the GIL once)."""
-    pick_peaks(
-        corr,
-        search,
-        peaks,
-        ratio,
-        nms,
-        grad,
-        ref_grad,
-        ref_top,
-        ref_left,
-        top,
-        left,
-        inner,
-        mse_rows,
-        mse_cols,
-        out_sy,
-        out_sx,
-        out_peak,
-        out_mse,
-    )
-    if band.shape[0] > 0:
-        dft_subpixel(band, fy, fx, out_sy, out_sx, shift, envelope, out_fx, out_fy, out_ok)
-
-
-@_jit
 def _gather(vectors, mask, axis, out):  # type: ignore[no-untyped-def]
     """Copy column ``axis`` of the rows of ``vectors`` where ``mask`` to the
     start of ``out``; returns their number."""
@@ -1396,14 +1340,17 @@ def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-unty
     )  # fmt: skip
     _fftw_execute(execute[1], plans[kind, 1], pointers[1], pointers[1])
     _fftw_execute(execute[2], plans[kind, 2], pointers[1], pointers[2])
-    peaks_and_subpixel(
+    pick_peaks(
         corr[:nb], search, npeaks, ratio, nms, grad, ref_grad, ref_top[a:b], ref_left[a:b],
         top[a:b], left[a:b], inner, mse_rows, mse_cols,
-        band[:nb] if band.shape[0] > 0 else band, fy, fx, ramp_shift, envelope,
-        out_sy[a:b], out_sx[a:b], out_peak[a:b], out_mse[a:b], out_fx[a:b], out_fy[a:b],
-        out_ok[a:b],
+        out_sy[a:b], out_sx[a:b], out_peak[a:b], out_mse[a:b],
     )  # fmt: skip
-    if method != 0:
+    if method == 0:
+        dft_subpixel(
+            band[:nb], fy, fx, out_sy[a:b], out_sx[a:b], ramp_shift, envelope,
+            out_fx[a:b], out_fy[a:b], out_ok[a:b],
+        )  # fmt: skip
+    else:
         subpixel_3pt(
             corr[:nb], method, scale, ramp_shift[0], ramp_shift[1],
             out_sy[a:b], out_sx[a:b], out_fy[a:b], out_fx[a:b], out_ok[a:b],
@@ -1427,7 +1374,7 @@ def measure_batches(  # type: ignore[no-untyped-def]
     the inverse's output. ``execute``: FFTW's execute functions (see
     :class:`afmdrift.registration._fftw.Fftwf`). ``common``: the arguments
     of :func:`window_blocks`, :func:`normalise_cross`,
-    :func:`peaks_and_subpixel` and :func:`subpixel_3pt` (``method``:
+    :func:`pick_peaks`, :func:`dft_subpixel` and :func:`subpixel_3pt` (``method``:
     :data:`SUBPIXEL_CODES`) that all threads share, in the order
     :class:`afmdrift.registration._engine.BlockEngine` builds them; their
     per-block arrays cover every block of the frame."""
