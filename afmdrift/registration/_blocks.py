@@ -209,9 +209,13 @@ def raised_cosine(rows: int, cols: int) -> npt.NDArray[np.float32]:
     window is periodic in ``x`` with period ``M``, so its DFT is non-zero
     only at the frequencies 0 and ±1 along each axis.
     """
-    wy = 0.5 * (1.0 - np.cos(2.0 * np.pi * (np.arange(rows) + 0.5) / rows))
-    wx = 0.5 * (1.0 - np.cos(2.0 * np.pi * (np.arange(cols) + 0.5) / cols))
-    return np.outer(wy, wx).astype(np.float32)
+    return np.outer(raised_cosine_axis(rows), raised_cosine_axis(cols)).astype(np.float32)
+
+
+def raised_cosine_axis(n: int) -> npt.NDArray[np.float64]:
+    """One factor of :func:`raised_cosine`: ``½ [1 - cos(2π(k + ½)/n)]``,
+    ``k = 0..n-1``."""
+    return 0.5 * (1.0 - np.cos(2.0 * np.pi * (np.arange(n) + 0.5) / n))
 
 
 def _axis(

@@ -41,8 +41,14 @@ from afmdrift.registration._blocks import (
     gradient_offset_px,
     gradient_shape,
     raised_cosine,
+    raised_cosine_axis,
 )
-from afmdrift.registration._fftw import BatchedRealFFT, fftwf, resolve_wisdom_path
+from afmdrift.registration._fftw import (
+    STRIP_CHUNK,
+    BatchedRealFFT,
+    fftwf,
+    resolve_wisdom_path,
+)
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
 
@@ -220,13 +226,16 @@ class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
     The blocks are processed in batches of :func:`batch_blocks` (:data:`BATCH_BLOCKS`
-    of 128² windows). With
+    of 128² windows); a measuring pass takes them column by column, so that
+    a batch's windows share their row transforms
+    (:func:`_kernels.forward_strips`). With
     ``config.threads > 1`` the calling thread and pool workers take the
     batches in turn, each with its own single-threaded FFTW plans and work
     arrays: a thread's share of a measuring pass is one compiled call that
     runs the FFTs itself and holds no GIL (:func:`_kernels.measure_batches`);
-    :meth:`measure_ahead` starts a frame's pass before it is asked for. Every block is
-    computed on its own, with plans of the same size (which FFTW's wisdom
+    :meth:`measure_ahead` starts a frame's pass before it is asked for. Every batch is
+    computed on its own (its blocks and order depend only on the layout), with plans
+    of the same size (which FFTW's wisdom
     makes the same algorithm), so which thread does which batch never
     changes the results.
 
@@ -259,6 +268,9 @@ class BlockEngine:
         n = lay.n_blocks
         ey, ex = lay.ext
         self.window = raised_cosine(ey, ex)
+        # Its two factors, for the measuring pass's forward transform.
+        self._wy: F32 = raised_cosine_axis(ey).astype(np.float32)
+        self._wx: F32 = raised_cosine_axis(ex).astype(np.float32)
         # Low-frequency band of the cross-power spectrum used by the "dft"
         # sub-pixel method (rfft layout: all ky in the band, kx >= 0).
         ky_max = max(1, int(config.subpixel_band * ey / 2))
@@ -268,6 +280,11 @@ class BlockEngine:
         self._fx = np.arange(0, kx_max + 1) / ex
         wisdom = resolve_wisdom_path(config.fftw_wisdom)
         self._batches = batch_split(n, batch_blocks(lay.ext))
+        # A measuring pass takes the blocks column by column, so that the
+        # blocks of a batch share their windows' columns and rows
+        # (_kernels.forward_strips); the reference spectra keep the layout's
+        # order.
+        self._order: IArr = np.lexsort((lay.top, lay.left)).astype(np.intp)
         self._threads = min(config.threads, len(self._batches))
         dft = config.subpixel == "dft"
         # Each thread's work arrays hold the largest batch; the plans of the
@@ -290,6 +307,7 @@ class BlockEngine:
                         wisdom_path=wisdom,
                         out_rows=2 * lay.max_shift[0] + 1,
                         share=works[sizes[0]].fft if works else None,
+                        strip_rows=size * ey,
                     ),
                     band=band[:size] if dft else band,
                 )
@@ -313,10 +331,12 @@ class BlockEngine:
             (
                 np.stack([work[size].fft.plans for size in sizes]),
                 work[sizes[0]].fft.pointers,
-                work[sizes[0]].fft.real,
                 work[sizes[0]].fft.spectrum.view(np.float32),
                 work[sizes[0]].fft.out,
                 work[sizes[0]].band,
+                work[sizes[0]].fft.strip,
+                work[sizes[0]].fft.strip_spectrum.view(np.float32),
+                np.empty(sizes[0], dtype=np.intp),
             )
             for work in self._work
         )
@@ -435,50 +455,17 @@ class BlockEngine:
             self._drop_ahead()  # its workers may read this buffer
         return gradient_and_stats(heights, self.prefilter, out=out)
 
-    def _gradient_first(
-        self,
-        heights: npt.NDArray[np.floating],
-        grad: F32,
-        top: IArr,
-        check: Callable[[FrameStats], None],
-    ) -> tuple[Callable[[], None], bool]:
-        """The gradient image of a new frame and its check, for :meth:`_start`:
-        with the compiled x gradient on several threads, the rows the first
-        batch reads (:meth:`_first_batch_rows`; ``top``: the current frame's
-        window corners) are done here, the rest and the check in the returned
-        function; otherwise all of it there. Returns the function and whether
-        the first batch's rows are done (workers may start on it)."""
+    def _split_gradient(self, heights: npt.NDArray[np.floating]) -> int:
+        """Row at which a new frame's gradient image is split between the
+        calling thread (rows above) and the first worker (rows from it), or
+        0 for no split: one thread, or a pre-filter without the compiled
+        row-wise pass. A measuring pass takes the blocks column by column,
+        so its first batch reads nearly every row: the workers start on the
+        batches only once the whole image and its checks are done, and
+        two threads get there in about half the time."""
         if self._threads <= 1 or not compiled_gradient(heights, self.prefilter):
-
-            def whole() -> None:
-                check(self.prepare(heights, out=grad)[1])
-
-            return whole, False
-        rows = int(heights.shape[0])
-        split = self._first_batch_rows(top, rows)
-        _, head = gradient_and_stats(heights[:split], "x", out=grad[:split])
-
-        def rest() -> None:
-            stats = head
-            if split < rows:
-                _, tail = gradient_and_stats(heights[split:], "x", out=grad[split:])
-                stats = FrameStats(
-                    finite=head.finite and tail.finite,
-                    nonzero=head.nonzero + tail.nonzero,
-                    uniform=head.uniform and tail.uniform and bool(grad[0, 0] == grad[split, 0]),
-                )
-            check(stats)
-
-        return rest, True
-
-    def _first_batch_rows(self, top: IArr, rows: int) -> int:
-        """Rows of the current gradient image the first batch reads, from the
-        first (``top``: the current frame's window corners): its windows, and
-        the inner blocks its MSE check compares at any shift of the search
-        (down to ``max_shift`` rows below them)."""
-        ey = self.layout.ext[0]
-        mse_bottom = int(self._inner[0]) + int(self._mse_rows[-1]) + self.layout.max_shift[0] + 1
-        return min(rows, int(top[self._batches[0]].max()) + max(ey, mse_bottom))
+            return 0
+        return int(heights.shape[0]) // 2
 
     # -- spectra ---------------------------------------------------------------
 
@@ -703,10 +690,9 @@ class BlockEngine:
         (as by :meth:`prepare`) and ``check`` is called with its
         :class:`~afmdrift.registration._blocks.FrameStats`; if it raises,
         nothing is measured and the exception propagates. On several threads
-        with the x gradient, the rows the first batch's windows cover are
-        done first; a worker starts on that batch while the calling thread
-        does the other rows and the check, so the worker's start and part of
-        the gradient pass overlap.
+        with the x gradient, a worker computes the lower half of the image
+        while the calling thread computes the upper half (see
+        :meth:`_split_gradient`).
 
         If :meth:`measure_ahead` started this very pass (the same ``ref``,
         ``grad`` and ``heights`` objects, prior and search), its result is
@@ -766,7 +752,7 @@ class BlockEngine:
         ahead, self._ahead = self._ahead, None
         if ahead is not None and ahead.result is None:
             ahead.counter[0] = len(self._batches)  # no further batch is taken
-            ahead.opened.set()
+            ahead.gate[0] = 1
             # Its result is not wanted: a worker's error is logged here
             # rather than raised from the unrelated call that dropped it.
             for error in _wait(ahead.workers):
@@ -797,7 +783,8 @@ class BlockEngine:
         peaks = _Peaks.empty(self.layout.n_blocks)
         search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
         common = (
-            grad, top, left, self.window, *self._spectrum_args, ref.conj_spectra, ref.band_mag,
+            self._order, grad, top, left, self._wy, self._wx, STRIP_CHUNK, *self._spectrum_args,
+            ref.conj_spectra, ref.band_mag,
             self._ramp, self._no_spectra if self._current is None else self._current,
             self._cur_band_mag, search, self.config.peaks, CANDIDATE_RATIO, NMS_RADIUS, ref.grad,
             ref.top, ref.left, self._inner, self._mse_rows, self._mse_cols, self._fy, self._fx,
@@ -808,43 +795,56 @@ class BlockEngine:
             ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
             near=near, my=my, mx=mx, peaks=peaks, common=common,
         )  # fmt: skip
-        rest: Callable[[], None] | None = None
+        split = 0
         if heights is not None:
             if check is None:
                 raise ValueError("a new frame's heights come with their check")
-            rest, head_ready = self._gradient_first(heights, grad, top, check)
-            if not head_ready:
-                # No row exists yet: all of it, and the check, before any
-                # worker reads it.
-                rest()
-                rest = None
+            split = self._split_gradient(heights)
+            if split:
+                p.tail = _GradientTail(heights, split)
+            else:
+                # All of it, and the check, before any worker reads it.
+                check(self.prepare(heights, out=grad)[1])
         try:
             if self._threads > 1:
                 pool = _worker_pool(self._threads - 1)
                 for t in range(1, self._threads):
                     p.workers.append(pool.submit(self._run_worker, p, t))
-            if rest is not None:
-                rest()
+            if p.tail is not None and check is not None:
+                _, head = gradient_and_stats(heights[:split], "x", out=grad[:split])  # type: ignore[index]
+                # A worker busy elsewhere has not begun the rows below: do them here.
+                p.tail.run(grad)
+                tail = p.tail.result()
+                check(
+                    FrameStats(
+                        finite=head.finite and tail.finite,
+                        nonzero=head.nonzero + tail.nonzero,
+                        uniform=head.uniform
+                        and tail.uniform
+                        and bool(grad[0, 0] == grad[split, 0]),
+                    )
+                )
         except BaseException:
             p.counter[0] = len(self._batches)
-            p.opened.set()
+            p.gate[0] = 1
             _wait(p.workers)
             raise
-        p.opened.set()
+        p.gate[0] = 1
         return p
 
-    def _batches_of(self, p: _Pass, t: int, *, first_only: bool) -> None:
+    def _batches_of(self, p: _Pass, t: int) -> None:
         """Thread ``t``'s share of pass ``p`` (see :func:`_kernels.measure_batches`)."""
         _kernels.measure_batches(
-            p.counter, first_only, *self._batch_table, self._execute, self._thread_args[t],
-            p.common,
-        )  # fmt: skip
+            p.counter, p.gate, *self._batch_table, self._execute, self._thread_args[t], p.common
+        )
 
     def _run_worker(self, p: _Pass, t: int) -> None:
-        # Only the first batch's rows of the gradient exist before `opened`.
-        self._batches_of(p, t, first_only=True)
-        p.opened.wait()
-        self._batches_of(p, t, first_only=False)
+        if t == 1 and p.tail is not None:
+            p.tail.run(p.grad)
+        # Waits for the gate inside the compiled call: a Python wait would
+        # need the GIL back once the gate opens, which the calling thread
+        # holds while it places a frame (up to the 5 ms switch interval).
+        self._batches_of(p, t)
 
     def _finish(self, p: _Pass) -> BlockMeasurement:
         """The calling thread takes batches of ``p`` until none is left,
@@ -852,7 +852,7 @@ class BlockEngine:
         if p.result is not None:
             return p.result
         try:
-            self._batches_of(p, 0, first_only=False)
+            self._batches_of(p, 0)
         finally:
             # The workers write into shared arrays: never return (or raise)
             # while one is still running.
@@ -915,6 +915,41 @@ def _join(workers: list[Future[None]]) -> None:
         raise errors[0]
 
 
+class _GradientTail:
+    """The rows ``split:`` of a new frame's gradient image, computed by a
+    worker while the calling thread computes the rows above: their
+    :class:`FrameStats`, or the exception that stopped them."""
+
+    def __init__(self, heights: npt.NDArray[np.floating], split: int) -> None:
+        self.heights = heights
+        self.split = split
+        self._claim = threading.Lock()
+        self._done = threading.Event()
+        self._stats: FrameStats | None = None
+        self._error: BaseException | None = None
+
+    def run(self, grad: F32) -> None:
+        """Compute the rows into ``grad``, unless another thread has begun."""
+        if not self._claim.acquire(blocking=False):
+            return
+        try:
+            self._stats = gradient_and_stats(
+                self.heights[self.split :], "x", out=grad[self.split :]
+            )[1]
+        except BaseException as err:
+            self._error = err
+        finally:
+            self._done.set()
+
+    def result(self) -> FrameStats:
+        """Wait for the rows; their stats, or raise what stopped them."""
+        self._done.wait()
+        if self._error is not None:
+            raise self._error
+        assert self._stats is not None
+        return self._stats
+
+
 @dataclass(eq=False)
 class _Pass:
     """A block pass in flight: what it measures (``ref``, ``grad``, the
@@ -937,8 +972,12 @@ class _Pass:
     prior_px: tuple[float, float] | None = None
     #: The next batch to take.
     counter: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    #: Set once the gradient image is complete: workers may then take any batch.
-    opened: threading.Event = field(default_factory=threading.Event)
+    #: The rows of the gradient image the first worker computes (see
+    #: BlockEngine._split_gradient).
+    tail: _GradientTail | None = None
+    #: Set to 1 once the gradient image is complete and checked: workers may
+    #: then take batches (see _kernels.measure_batches).
+    gate: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     workers: list[Future[None]] = field(default_factory=list)
     result: BlockMeasurement | None = None
 

@@ -49,7 +49,12 @@ Planner = Literal["estimate", "measure", "patient"]
 # Planner flags of fftw3.h.
 _FLAGS: dict[str, int] = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
 _DESTROY_INPUT = 1
+_FORWARD = -1
 _BACKWARD = 1
+#: Rows per call of the strip's row transform (see BatchedRealFFT): the
+#: offsets of its calls into the strip arrays are then multiples of 64 bytes
+#: for any even number of columns, as FFTW's new-array execute needs.
+STRIP_CHUNK = 8
 
 
 def default_wisdom_path() -> Path:
@@ -229,6 +234,12 @@ class BatchedRealFFT:
         whole spectrum followed by row transforms of only the first
         ``out_rows`` rows (with half the rows, about 30 % less work than the
         full 2-D inverse).
+    strip_rows : int, optional
+        Also make the arrays and plans of a forward transform in two steps
+        (:func:`afmdrift.registration._kernels.forward_strips`): row
+        transforms of up to ``strip_rows`` windowed image rows,
+        :data:`STRIP_CHUNK` rows per call, and the column transforms of
+        ``spectrum`` in place.
 
     Attributes
     ----------
@@ -242,18 +253,27 @@ class BatchedRealFFT:
     out : ndarray, shape (n_blocks, out_rows, cols), float32
         Output of :meth:`inverse` (``real`` itself when all rows are
         needed).
-    plans : ndarray, shape (3,), uint64
+    strip : ndarray, shape (strip_rows + STRIP_CHUNK, cols), float32
+        Rows to transform (none without ``strip_rows``).
+    strip_spectrum : ndarray, shape (strip_rows + STRIP_CHUNK, cols // 2 + 1), complex64
+        Their transforms.
+    plans : ndarray, shape (3,) or (5,), uint64
         The FFTW plans: forward, inverse over columns (in place), inverse
-        over the first ``out_rows`` rows.
-    pointers : ndarray, shape (3,), uint64
-        Addresses of ``real``, ``spectrum`` and ``out``: with ``plans`` and
-        :class:`Fftwf`'s execute functions, what compiled code needs to run
-        the transforms itself.
+        over the first ``out_rows`` rows; with ``strip_rows``, also the
+        forward transform over the columns of ``spectrum`` (in place) and the
+        row transform of :data:`STRIP_CHUNK` rows from ``strip`` to
+        ``strip_spectrum``.
+    pointers : ndarray, shape (3,) or (5,), uint64
+        Addresses of ``real``, ``spectrum``, ``out`` (and ``strip``,
+        ``strip_spectrum``): with ``plans`` and :class:`Fftwf`'s execute
+        functions, what compiled code needs to run the transforms itself.
     """
 
     real: npt.NDArray[np.float32]
     spectrum: npt.NDArray[np.complex64]
     out: npt.NDArray[np.float32]
+    strip: npt.NDArray[np.float32]
+    strip_spectrum: npt.NDArray[np.complex64]
 
     def __init__(
         self,
@@ -265,20 +285,24 @@ class BatchedRealFFT:
         wisdom_path: Path | None = None,
         out_rows: int | None = None,
         share: BatchedRealFFT | None = None,
+        strip_rows: int | None = None,
     ) -> None:
         rows, cols = block_shape
         half = cols // 2 + 1
         keep = rows if out_rows is None else min(out_rows, rows)
+        stripped = strip_rows is not None
         if share is not None:
             if (
                 share.real.shape[0] < n_blocks
                 or share.real.shape[1:] != (rows, cols)
                 or share.out.shape[1:] != (keep, cols)
+                or (stripped and share.strip.shape[0] < strip_rows + STRIP_CHUNK)  # type: ignore[operator]
             ):
                 raise ValueError("a shared BatchedRealFFT needs as many blocks and the same shape")
             self.real = share.real[:n_blocks]
             self.spectrum = share.spectrum[:n_blocks]
             self.out = share.out[:n_blocks]
+            self.strip, self.strip_spectrum = share.strip, share.strip_spectrum
         else:
             self.real = pyfftw.empty_aligned((n_blocks, rows, cols), dtype="float32")
             self.spectrum = pyfftw.empty_aligned((n_blocks, rows, half), "complex64")
@@ -287,12 +311,17 @@ class BatchedRealFFT:
                 if keep < rows
                 else self.real
             )
+            strips = strip_rows + STRIP_CHUNK if strip_rows is not None else 0
+            self.strip = pyfftw.empty_aligned((strips, cols), dtype="float32")
+            self.strip_spectrum = pyfftw.empty_aligned((strips, half), "complex64")
+            self.strip.fill(0.0)
         lib = fftwf()
         self._lib = lib.lib
         if threads > 1 and lib.threads is None:
             raise ValueError("FFTW's threads library was not found: use threads=1")
         flags = _FLAGS[planner] | _DESTROY_INPUT
-        real, spec, out = (a.ctypes.data for a in (self.real, self.spectrum, self.out))
+        arrays = (self.real, self.spectrum, self.out, self.strip, self.strip_spectrum)
+        real, spec, out, strip, strip_spec = (a.ctypes.data for a in arrays)
         with _lock:
             if wisdom_path is not None:
                 _load_wisdom(wisdom_path)
@@ -301,7 +330,7 @@ class BatchedRealFFT:
                 lib.threads.fftwf_plan_with_nthreads(threads)
             try:
                 shape = (ctypes.c_int * 2)(rows, cols)
-                plans = (
+                plans: tuple[int | None, ...] = (
                     self._lib.fftwf_plan_many_dft_r2c(
                         2, shape, n_blocks, real, None, 1, rows * cols, spec, None, 1, rows * half,
                         flags,
@@ -317,6 +346,19 @@ class BatchedRealFFT:
                         spec, out, flags,
                     ),
                 )  # fmt: skip
+                if stripped:
+                    n_row = (ctypes.c_int * 1)(cols)
+                    plans += (
+                        self._lib.fftwf_plan_guru_dft(
+                            1, _dims((rows, half, half)), 2,
+                            _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
+                            spec, spec, _FORWARD, flags,
+                        ),
+                        self._lib.fftwf_plan_many_dft_r2c(
+                            1, n_row, STRIP_CHUNK, strip, None, 1, cols, strip_spec, None, 1,
+                            half, flags,
+                        ),
+                    )  # fmt: skip
             finally:
                 if lib.threads is not None:
                     lib.threads.fftwf_plan_with_nthreads(1)
@@ -327,7 +369,7 @@ class BatchedRealFFT:
             if wisdom_path is not None and pyfftw.export_wisdom() != before:
                 _save_wisdom(wisdom_path)
         self.plans = np.array(made, dtype=np.uint64)
-        self.pointers = np.array([real, spec, out], dtype=np.uint64)
+        self.pointers = np.array([real, spec, out, strip, strip_spec][: len(made)], dtype=np.uint64)
         # the execute calls' arguments, as ctypes pointers made once
         ptr = ctypes.c_void_p
         self._forward_args = (ptr(made[0]), ptr(real), ptr(spec))

@@ -46,6 +46,7 @@ from numba.extending import intrinsic
 __all__ = [
     "assemble",
     "dft_subpixel",
+    "forward_strips",
     "gradient_x",
     "masked_mean_std",
     "masked_medians",
@@ -325,6 +326,7 @@ def _cross_row(s, abs2, q, a):  # type: ignore[no-untyped-def]
 
 @_jit
 def normalise_cross(  # type: ignore[no-untyped-def]
+    blocks,
     spec,
     w_rows,
     w_cols,
@@ -353,17 +355,20 @@ def normalise_cross(  # type: ignore[no-untyped-def]
     and, if ``band`` has blocks, the weighted band ``band = Ŝ · ref · |S| ·
     |R|`` of the ``dft`` sub-pixel method. ``spec``, ``ref``, ``ramp``,
     ``keep`` and ``band`` are interleaved complex (``ref`` and ``keep``
-    int16, the others float32).
+    int16, the others float32). ``spec[k]`` and ``band[k]`` belong to block
+    ``blocks[k]``, the index of ``ref``, ``ref_band_mag``, ``keep`` and
+    ``band_mag``.
     """
-    n, rows = spec.shape[0], spec.shape[1]
+    n, rows = blocks.size, spec.shape[1]
     keeping = keep.shape[0] > 0
     with_band = band.shape[0] > 0
     abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
-    for i in range(n):
-        _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, i, eps_rel, floor, abs2)
+    for k in range(n):
+        i = blocks[k]
+        _remove_mean(spec, k, w_rows, w_cols, w_vals, w_sum)
+        a = _floor(spec, k, eps_rel, floor, abs2)
         for r in range(rows):
-            s = spec[i, r]
+            s = spec[k, r]
             b = _band_row(r, rows, ky)
             if b >= 0:
                 _magnitudes(abs2[r], band_mag[i, b])
@@ -371,10 +376,10 @@ def normalise_cross(  # type: ignore[no-untyped-def]
                 _reference_row(s, abs2[r], ramp[r], keep[i, r], a)
             _cross_row(s, abs2[r], ref[i, r], a)
             if b >= 0 and with_band:
-                for k in range(kx + 1):
-                    w = band_mag[i, b, k] * ref_band_mag[i, b, k]
-                    band[i, b, 2 * k] = s[2 * k] * w
-                    band[i, b, 2 * k + 1] = s[2 * k + 1] * w
+                for c in range(kx + 1):
+                    w = band_mag[i, b, c] * ref_band_mag[i, b, c]
+                    band[k, b, 2 * c] = s[2 * c] * w
+                    band[k, b, 2 * c + 1] = s[2 * c + 1] * w
 
 
 @_jit_finite
@@ -471,6 +476,7 @@ def _block_mse(  # type: ignore[no-untyped-def]
 
 @_jit
 def pick_peaks(  # type: ignore[no-untyped-def]
+    blocks,
     corr,
     search,
     peaks,
@@ -504,13 +510,15 @@ def pick_peaks(  # type: ignore[no-untyped-def]
     ``inf``). Ties between equal correlation values go to the first in
     row-major order of the region.
 
-    Writes, per block: the integer shift ``out_sy``, ``out_sx``, the
+    ``corr[k]`` belongs to block ``blocks[k]``, the index of the per-block
+    arrays (window corners and outputs). Writes, per block: the integer
+    shift ``out_sy``, ``out_sx``, the
     unnormalised correlation value ``out_peak`` and ``out_mse``. The search
     rows' maxima are found once; after each accepted peak only
     the rows its suppressed square covers are scanned again, and the column
     of a peak is looked up only in the row that wins.
     """
-    n = corr.shape[0]
+    n = blocks.size
     ry, rx, my, mx = search[0], search[1], search[2], search[3]
     y0r, y1r = my - ry, my + ry
     x0r, x1r = mx - rx, mx + rx
@@ -518,9 +526,10 @@ def pick_peaks(  # type: ignore[no-untyped-def]
     row_best = np.empty(height, dtype=np.float32)
     acc_y = np.empty(peaks, dtype=np.intp)
     acc_x = np.empty(peaks, dtype=np.intp)
-    for i in range(n):
+    for k in range(n):
+        i = blocks[k]
         for h in range(height):
-            row_best[h] = _row_max(corr[i, y0r + h], x0r, x1r)
+            row_best[h] = _row_max(corr[k, y0r + h], x0r, x1r)
         first = -np.inf
         best_mse = np.inf
         best_y = 0
@@ -536,7 +545,7 @@ def pick_peaks(  # type: ignore[no-untyped-def]
             if hy < 0:
                 break
             py = y0r + hy
-            px = _first_column(corr[i, py], py, x0r, x1r, v, acc_y, acc_x, j, nms)
+            px = _first_column(corr[k, py], py, x0r, x1r, v, acc_y, acc_x, j, nms)
             if j == 0:
                 first = v
                 best_y, best_x, best_v = py, px, v
@@ -560,7 +569,7 @@ def pick_peaks(  # type: ignore[no-untyped-def]
             if j + 1 < peaks:
                 for h in range(max(0, hy - nms), min(height, hy + nms + 1)):
                     row_best[h] = _row_max_masked(
-                        corr[i, y0r + h],
+                        corr[k, y0r + h],
                         y0r + h,
                         x0r,
                         x1r,
@@ -607,7 +616,7 @@ def _phases(f, d, out_re, out_im):  # type: ignore[no-untyped-def]
 
 @_jit_sums
 def dft_subpixel(  # type: ignore[no-untyped-def]
-    band, fy, fx, sy, sx, shift, envelope, out_fx, out_fy, out_ok
+    blocks, band, fy, fx, sy, sx, shift, envelope, out_fx, out_fy, out_ok
 ):
     """Continuous maximum of the band-limited correlation, per block.
 
@@ -629,8 +638,11 @@ def dft_subpixel(  # type: ignore[no-untyped-def]
 
     Writes the offsets from the integer peak and whether the iteration
     converged within 3 px of it (offsets 0 where it did not).
+
+    ``band[k]`` belongs to block ``blocks[k]``, the index of the per-block
+    arrays ``sy``, ``sx`` and the outputs.
     """
-    n, ly = band.shape[0], band.shape[1]
+    n, ly = blocks.size, band.shape[1]
     lx = fx.size
     two_pi = 2.0 * math.pi
     k_y, k_x = envelope[0], envelope[1]
@@ -654,7 +666,8 @@ def dft_subpixel(  # type: ignore[no-untyped-def]
     for o in range(5):
         _phases(fx, o - 2.0, ex5_re[o], ex5_im[o])
         _phases(fy, o - 2.0, ey5_re[o], ey5_im[o])
-    for i in range(n):
+    for k in range(n):
+        i = blocks[k]
         # r0 = w · R · exp(2πi k·s): the band centred on the integer peak.
         _phases(fx, float(sx[i] + shift[1]), px_re, px_im)
         _phases(fy, float(sy[i] + shift[0]), py_re, py_im)
@@ -664,8 +677,8 @@ def dft_subpixel(  # type: ignore[no-untyped-def]
         for y in range(ly):
             a_re, a_im = py_re[y], py_im[y]
             for x in range(lx):
-                b_re = np.float64(band[i, y, 2 * x])
-                b_im = np.float64(band[i, y, 2 * x + 1])
+                b_re = np.float64(band[k, y, 2 * x])
+                b_im = np.float64(band[k, y, 2 * x + 1])
                 u_re = b_re * a_re - b_im * a_im
                 u_im = b_re * a_im + b_im * a_re
                 r0_re[y, x] = u_re * px_re[x] - u_im * px_im[x]
@@ -1242,23 +1255,23 @@ def _counter_intrinsic(op: str) -> Any:
 _fetch_add: Any = _counter_intrinsic("add")
 
 
-def _claim_first_typing(typingctx, counter):  # type: ignore[no-untyped-def]
-    """Atomically set ``counter[0]`` from 0 to 1; returns whether it was 0."""
+def _atomic_load_typing(typingctx, counter, index):  # type: ignore[no-untyped-def]
+    """``counter[index]`` of an int64 array, read atomically (every read is
+    a new load: a loop waiting on it sees another thread's store)."""
     if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
         return None
-    sig = types.boolean(counter)
+    sig = types.int64(counter, index)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        ary = context.make_array(signature.args[0])(context, builder, args[0])
-        zero = context.get_constant(types.int64, 0)
-        one = context.get_constant(types.int64, 1)
-        pair = builder.cmpxchg(ary.data, zero, one, "seq_cst", "seq_cst")
-        return builder.extract_value(pair, 1)
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
+        return builder.load_atomic(ptr, "seq_cst", 8)
 
     return sig, codegen
 
 
-_claim_first: Any = intrinsic(_claim_first_typing)
+_atomic_load: Any = intrinsic(_atomic_load_typing)
 
 
 @_jit
@@ -1294,22 +1307,24 @@ def _three_point(cm, c0, cp, method):  # type: ignore[no-untyped-def]
 
 
 @_jit
-def subpixel_3pt(corr, method, scale, my, mx, sy, sx, out_fy, out_fx, out_ok):  # type: ignore[no-untyped-def]
+def subpixel_3pt(blocks, corr, method, scale, my, mx, sy, sx, out_fy, out_fx, out_ok):  # type: ignore[no-untyped-def]
     """Sub-pixel offsets of each block's integer peak ``(sy, sx)`` from the
     three samples around it along each axis (:func:`_three_point`), in the
     shifted correlation ``corr`` (shift ``-m`` at index 0; ``scale``: its
-    value for identical blocks). Neighbours beyond ``0..2m`` are clamped."""
-    for i in range(corr.shape[0]):
+    value for identical blocks; ``corr[k]`` belongs to block ``blocks[k]``,
+    the index of the other arrays). Neighbours beyond ``0..2m`` are clamped."""
+    for k in range(blocks.size):
+        i = blocks[k]
         cy = sy[i] + my
         cx = sx[i] + mx
         ym, yp = max(cy - 1, 0), min(cy + 1, 2 * my)
         xm, xp = max(cx - 1, 0), min(cx + 1, 2 * mx)
-        c0 = np.float64(corr[i, cy, cx]) / scale
+        c0 = np.float64(corr[k, cy, cx]) / scale
         fy, ok_y = _three_point(
-            np.float64(corr[i, ym, cx]) / scale, c0, np.float64(corr[i, yp, cx]) / scale, method
+            np.float64(corr[k, ym, cx]) / scale, c0, np.float64(corr[k, yp, cx]) / scale, method
         )
         fx, ok_x = _three_point(
-            np.float64(corr[i, cy, xm]) / scale, c0, np.float64(corr[i, cy, xp]) / scale, method
+            np.float64(corr[k, cy, xm]) / scale, c0, np.float64(corr[k, cy, xp]) / scale, method
         )
         out_fy[i] = fy
         out_fx[i] = fx
@@ -1317,77 +1332,142 @@ def subpixel_3pt(corr, method, scale, my, mx, sy, sx, out_fy, out_fx, out_ok):  
 
 
 @_jit
+def forward_strips(  # type: ignore[no-untyped-def]
+    grad, top, left, blocks, wy, wx, chunk, execute, plans, pointers, strip, strip_spec, spec, base
+):
+    """Spectra ``spec[k]`` (interleaved complex) of the windowed blocks
+    ``grad[top[i]:top[i]+Ey, left[i]:left[i]+Ex] · wy ⊗ wx``, ``i =
+    blocks[k]``, with the row transforms of overlapping windows done once.
+
+    A 2-D real FFT is a real FFT of every row followed by a complex FFT of
+    every column, and the window is a product ``wy(y) · wx(x)``: the
+    transform of a row windowed by ``wx`` is the same in every window of the
+    same columns, which only scales it by its ``wy``. Consecutive blocks
+    with the same ``left`` whose rows meet form a run; each row of a run is
+    windowed by ``wx`` into ``strip`` once and transformed, ``chunk`` rows
+    per call (``plans[4]``), into ``strip_spec``; each block then takes its
+    rows times ``wy`` into ``spec``, and one call (``plans[3]``) transforms
+    the columns of all of them. With the engine's column-major batches and
+    128² windows a block pitch of 50 px apart, this halves the row
+    transforms (the larger part of a 2-D real FFT).
+
+    ``execute``: FFTW's r2c and c2c execute functions; ``pointers[1]``,
+    ``[3]``, ``[4]``: the addresses of ``spec``, ``strip`` and
+    ``strip_spec`` (``strip`` holds at least ``len(blocks) · Ey + chunk``
+    rows); ``base`` (scratch, ``len(blocks)``) receives each block's first
+    row in the strip.
+    """
+    nb = blocks.size
+    ey, ex = wy.size, wx.size
+    half = strip_spec.shape[1] // 2
+    filled = 0
+    run_left = -1
+    run_top = 0
+    run_end = 0
+    run_base = 0
+    for k in range(nb):
+        i = blocks[k]
+        t = top[i]
+        le = left[i]
+        if k == 0 or le != run_left or t < run_top or t > run_end:
+            run_left, run_top, run_end, run_base = le, t, t, filled
+        for r in range(run_end, t + ey):
+            src = grad[r, le : le + ex]
+            dst = strip[run_base + r - run_top]
+            for c in range(ex):
+                dst[c] = src[c] * wx[c]
+        run_end = max(run_end, t + ey)
+        filled = run_base + run_end - run_top
+        base[k] = run_base + t - run_top
+    row_bytes = np.uint64(ex * 4)
+    spec_row_bytes = np.uint64(half * 8)
+    for c0 in range(0, filled, chunk):
+        r0 = np.uint64(c0)
+        _fftw_execute(
+            execute[0], plans[4], pointers[3] + r0 * row_bytes, pointers[4] + r0 * spec_row_bytes
+        )
+    for k in range(nb):
+        for r in range(ey):
+            src = strip_spec[base[k] + r]
+            dst = spec[k, r]
+            w = wy[r]
+            for c in range(2 * half):
+                dst[c] = src[c] * w
+    _fftw_execute(execute[1], plans[3], pointers[1], pointers[1])
+
+
+@_jit
 def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-untyped-def]
-    """Blocks ``a:b`` through every step: window, forward FFT, normalised
-    cross-power spectrum, pruned inverse FFT, candidate peaks with their MSE
-    check, sub-pixel offsets (``thread``, ``common``: see
-    :func:`measure_batches`)."""
-    plans, pointers, real, spec, corr, band = thread
+    """Blocks ``order[a:b]`` through every step: window and forward FFT
+    (:func:`forward_strips`), normalised cross-power spectrum, pruned
+    inverse FFT, candidate peaks with their MSE check, sub-pixel offsets
+    (``thread``, ``common``: see :func:`measure_batches`)."""
+    plans, pointers, spec, corr, band, strip, strip_spec, base = thread
     (
-        grad, top, left, window, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx,
-        ref_conj, ref_band_mag, ramp, keep, cur_band_mag,
+        order, grad, top, left, wy, wx, chunk, w_rows, w_cols, w_vals, w_sum, eps_rel, floor,
+        ky, kx, ref_conj, ref_band_mag, ramp, keep, cur_band_mag,
         search, npeaks, ratio, nms, ref_grad, ref_top, ref_left, inner, mse_rows, mse_cols,
         fy, fx, ramp_shift, envelope, method, scale,
         out_sy, out_sx, out_peak, out_mse, out_fx, out_fy, out_ok,
     ) = common  # fmt: skip
     nb = b - a
-    window_blocks(grad, top[a:b], left[a:b], window, real[:nb])
-    _fftw_execute(execute[0], plans[kind, 0], pointers[0], pointers[1])
+    blocks = order[a:b]
+    forward_strips(
+        grad, top, left, blocks, wy, wx, chunk, execute, plans[kind], pointers, strip,
+        strip_spec, spec[:nb], base,
+    )  # fmt: skip
     normalise_cross(
-        spec[:nb], w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx,
-        ref_conj[a:b], ref_band_mag[a:b], ramp, keep[a:b] if keep.shape[0] > 0 else keep,
-        cur_band_mag[a:b], band[:nb] if band.shape[0] > 0 else band,
+        blocks, spec[:nb], w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx,
+        ref_conj, ref_band_mag, ramp, keep, cur_band_mag, band[:nb] if band.shape[0] > 0 else band,
     )  # fmt: skip
     _fftw_execute(execute[1], plans[kind, 1], pointers[1], pointers[1])
     _fftw_execute(execute[2], plans[kind, 2], pointers[1], pointers[2])
     pick_peaks(
-        corr[:nb], search, npeaks, ratio, nms, grad, ref_grad, ref_top[a:b], ref_left[a:b],
-        top[a:b], left[a:b], inner, mse_rows, mse_cols,
-        out_sy[a:b], out_sx[a:b], out_peak[a:b], out_mse[a:b],
+        blocks, corr[:nb], search, npeaks, ratio, nms, grad, ref_grad, ref_top, ref_left,
+        top, left, inner, mse_rows, mse_cols, out_sy, out_sx, out_peak, out_mse,
     )  # fmt: skip
     if method == 0:
         dft_subpixel(
-            band[:nb], fy, fx, out_sy[a:b], out_sx[a:b], ramp_shift, envelope,
-            out_fx[a:b], out_fy[a:b], out_ok[a:b],
+            blocks, band[:nb], fy, fx, out_sy, out_sx, ramp_shift, envelope,
+            out_fx, out_fy, out_ok,
         )  # fmt: skip
     else:
         subpixel_3pt(
-            corr[:nb], method, scale, ramp_shift[0], ramp_shift[1],
-            out_sy[a:b], out_sx[a:b], out_fy[a:b], out_fx[a:b], out_ok[a:b],
+            blocks, corr[:nb], method, scale, ramp_shift[0], ramp_shift[1],
+            out_sy, out_sx, out_fy, out_fx, out_ok,
         )  # fmt: skip
 
 
 @_jit
 def measure_batches(  # type: ignore[no-untyped-def]
-    counter, first_only, starts, stops, kinds, execute, thread, common
+    counter, gate, starts, stops, kinds, execute, thread, common
 ):
     """One thread's share of a block pass, without the GIL: batches ``i``
-    (blocks ``starts[i]:stops[i]``) taken in turn from the shared
-    ``counter[0]`` (int64) until none is left; with
-    ``first_only``, only batch 0, if no thread has taken it yet.
+    (blocks ``order[starts[i]:stops[i]]``, ``order`` the first of
+    ``common``) taken in turn from the shared ``counter[0]`` (int64) until
+    none is left, once ``gate[0]`` (int64) is no longer 0: a worker waits
+    for the gate here, spinning without the GIL, while the calling thread
+    completes the gradient image.
 
     ``thread``: the thread's own FFTW plans and work arrays, ``(plans,
-    pointers, real, spec, corr, band)``: ``plans[kinds[i]]`` are the
-    forward, column-inverse and row-inverse plans for batch ``i``'s size,
-    all on the work arrays (room for the largest batch), whose addresses are
-    ``pointers``; ``spec`` is the spectrum as interleaved float32, ``corr``
-    the inverse's output. ``execute``: FFTW's execute functions (see
-    :class:`afmdrift.registration._fftw.Fftwf`). ``common``: the arguments
-    of :func:`window_blocks`, :func:`normalise_cross`,
-    :func:`pick_peaks`, :func:`dft_subpixel` and :func:`subpixel_3pt` (``method``:
+    pointers, spec, corr, band, strip, strip_spec, base)``:
+    ``plans[kinds[i]]`` are the plans of
+    :class:`afmdrift.registration._fftw.BatchedRealFFT` for batch ``i``'s
+    size, all on the work arrays (room for the largest batch), whose
+    addresses are ``pointers``; ``spec`` and ``strip_spec`` are spectra as
+    interleaved float32, ``corr`` the inverse's output. ``execute``: FFTW's
+    execute functions (see :class:`afmdrift.registration._fftw.Fftwf`).
+    ``common``: the block order, then the arguments of
+    :func:`forward_strips`, :func:`normalise_cross`, :func:`pick_peaks`,
+    :func:`dft_subpixel` and :func:`subpixel_3pt` (``method``:
     :data:`SUBPIXEL_CODES`) that all threads share, in the order
     :class:`afmdrift.registration._engine.BlockEngine` builds them; their
     per-block arrays cover every block of the frame."""
     n = starts.size
+    while _atomic_load(gate, 0) == 0:
+        pass
     while True:
-        if first_only:
-            if not _claim_first(counter):
-                return
-            i = 0
-        else:
-            i = _fetch_add(counter, 0)
-            if i >= n:
-                return
-        _measure_batch(starts[i], stops[i], kinds[i], execute, thread, common)
-        if first_only:
+        i = _fetch_add(counter, 0)
+        if i >= n:
             return
+        _measure_batch(starts[i], stops[i], kinds[i], execute, thread, common)

@@ -211,7 +211,8 @@ def test_three_point_subpixel_kernel_follows_its_formula(method: str) -> None:
     fy, fx = np.empty(40), np.empty(40)
     ok = np.empty(40, dtype=bool)
     code = _kernels.SUBPIXEL_CODES[method]
-    _kernels.subpixel_3pt(corr, code, scale, m, m, sy, sx, fy, fx, ok)
+    order = rng.permutation(40).astype(np.intp)  # the batch's order of the blocks
+    _kernels.subpixel_3pt(order, corr[order], code, scale, m, m, sy, sx, fy, fx, ok)
     for i in range(40):
         cy, cx = sy[i] + m, sx[i] + m
         c = corr[i].astype(np.float64) / scale

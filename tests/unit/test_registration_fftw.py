@@ -97,3 +97,60 @@ def test_a_plan_freed_while_this_thread_plans_does_not_deadlock() -> None:
     t.start()
     t.join(timeout=30)
     assert not t.is_alive(), "the plan finalizer deadlocked on the planner lock"
+
+
+@pytest.mark.parametrize(
+    ("top", "left"),
+    [
+        # a column of windows whose rows overlap (the engine's batches)
+        ([3, 13, 24, 34], [7, 7, 7, 7]),
+        # clamped windows at the same place, a gap, another column, a
+        # window inside the previous one's rows
+        ([0, 0, 40, 5, 5, 9], [7, 7, 7, 20, 0, 0]),
+    ],
+)
+def test_forward_strips_equals_the_2d_transform_of_each_window(
+    top: list[int], left: list[int]
+) -> None:
+    """The two-step forward transform (rows once per run of windows, then
+    columns) gives each window's ``rfft2(block · wy ⊗ wx)``, whatever the
+    runs, and in the batch's order of the blocks."""
+    from afmdrift.registration import _kernels
+    from afmdrift.registration._blocks import raised_cosine_axis
+
+    rng = np.random.default_rng(5)
+    ey, ex, nb = 32, 24, len(top)
+    grad = rng.standard_normal((80, 60)).astype(np.float32)
+    fft = BatchedRealFFT(nb, (ey, ex), planner="estimate", wisdom_path=None, strip_rows=nb * ey)
+    # garbage in the strip's spare rows must not matter
+    fft.strip[:] = np.nan
+    wy = raised_cosine_axis(ey).astype(np.float32)
+    wx = raised_cosine_axis(ex).astype(np.float32)
+    order = rng.permutation(nb).astype(np.intp)
+    tops = np.empty(nb, np.intp)
+    lefts = np.empty(nb, np.intp)
+    tops[order] = top  # batch entry k is block order[k]
+    lefts[order] = left
+    lib = _fftw.fftwf()
+    execute = np.array([lib.execute_r2c, lib.execute_c2c], dtype=np.uint64)
+    _kernels.forward_strips(
+        grad, tops, lefts, order, wy, wx, _fftw.STRIP_CHUNK, execute, fft.plans, fft.pointers,
+        fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
+        np.empty(nb, np.intp),
+    )  # fmt: skip
+    for k, i in enumerate(order):
+        block = grad[tops[i] : tops[i] + ey, lefts[i] : lefts[i] + ex].astype(np.float64)
+        want = np.fft.rfft2(block * np.outer(wy, wx))
+        np.testing.assert_allclose(fft.spectrum[k], want, rtol=0, atol=2e-5 * np.abs(want).max())
+
+
+def test_a_shared_strip_must_be_large_enough() -> None:
+    big = BatchedRealFFT(4, (16, 16), planner="estimate", wisdom_path=None, strip_rows=4 * 16)
+    small = BatchedRealFFT(
+        2, (16, 16), planner="estimate", wisdom_path=None, strip_rows=2 * 16, share=big
+    )
+    assert small.strip is big.strip
+    assert small.plans.shape == (5,)
+    assert small.pointers.shape == (5,)
+    with pytest.raises(ValueError, match="as many blocks"):
+        BatchedRealFFT(2, (16, 16), planner="estimate", wisdom_path=None, strip_rows=80, share=big)

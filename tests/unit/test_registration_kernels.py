@@ -91,14 +91,19 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
 
     want_norm, cur_mag = _normalise_numpy(cur, 1e-6)
     want_cross = want_norm * ref_value
-    spec = _interleaved(cur.copy())
+    # A batch holds the blocks in another order than the frame's arrays.
+    order = np.array([2, 0, 1], dtype=np.intp)
+    spec = _interleaved(cur[order])
     keep = np.empty((n, rows, 2 * half), dtype=np.int16)
     cur_band = np.empty_like(ref_band)
     band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
     _kernels.normalise_cross(
-        spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
+        order, spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
         ref_band, _interleaved(ramp), keep, cur_band, band.view(np.float32),
     )  # fmt: skip
+    back = np.argsort(order)
+    spec = np.ascontiguousarray(spec.view(np.complex64)[back]).view(np.float32)
+    band = band[back]
     # The kept spectra are ready to serve as the next reference.
     kept = keep.astype(np.float64) / _kernels.REF_SCALE
     kept_value = kept[..., 0::2] + 1j * kept[..., 1::2]
@@ -153,8 +158,9 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
     lat_y = np.arange(0, 16, 3, dtype=np.intp)
     lat_x = np.arange(0, 20, 3, dtype=np.intp)
     out = (np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, np.float32), np.empty(n))
+    order = RNG.permutation(n).astype(np.intp)  # the batch's order of the blocks
     _kernels.pick_peaks(
-        corr, np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
+        order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
         ref_top, ref_left, top, left, inner, lat_y, lat_x, *out,
     )  # fmt: skip
     for i in range(n):
@@ -183,7 +189,7 @@ def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
     zero = np.zeros(1, dtype=np.intp)
     out = (np.empty(1, np.intp), np.empty(1, np.intp), np.empty(1, np.float32), np.empty(1))
     _kernels.pick_peaks(
-        corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
+        zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
         zero + 4, zero + 4, np.array([4, 4], dtype=np.intp), np.arange(0, 8, dtype=np.intp),
         np.arange(0, 8, dtype=np.intp), *out,
     )  # fmt: skip
@@ -210,7 +216,19 @@ def test_dft_subpixel_finds_the_shift_of_a_pure_translation_band(
     sx = np.array([round(dx)], dtype=np.intp)
     off_x, off_y, ok = np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool)
     shift = np.array(ramp, dtype=np.intp)
-    _kernels.dft_subpixel(_interleaved(band), fy, fx, sy, sx, shift, np.zeros(2), off_x, off_y, ok)
+    _kernels.dft_subpixel(
+        np.zeros(1, np.intp),
+        _interleaved(band),
+        fy,
+        fx,
+        sy,
+        sx,
+        shift,
+        np.zeros(2),
+        off_x,
+        off_y,
+        ok,
+    )
     assert ok[0]
     assert sx[0] + off_x[0] == pytest.approx(dx, abs=2e-4)
     assert sy[0] + off_y[0] == pytest.approx(dy, abs=2e-4)

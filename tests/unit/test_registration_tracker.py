@@ -140,10 +140,11 @@ def test_invalid_input_leaves_the_tracker_unchanged() -> None:
 def test_bad_pixels_anywhere_in_a_512_frame_are_refused_while_the_worker_measures(
     threads: int,
 ) -> None:
-    """On two threads a worker starts on the first batch while the gradient's
-    lower rows and the checks are still being done (BlockEngine.measure): a
-    bad pixel above or below that split, or a blank frame, must still be
-    refused with the tracker unchanged and the next frame measured right."""
+    """On two threads the calling thread computes the gradient's upper rows
+    while a worker computes the lower ones (BlockEngine._split_gradient,
+    at row 256): a bad pixel above or below that split, or a blank frame,
+    must be refused with the tracker unchanged and the next frame measured
+    right."""
     path = np.array([[0.0, 0.0], [1.5, 0.5], [3.0, 1.0], [4.5, 1.5]])
     frames = _sequence(path, shape=(512, 512), seed=8)
     tracker = DriftTracker(pixel_size_nm=PIXEL_NM, config=RegistrationConfig(threads=threads))
@@ -152,7 +153,12 @@ def test_bad_pixels_anywhere_in_a_512_frame_are_refused_while_the_worker_measure
     assert first is not None
     assert first.accepted
     before = (tracker.frames_seen, tracker.position_px)
-    for row, col, value in [(3, 7, np.nan), (500, 300, np.inf), (255, 0, -np.inf)]:
+    for row, col, value in [
+        (3, 7, np.nan),
+        (500, 300, np.inf),
+        (255, 0, -np.inf),
+        (256, 5, np.nan),
+    ]:
         bad = frames[2].copy()
         bad[row, col] = value
         with pytest.raises(InvalidFrameError, match=rf"1 NaN/Inf pixel.*row {row}, col {col}"):
@@ -294,15 +300,24 @@ def test_forked_child_can_measure_after_the_parent_started_its_worker_pool() -> 
     assert os.waitstatus_to_exitcode(status) == 0, "child failed or hung (SIGALRM = -14)"
 
 
-def test_the_first_batch_rows_cover_what_its_mse_check_reads() -> None:
-    """The calling thread writes these rows of the gradient before a worker
-    starts on the first batch: its windows and, at any shift of the search,
-    the inner blocks its MSE check compares."""
-    cfg = RegistrationConfig(gradient="x", max_shift_px=60)
-    engine = BlockEngine((512, 512), cfg)
-    top = engine.grid_positions()[0]
-    first = engine._batches[0]
-    rows = engine._first_batch_rows(top, 512)
-    deepest_mse = int(engine._inner[0]) + int(engine._mse_rows[-1]) + 60
-    assert rows >= int(top[first].max()) + deepest_mse + 1
-    assert rows >= int(top[first].max()) + engine.layout.ext[0]
+def test_gradient_rows_that_a_busy_worker_has_not_begun_are_done_by_the_caller() -> None:
+    """On two threads a worker computes the lower rows of a new frame's
+    gradient image (BlockEngine._split_gradient); whichever thread comes
+    first does them, once, so a worker busy with another pass never holds
+    the calling thread up."""
+    from afmdrift.registration._blocks import gradient_and_stats
+    from afmdrift.registration._engine import _GradientTail
+
+    heights = np.random.default_rng(3).standard_normal((64, 40))
+    heights[50, 7] = np.nan
+    grad = np.full((64, 39), 7.0, dtype=np.float32)
+    tail = _GradientTail(heights, 32)
+    tail.run(grad)  # the calling thread, first
+    want_grad, want = gradient_and_stats(heights[32:], "x")
+    np.testing.assert_array_equal(grad[32:], want_grad)
+    assert np.all(grad[:32] == 7.0)
+    grad[32:] = 7.0
+    tail.run(grad)  # the worker, late: nothing left to do
+    assert np.all(grad[32:] == 7.0)
+    assert tail.result() == want
+    assert not want.finite
