@@ -44,7 +44,6 @@ from afmdrift.registration._blocks import (
     raised_cosine_axis,
 )
 from afmdrift.registration._fftw import (
-    STRIP_CHUNK,
     BatchedRealFFT,
     fftwf,
     resolve_wisdom_path,
@@ -88,6 +87,11 @@ NMS_RADIUS = 2
 #: (figures in benchmarks/RESULTS.md). The split into batches depends only
 #: on the layout (:func:`batch_split`).
 BATCH_BLOCKS = 8
+#: Reads of a pass's gate before a worker that spins on it waits in Python
+#: instead (about 0.3 ms at 0.6 ns per read here; the gate usually opens
+#: within 0.1 ms of the worker reaching it, once the calling thread has
+#: completed and checked the gradient image).
+GATE_SPINS = 500_000
 #: Window area (px²) for which a batch holds BATCH_BLOCKS blocks; smaller
 #: windows go in proportionally larger batches (the same work arrays' size),
 #: so that per-batch call overhead stays small against the arithmetic.
@@ -112,6 +116,14 @@ def _forget_pools_after_fork() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pools_after_fork)
+
+
+def _cpus_available() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
 
 
 def _worker_pool(workers: int) -> ThreadPoolExecutor:
@@ -280,12 +292,14 @@ class BlockEngine:
         self._fx = np.arange(0, kx_max + 1) / ex
         wisdom = resolve_wisdom_path(config.fftw_wisdom)
         self._batches = batch_split(n, batch_blocks(lay.ext))
-        # A measuring pass takes the blocks column by column, so that the
-        # blocks of a batch share their windows' columns and rows
-        # (_kernels.forward_strips); the reference spectra keep the layout's
-        # order.
+        # Batches take the blocks column by column, so that the blocks of a
+        # batch share their windows' columns and rows
+        # (_kernels.forward_strips).
         self._order: IArr = np.lexsort((lay.top, lay.left)).astype(np.intp)
         self._threads = min(config.threads, len(self._batches))
+        #: Whether a worker waits for a pass's gate spinning (each thread has
+        #: a CPU of its own) or in Python (see _run_worker).
+        self._spin = self._threads <= _cpus_available()
         dft = config.subpixel == "dft"
         # Each thread's work arrays hold the largest batch; the plans of the
         # smaller batches are made on their first blocks.
@@ -474,11 +488,15 @@ class BlockEngine:
         written into ``out`` if given."""
         return gradient_image(heights, self.prefilter, out=out)
 
-    def _forward(self, sl: slice, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
-        """Window blocks ``sl`` at ``(top, left)`` (full-layout arrays) and FFT
-        them into ``fft.spectrum``."""
-        _kernels.window_blocks(grad, top[sl], left[sl], self.window, fft.real)
-        fft.forward()
+    def _forward(self, blocks: IArr, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
+        """Spectra of the windows at ``(top, left)`` (full-layout arrays) of
+        ``blocks`` into ``fft.spectrum``, as a measuring pass computes them
+        (:func:`_kernels.forward_strips`)."""
+        _kernels.forward_strips(
+            grad, top, left, blocks, self._wy, self._wx, self._execute, fft.plans, fft.pointers,
+            fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
+            np.empty(blocks.size, dtype=np.intp),
+        )  # fmt: skip
 
     @functools.cached_property
     def block_rows_px(self) -> F64:
@@ -507,13 +525,15 @@ class BlockEngine:
         band_mag = np.empty_like(self._cur_band_mag)
 
         def work(sl: slice, arrays: _Work) -> None:
-            self._forward(sl, arrays.fft, grad, top, left)
+            blocks = self._order[sl]
+            self._forward(blocks, arrays.fft, grad, top, left)
             _kernels.normalise_reference(
-                arrays.fft.spectrum.view(np.float32),
+                blocks,
+                arrays.fft.spectrum.view(np.float32)[: blocks.size],
                 *self._spectrum_args,
                 self._ramp,
-                spectra[sl],
-                band_mag[sl],
+                spectra,
+                band_mag,
             )
 
         self._each_batch(work)
@@ -751,8 +771,7 @@ class BlockEngine:
         """Stop and forget a pass started ahead that no call used."""
         ahead, self._ahead = self._ahead, None
         if ahead is not None and ahead.result is None:
-            ahead.counter[0] = len(self._batches)  # no further batch is taken
-            ahead.gate[0] = 1
+            ahead.close_batches(len(self._batches))
             # Its result is not wanted: a worker's error is logged here
             # rather than raised from the unrelated call that dropped it.
             for error in _wait(ahead.workers):
@@ -783,7 +802,7 @@ class BlockEngine:
         peaks = _Peaks.empty(self.layout.n_blocks)
         search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
         common = (
-            self._order, grad, top, left, self._wy, self._wx, STRIP_CHUNK, *self._spectrum_args,
+            self._order, grad, top, left, self._wy, self._wx, *self._spectrum_args,
             ref.conj_spectra, ref.band_mag,
             self._ramp, self._no_spectra if self._current is None else self._current,
             self._cur_band_mag, search, self.config.peaks, CANDIDATE_RATIO, NMS_RADIUS, ref.grad,
@@ -805,6 +824,7 @@ class BlockEngine:
             else:
                 # All of it, and the check, before any worker reads it.
                 check(self.prepare(heights, out=grad)[1])
+        started = False
         try:
             if self._threads > 1:
                 pool = _worker_pool(self._threads - 1)
@@ -824,26 +844,39 @@ class BlockEngine:
                         and bool(grad[0, 0] == grad[split, 0]),
                     )
                 )
-        except BaseException:
-            p.counter[0] = len(self._batches)
-            p.gate[0] = 1
-            _wait(p.workers)
-            raise
-        p.gate[0] = 1
+            started = True
+        finally:
+            # Whatever happened, the gate opens: a worker waits for it.
+            if not started:
+                p.close_batches(len(self._batches))  # no batch is to be taken
+            p.open()
+            if not started:
+                _wait(p.workers)
         return p
 
-    def _batches_of(self, p: _Pass, t: int) -> None:
-        """Thread ``t``'s share of pass ``p`` (see :func:`_kernels.measure_batches`)."""
-        _kernels.measure_batches(
-            p.counter, p.gate, *self._batch_table, self._execute, self._thread_args[t], p.common
-        )
+    def _batches_of(self, p: _Pass, t: int, spins: int = 0) -> bool:
+        """Thread ``t``'s share of pass ``p`` (see
+        :func:`_kernels.measure_batches`): False if its gate stayed closed
+        for ``spins`` reads."""
+        done = _kernels.measure_batches(
+            p.counter, p.gate, spins, *self._batch_table, self._execute, self._thread_args[t],
+            p.common,
+        )  # fmt: skip
+        return bool(done)
 
     def _run_worker(self, p: _Pass, t: int) -> None:
         if t == 1 and p.tail is not None:
             p.tail.run(p.grad)
-        # Waits for the gate inside the compiled call: a Python wait would
-        # need the GIL back once the gate opens, which the calling thread
-        # holds while it places a frame (up to the 5 ms switch interval).
+        # With a CPU per thread, the worker waits for the gate spinning inside
+        # the compiled call: a Python wait would need the GIL back once the
+        # gate opens, which the calling thread holds while it places a frame
+        # (up to the 5 ms switch interval). With fewer CPUs a spinning worker
+        # would take the calling thread's CPU while it completes the gradient;
+        # and a gate that stays closed longer (a slow check, a busy machine)
+        # is waited for in Python after GATE_SPINS reads.
+        if self._spin and self._batches_of(p, t, GATE_SPINS):
+            return
+        p.opened.wait()
         self._batches_of(p, t)
 
     def _finish(self, p: _Pass) -> BlockMeasurement:
@@ -976,10 +1009,23 @@ class _Pass:
     #: BlockEngine._split_gradient).
     tail: _GradientTail | None = None
     #: Set to 1 once the gradient image is complete and checked: workers may
-    #: then take batches (see _kernels.measure_batches).
+    #: then take batches (see _kernels.measure_batches); ``opened`` is set
+    #: with it, for workers that wait in Python.
     gate: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
+    opened: threading.Event = field(default_factory=threading.Event)
     workers: list[Future[None]] = field(default_factory=list)
     result: BlockMeasurement | None = None
+
+    def open(self) -> None:
+        """Let the workers take batches (see :attr:`gate`), once everything
+        this thread wrote before is visible to them."""
+        _kernels.publish(self.gate, 0, 1)
+        self.opened.set()
+
+    def close_batches(self, n_batches: int) -> None:
+        """Let no thread take a further batch, and open the gate."""
+        _kernels.publish(self.counter, 0, n_batches)
+        self.open()
 
     def matches(
         self,

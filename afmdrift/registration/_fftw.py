@@ -35,6 +35,8 @@ import numpy as np
 import numpy.typing as npt
 import pyfftw
 
+from afmdrift.registration._kernels import STRIP_CHUNK
+
 __all__ = ["BatchedRealFFT", "Fftwf", "default_wisdom_path", "fftwf", "resolve_wisdom_path"]
 
 _log = logging.getLogger(__name__)
@@ -51,10 +53,6 @@ _FLAGS: dict[str, int] = {"estimate": 1 << 6, "measure": 0, "patient": 1 << 5}
 _DESTROY_INPUT = 1
 _FORWARD = -1
 _BACKWARD = 1
-#: Rows per call of the strip's row transform (see BatchedRealFFT): the
-#: offsets of its calls into the strip arrays are then multiples of 64 bytes
-#: for any even number of columns, as FFTW's new-array execute needs.
-STRIP_CHUNK = 8
 
 
 def default_wisdom_path() -> Path:

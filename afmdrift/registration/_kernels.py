@@ -44,6 +44,7 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 __all__ = [
+    "STRIP_CHUNK",
     "assemble",
     "dft_subpixel",
     "forward_strips",
@@ -55,6 +56,7 @@ __all__ = [
     "normalise_reference",
     "pick_peaks",
     "place_windows",
+    "publish",
     "reject_mad",
     "reject_paper",
     "row_groups",
@@ -63,7 +65,6 @@ __all__ = [
     "subpixel_3pt",
     "trend_select",
     "usable_blocks",
-    "window_blocks",
 ]
 
 _jit = numba.njit(nogil=True, cache=True, error_model="numpy", boundscheck=False)
@@ -123,25 +124,6 @@ def gradient_x(heights, out):  # type: ignore[no-untyped-def]
             differ += np.int32(v != first)
             zero += v * np.float32(0.0)
     return zero == 0, nonzero, differ == 0
-
-
-@_jit
-def window_blocks(grad, top, left, window, out):  # type: ignore[no-untyped-def]
-    """``out[i] = grad[top[i]:top[i]+E, left[i]:left[i]+E] * window``.
-
-    grad : (rows, cols) float32; top, left : (n,) intp; window : (Ey, Ex)
-    float32; out : (n, Ey, Ex) float32.
-    """
-    n, ey, ex = out.shape
-    for i in range(n):
-        t = top[i]
-        le = left[i]
-        for r in range(ey):
-            src = grad[t + r, le : le + ex]
-            w = window[r]
-            dst = out[i, r]
-            for c in range(ex):
-                dst[c] = src[c] * w[c]
 
 
 @_jit_sums
@@ -281,7 +263,7 @@ def _reference_row(s, abs2, ramp, o, a):  # type: ignore[no-untyped-def]
 
 @_jit
 def normalise_reference(  # type: ignore[no-untyped-def]
-    spec, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx, ramp, out, band_mag
+    blocks, spec, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx, ramp, out, band_mag
 ):
     """Reference spectra: remove each block's weighted mean from ``spec`` (in
     place), write ``out = conj(S / (|S| + a)) · ramp`` and ``band_mag = |S|``
@@ -291,20 +273,23 @@ def normalise_reference(  # type: ignore[no-untyped-def]
     shifts every correlation by ``m``, the search radius, so that shifts
     ``-m..m`` come out of the inverse FFT as rows and columns ``0..2m``.
 
-    spec, ramp : (n, rows, 2·half) float32 (interleaved complex); out :
-    (n, rows, 2·half) int16 (interleaved); w_vals : (m, 2) float32;
-    band_mag : (n, 2·ky + 1, kx + 1) float32.
+    ``spec[k]`` belongs to block ``blocks[k]``, the index of ``out`` and
+    ``band_mag``. spec, ramp : (len(blocks), rows, 2·half) and (rows,
+    2·half) float32 (interleaved complex); out : (n, rows, 2·half) int16
+    (interleaved); w_vals : (m, 2) float32; band_mag : (n, 2·ky + 1, kx +
+    1) float32.
     """
-    n, rows = spec.shape[0], spec.shape[1]
+    rows = spec.shape[1]
     abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
-    for i in range(n):
-        _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, i, eps_rel, floor, abs2)
+    for k in range(blocks.size):
+        i = blocks[k]
+        _remove_mean(spec, k, w_rows, w_cols, w_vals, w_sum)
+        a = _floor(spec, k, eps_rel, floor, abs2)
         for r in range(rows):
             b = _band_row(r, rows, ky)
             if b >= 0:
                 _magnitudes(abs2[r], band_mag[i, b])
-            _reference_row(spec[i, r], abs2[r], ramp[r], out[i, r], a)
+            _reference_row(spec[k, r], abs2[r], ramp[r], out[i, r], a)
 
 
 @_jit
@@ -1258,7 +1243,11 @@ _fetch_add: Any = _counter_intrinsic("add")
 def _atomic_load_typing(typingctx, counter, index):  # type: ignore[no-untyped-def]
     """``counter[index]`` of an int64 array, read atomically (every read is
     a new load: a loop waiting on it sees another thread's store)."""
-    if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
+    if not (
+        isinstance(counter, types.Array)
+        and counter.dtype == types.int64
+        and isinstance(index, types.Integer)
+    ):
         return None
     sig = types.int64(counter, index)
 
@@ -1272,6 +1261,41 @@ def _atomic_load_typing(typingctx, counter, index):  # type: ignore[no-untyped-d
 
 
 _atomic_load: Any = intrinsic(_atomic_load_typing)
+
+
+def _atomic_store_typing(typingctx, counter, index, value):  # type: ignore[no-untyped-def]
+    """``counter[index] = value`` on an int64 array, atomically and after
+    every earlier write of this thread (sequentially consistent): a thread
+    that reads the new value with :func:`_atomic_load` also sees those."""
+    if not (
+        isinstance(counter, types.Array)
+        and counter.dtype == types.int64
+        and isinstance(index, types.Integer)
+        and isinstance(value, types.Integer)
+    ):
+        return None
+    sig = types.void(counter, index, value)
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        aryty = signature.args[0]
+        ary = context.make_array(aryty)(context, builder, args[0])
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
+        val = context.cast(builder, args[2], signature.args[2], types.int64)
+        builder.store_atomic(val, ptr, "seq_cst", 8)
+        return context.get_dummy_value()
+
+    return sig, codegen
+
+
+_atomic_store: Any = intrinsic(_atomic_store_typing)
+
+
+@_jit
+def publish(flags, index, value):  # type: ignore[no-untyped-def]
+    """``flags[index] = value`` (int64 array) as :func:`_atomic_store`: for
+    the calling thread to open a pass's gate or end its batches once all it
+    wrote before is visible to the workers."""
+    _atomic_store(flags, index, value)
 
 
 @_jit
@@ -1331,9 +1355,18 @@ def subpixel_3pt(blocks, corr, method, scale, my, mx, sy, sx, out_fy, out_fx, ou
         out_ok[i] = ok_x and ok_y
 
 
+#: Rows per FFTW call of :func:`forward_strips`' row transform (the plan
+#: :class:`~afmdrift.registration._fftw.BatchedRealFFT` makes). The calls'
+#: offsets into the strip arrays are multiples of ``32 · cols`` and ``64 ·
+#: (cols // 2 + 1)`` bytes, so they keep the arrays' alignment modulo 16
+#: bytes, which is what FFTW's new-array execute requires (FFTW manual,
+#: "New-array Execute Functions").
+STRIP_CHUNK = 8
+
+
 @_jit
 def forward_strips(  # type: ignore[no-untyped-def]
-    grad, top, left, blocks, wy, wx, chunk, execute, plans, pointers, strip, strip_spec, spec, base
+    grad, top, left, blocks, wy, wx, execute, plans, pointers, strip, strip_spec, spec, base
 ):
     """Spectra ``spec[k]`` (interleaved complex) of the windowed blocks
     ``grad[top[i]:top[i]+Ey, left[i]:left[i]+Ex] · wy ⊗ wx``, ``i =
@@ -1344,8 +1377,9 @@ def forward_strips(  # type: ignore[no-untyped-def]
     transform of a row windowed by ``wx`` is the same in every window of the
     same columns, which only scales it by its ``wy``. Consecutive blocks
     with the same ``left`` whose rows meet form a run; each row of a run is
-    windowed by ``wx`` into ``strip`` once and transformed, ``chunk`` rows
-    per call (``plans[4]``), into ``strip_spec``; each block then takes its
+    windowed by ``wx`` into ``strip`` once and transformed,
+    :data:`STRIP_CHUNK` rows per call
+    (``plans[4]``), into ``strip_spec``; each block then takes its
     rows times ``wy`` into ``spec``, and one call (``plans[3]``) transforms
     the columns of all of them. With the engine's column-major batches and
     128² windows a block pitch of 50 px apart, this halves the row
@@ -1353,8 +1387,8 @@ def forward_strips(  # type: ignore[no-untyped-def]
 
     ``execute``: FFTW's r2c and c2c execute functions; ``pointers[1]``,
     ``[3]``, ``[4]``: the addresses of ``spec``, ``strip`` and
-    ``strip_spec`` (``strip`` holds at least ``len(blocks) · Ey + chunk``
-    rows); ``base`` (scratch, ``len(blocks)``) receives each block's first
+    ``strip_spec`` (``strip`` holds at least ``len(blocks) · Ey +
+    STRIP_CHUNK`` rows); ``base`` (scratch, ``len(blocks)``) receives each block's first
     row in the strip.
     """
     nb = blocks.size
@@ -1381,7 +1415,7 @@ def forward_strips(  # type: ignore[no-untyped-def]
         base[k] = run_base + t - run_top
     row_bytes = np.uint64(ex * 4)
     spec_row_bytes = np.uint64(half * 8)
-    for c0 in range(0, filled, chunk):
+    for c0 in range(0, filled, STRIP_CHUNK):
         r0 = np.uint64(c0)
         _fftw_execute(
             execute[0], plans[4], pointers[3] + r0 * row_bytes, pointers[4] + r0 * spec_row_bytes
@@ -1404,7 +1438,7 @@ def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-unty
     (``thread``, ``common``: see :func:`measure_batches`)."""
     plans, pointers, spec, corr, band, strip, strip_spec, base = thread
     (
-        order, grad, top, left, wy, wx, chunk, w_rows, w_cols, w_vals, w_sum, eps_rel, floor,
+        order, grad, top, left, wy, wx, w_rows, w_cols, w_vals, w_sum, eps_rel, floor,
         ky, kx, ref_conj, ref_band_mag, ramp, keep, cur_band_mag,
         search, npeaks, ratio, nms, ref_grad, ref_top, ref_left, inner, mse_rows, mse_cols,
         fy, fx, ramp_shift, envelope, method, scale,
@@ -1413,7 +1447,7 @@ def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-unty
     nb = b - a
     blocks = order[a:b]
     forward_strips(
-        grad, top, left, blocks, wy, wx, chunk, execute, plans[kind], pointers, strip,
+        grad, top, left, blocks, wy, wx, execute, plans[kind], pointers, strip,
         strip_spec, spec[:nb], base,
     )  # fmt: skip
     normalise_cross(
@@ -1440,14 +1474,16 @@ def _measure_batch(a, b, kind, execute, thread, common):  # type: ignore[no-unty
 
 @_jit
 def measure_batches(  # type: ignore[no-untyped-def]
-    counter, gate, starts, stops, kinds, execute, thread, common
+    counter, gate, spins, starts, stops, kinds, execute, thread, common
 ):
     """One thread's share of a block pass, without the GIL: batches ``i``
     (blocks ``order[starts[i]:stops[i]]``, ``order`` the first of
     ``common``) taken in turn from the shared ``counter[0]`` (int64) until
     none is left, once ``gate[0]`` (int64) is no longer 0: a worker waits
     for the gate here, spinning without the GIL, while the calling thread
-    completes the gradient image.
+    completes the gradient image. Returns False, having taken no batch, if
+    the gate is still closed after ``spins`` reads (the caller then waits
+    for it another way); True once no batch is left.
 
     ``thread``: the thread's own FFTW plans and work arrays, ``(plans,
     pointers, spec, corr, band, strip, strip_spec, base)``:
@@ -1464,10 +1500,13 @@ def measure_batches(  # type: ignore[no-untyped-def]
     :class:`afmdrift.registration._engine.BlockEngine` builds them; their
     per-block arrays cover every block of the frame."""
     n = starts.size
+    reads = 0
     while _atomic_load(gate, 0) == 0:
-        pass
+        reads += 1
+        if reads > spins:
+            return False
     while True:
         i = _fetch_add(counter, 0)
         if i >= n:
-            return
+            return True
         _measure_batch(starts[i], stops[i], kinds[i], execute, thread, common)

@@ -134,7 +134,7 @@ def test_forward_strips_equals_the_2d_transform_of_each_window(
     lib = _fftw.fftwf()
     execute = np.array([lib.execute_r2c, lib.execute_c2c], dtype=np.uint64)
     _kernels.forward_strips(
-        grad, tops, lefts, order, wy, wx, _fftw.STRIP_CHUNK, execute, fft.plans, fft.pointers,
+        grad, tops, lefts, order, wy, wx, execute, fft.plans, fft.pointers,
         fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
         np.empty(nb, np.intp),
     )  # fmt: skip
@@ -154,3 +154,24 @@ def test_a_shared_strip_must_be_large_enough() -> None:
     assert small.pointers.shape == (5,)
     with pytest.raises(ValueError, match="as many blocks"):
         BatchedRealFFT(2, (16, 16), planner="estimate", wisdom_path=None, strip_rows=80, share=big)
+
+
+def test_spectra_kept_by_a_measuring_pass_are_those_of_a_new_reference() -> None:
+    """In consecutive mode the spectra a pass keeps become the next
+    reference without a second FFT: the reference's own path computes the
+    same transform, in the same batches, bit for bit."""
+    from afmdrift.registration._engine import BlockEngine
+    from afmdrift.testing import TextureShifter, particle_texture
+
+    tex = particle_texture((400, 400), pixel_size_nm=2.0, rng=np.random.default_rng(2))
+    shifter = TextureShifter(tex)
+    a, b = (shifter.crop((300, 300), dx_px=d, dy_px=-d) for d in (0.0, 1.3))
+    cfg = RegistrationConfig(gradient="x", reference="consecutive")
+    engine = BlockEngine((300, 300), cfg)
+    ref = engine.reference(engine.gradient(a))
+    grad = engine.gradient(b)
+    _, top, left = engine.measure(ref, grad)
+    kept = engine.current_as_reference(grad, top, left)
+    again = engine.reference(grad)
+    np.testing.assert_array_equal(kept.conj_spectra, again.conj_spectra)
+    np.testing.assert_array_equal(kept.band_mag, again.band_mag)

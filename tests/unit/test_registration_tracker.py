@@ -247,7 +247,7 @@ def test_tracker_rejects_bad_pixel_size() -> None:
     [("keyframe", "x"), ("consecutive", "x"), ("keyframe", "levelled"), ("keyframe", "y")],
 )
 def test_results_are_bit_for_bit_independent_of_the_thread_count(
-    reference: str, gradient: str
+    reference: str, gradient: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Guards against the thread count (or which thread takes which batch of
     blocks) leaking into the numbers: 512×640 frames hold 80 blocks in twelve
@@ -255,13 +255,17 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(
     positions, for the tracker and for measure_drift. With a pre-filter other
     than the compiled x gradient, the whole gradient image comes before any
     worker starts (a worker once measured the first batch on the previous
-    frame's gradient)."""
+    frame's gradient). Two threads run twice: with a CPU each (the worker
+    waits for the gate spinning) and as if on one CPU (it waits in Python)."""
+    from afmdrift.registration import _engine
+
     t = np.arange(10)
     path = np.column_stack([2.5 * t, 1.0 * np.sin(t)])
     frames = _sequence(path, shape=(512, 640), seed=3)
     assert BlockEngine((512, 640), RegistrationConfig(gradient=gradient)).n_batches == 12
     runs = []
-    for threads in (1, 2, 3):
+    for threads, cpus in ((1, 4), (2, 4), (3, 4), (2, 1)):
+        monkeypatch.setattr(_engine, "_cpus_available", lambda cpus=cpus: cpus)
         cfg = RegistrationConfig(threads=threads, reference=reference, gradient=gradient)
         tracker = DriftTracker(pixel_size_nm=2.0, config=cfg)
         out: list[object] = []
@@ -274,7 +278,7 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(
         assert pair.valid, pair.reason
         out.append((pair.dx_px, pair.dy_px, pair.field.vectors_px.tobytes()))
         runs.append(out)
-    assert runs[0] == runs[1] == runs[2]
+    assert runs[0] == runs[1] == runs[2] == runs[3]
 
 
 def test_forked_child_can_measure_after_the_parent_started_its_worker_pool() -> None:
