@@ -325,7 +325,7 @@ def track_stack(
     ``frames.csv``) once the stack is done.
     """
     from afmdrift.model import make_predictor
-    from afmdrift.pipeline import FramePipeline, correct_session
+    from afmdrift.pipeline import FramePipeline, correct_session, with_next
     from afmdrift.session import SessionError, session_from_images
 
     cfg = config if isinstance(config, AfmdriftConfig) else AfmdriftConfig(registration=config)
@@ -341,11 +341,7 @@ def track_stack(
     )
     px, py = session.meta.pixel_size_nm
     timed = all(im.timestamp is not None for im in frames)
-    frames_in = session.iter_frames()
-    upcoming = next(frames_in, None)
-    k = -1
-    while upcoming is not None:
-        frame, upcoming, k = upcoming, next(frames_in, None), k + 1
+    for k, frame, upcoming in with_next(session.iter_frames()):
         # The next frame's blocks are measured while this one is placed.
         outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming)
         if k == 0:

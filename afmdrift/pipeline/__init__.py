@@ -7,7 +7,7 @@ the :class:`FrameRecord` it produces.
 """
 
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
-from afmdrift.pipeline._frame import FrameOutcome, FramePipeline
+from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, with_next
 from afmdrift.pipeline._positions import DriftPositions, FramePosition, summarise_field
 from afmdrift.pipeline._records import (
     FRAME_COLUMNS,
@@ -44,4 +44,5 @@ __all__ = [
     "record_from_row",
     "series_from_records",
     "summarise_field",
+    "with_next",
 ]

@@ -28,7 +28,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,7 +61,7 @@ from afmdrift.wire import FieldSummary
 
 FloatArray = npt.NDArray[np.float64]
 
-__all__ = ["FrameOutcome", "FramePipeline", "summarise_field"]
+__all__ = ["FrameOutcome", "FramePipeline", "summarise_field", "with_next"]
 
 log = logging.getLogger(__name__)
 
@@ -482,3 +482,17 @@ def _frame_record(
         obs_y_nm=float(obs_xy[1]) if fed else math.nan,
         obs_sigma_nm=obs_sigma if fed else math.nan,
     )
+
+
+def with_next(frames: Iterable[Frame]) -> Iterator[tuple[int, Frame, Frame | None]]:
+    """``(k, frame, the next frame or None)`` over ``frames``, reading one
+    frame ahead: for a caller that holds a whole recording (``afmdrift
+    measure``, ``replay``, ``evaluate``, ``correct``) to pass each frame's
+    successor to :meth:`FramePipeline.process` as ``next_frame``."""
+    it = iter(frames)
+    current = next(it, None)
+    k = 0
+    while current is not None:
+        upcoming = next(it, None)
+        yield k, current, upcoming
+        current, k = upcoming, k + 1

@@ -23,6 +23,7 @@ def process_and_record(
     detected_wall_s: float | None = None,
     t_now_s: float | None = None,
     hold: str | None = None,
+    next_frame: Frame | None = None,
 ) -> FrameOutcome:
     """Process ``frame`` and commit it, with what reached the model's history, at once.
 
@@ -31,6 +32,8 @@ def process_and_record(
     and ``events`` are entries that became known since the previous call; the
     ones logged up to the end of the frame reach the model with it and are
     committed in the frame's transaction, later ones wait for the next frame.
+    ``next_frame``: see :meth:`FramePipeline.process` (replay has it; the
+    daemon does not).
     """
     pipeline.push(channels, events)
     outcome = pipeline.process(
@@ -40,6 +43,7 @@ def process_and_record(
         detected_wall_s=detected_wall_s,
         t_now_s=t_now_s,
         hold=hold,
+        next_frame=next_frame,
     )
     for sample in outcome.history.channels:
         store.add_channels(sample)

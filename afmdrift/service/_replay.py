@@ -20,7 +20,7 @@ from pathlib import Path
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
-from afmdrift.pipeline import FramePipeline
+from afmdrift.pipeline import FramePipeline, with_next
 from afmdrift.service._record import process_and_record
 from afmdrift.service._store import RunStore, trajectory_rows, write_trajectory_csv
 from afmdrift.session import Session, read_session
@@ -79,8 +79,10 @@ def replay_session(
         pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
         fed = 0
-        for k, frame in enumerate(s.iter_frames()):
-            outcome = process_and_record(pipeline, store, frame, seq=k, t_now_s=frame.t_end_s)
+        for k, frame, upcoming in with_next(s.iter_frames()):
+            outcome = process_and_record(
+                pipeline, store, frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming
+            )
             fed += outcome.record.fed_model
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)

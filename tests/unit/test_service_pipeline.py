@@ -262,3 +262,32 @@ def test_field_summary_is_the_mean_spread_and_median_of_the_valid_blocks(n_valid
     np.testing.assert_allclose(np.array(got, dtype=float), expected, rtol=1e-12, atol=1e-15)
     # the summary serialises as the wire model it is
     assert f'"valid_blocks":{n_valid}' in summary.model_dump_json()
+
+
+def test_with_next_reads_one_frame_ahead() -> None:
+    from afmdrift.pipeline import with_next
+
+    assert list(with_next([])) == []
+    assert list(with_next(["a"])) == [(0, "a", None)]
+    assert list(with_next(iter("abc"))) == [(0, "a", "b"), (1, "b", "c"), (2, "c", None)]
+
+
+def test_passing_the_next_frame_changes_no_record(tmp_path: Path, sim: SimulatedAFM) -> None:
+    """What a recording's tools (replay, evaluate, correct, measure) do:
+    each frame's successor given as ``next_frame``, so its block pass runs
+    while the frame is placed. The records, with a bad frame among them,
+    are those of the daemon's frame-by-frame calls."""
+    from afmdrift.pipeline import with_next
+
+    frames = _frames(sim, 7)
+    bad = frames[4].heights_nm.copy()
+    bad[3, 3] = np.nan
+    frames[4] = dataclasses.replace(frames[4], heights_nm=bad)
+    plain = FramePipeline(config=service_config(tmp_path))
+    ahead = FramePipeline(config=service_config(tmp_path))
+    for k, frame, upcoming in with_next(frames):
+        a = plain.process(frame, seq=k, t_now_s=frame.t_end_s).record
+        b = ahead.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming).record
+        assert (a.x_nm, a.y_nm, a.fed_model, a.reason) == pytest.approx(
+            (b.x_nm, b.y_nm, b.fed_model, b.reason), abs=0, nan_ok=True
+        )
