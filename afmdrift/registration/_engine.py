@@ -814,7 +814,6 @@ class BlockEngine:
             ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
             near=near, my=my, mx=mx, peaks=peaks, common=common,
         )  # fmt: skip
-        split = 0
         if heights is not None:
             if check is None:
                 raise ValueError("a new frame's heights come with their check")
@@ -831,19 +830,7 @@ class BlockEngine:
                 for t in range(1, self._threads):
                     p.workers.append(pool.submit(self._run_worker, p, t))
             if p.tail is not None and check is not None:
-                _, head = gradient_and_stats(heights[:split], "x", out=grad[:split])  # type: ignore[index]
-                # A worker busy elsewhere has not begun the rows below: do them here.
-                p.tail.run(grad)
-                tail = p.tail.result()
-                check(
-                    FrameStats(
-                        finite=head.finite and tail.finite,
-                        nonzero=head.nonzero + tail.nonzero,
-                        uniform=head.uniform
-                        and tail.uniform
-                        and bool(grad[0, 0] == grad[split, 0]),
-                    )
-                )
+                check(p.tail.complete(grad))
             started = True
         finally:
             # Whatever happened, the gate opens: a worker waits for it.
@@ -973,6 +960,18 @@ class _GradientTail:
             self._error = err
         finally:
             self._done.set()
+
+    def complete(self, grad: F32) -> FrameStats:
+        """The calling thread's part: the rows above ``split``, and the
+        rows below too if no worker has begun them; the whole image's stats."""
+        _, head = gradient_and_stats(self.heights[: self.split], "x", out=grad[: self.split])
+        self.run(grad)
+        tail = self.result()
+        return FrameStats(
+            finite=head.finite and tail.finite,
+            nonzero=head.nonzero + tail.nonzero,
+            uniform=head.uniform and tail.uniform and bool(grad[0, 0] == grad[self.split, 0]),
+        )
 
     def result(self) -> FrameStats:
         """Wait for the rows; their stats, or raise what stopped them."""

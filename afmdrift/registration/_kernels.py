@@ -1215,49 +1215,50 @@ def _fftw_execute_typing(typingctx, fn, plan, src, dst):  # type: ignore[no-unty
 _fftw_execute: Any = intrinsic(_fftw_execute_typing)
 
 
-def _counter_intrinsic(op: str) -> Any:
-    """An intrinsic ``f(counter, index)`` on the element ``counter[index]`` of
-    an int64 array, atomic: ``"add"`` adds 1 and returns the old value."""
-
-    def typing(typingctx, counter, index):  # type: ignore[no-untyped-def]
-        if not (isinstance(counter, types.Array) and counter.dtype == types.int64):
-            return None
-        sig = types.int64(counter, index)
-
-        def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-            aryty = signature.args[0]
-            ary = context.make_array(aryty)(context, builder, args[0])
-            ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
-            one = context.get_constant(types.int64, 1)
-            return builder.atomic_rmw(op, ptr, one, "seq_cst")
-
-        return sig, codegen
-
-    typing.__name__ = f"_counter_{op}"
-    return intrinsic(typing)
+def _is_int64_slot(counter: Any, index: Any) -> bool:
+    """Whether ``(counter, index)`` types an element of an int64 array."""
+    return (
+        isinstance(counter, types.Array)
+        and counter.dtype == types.int64
+        and isinstance(index, types.Integer)
+    )
 
 
-_fetch_add: Any = _counter_intrinsic("add")
+def _slot_pointer(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+    """LLVM pointer to ``counter[index]`` (the intrinsics' first two arguments)."""
+    aryty = signature.args[0]
+    ary = context.make_array(aryty)(context, builder, args[0])
+    return cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
+
+
+def _fetch_add_typing(typingctx, counter, index):  # type: ignore[no-untyped-def]
+    """Atomically add 1 to ``counter[index]`` (int64 array); returns the old
+    value."""
+    if not _is_int64_slot(counter, index):
+        return None
+
+    def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
+        one = context.get_constant(types.int64, 1)
+        return builder.atomic_rmw(
+            "add", _slot_pointer(context, builder, signature, args), one, "seq_cst"
+        )
+
+    return types.int64(counter, index), codegen
+
+
+_fetch_add: Any = intrinsic(_fetch_add_typing)
 
 
 def _atomic_load_typing(typingctx, counter, index):  # type: ignore[no-untyped-def]
     """``counter[index]`` of an int64 array, read atomically (every read is
     a new load: a loop waiting on it sees another thread's store)."""
-    if not (
-        isinstance(counter, types.Array)
-        and counter.dtype == types.int64
-        and isinstance(index, types.Integer)
-    ):
+    if not _is_int64_slot(counter, index):
         return None
-    sig = types.int64(counter, index)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
-        return builder.load_atomic(ptr, "seq_cst", 8)
+        return builder.load_atomic(_slot_pointer(context, builder, signature, args), "seq_cst", 8)
 
-    return sig, codegen
+    return types.int64(counter, index), codegen
 
 
 _atomic_load: Any = intrinsic(_atomic_load_typing)
@@ -1267,24 +1268,15 @@ def _atomic_store_typing(typingctx, counter, index, value):  # type: ignore[no-u
     """``counter[index] = value`` on an int64 array, atomically and after
     every earlier write of this thread (sequentially consistent): a thread
     that reads the new value with :func:`_atomic_load` also sees those."""
-    if not (
-        isinstance(counter, types.Array)
-        and counter.dtype == types.int64
-        and isinstance(index, types.Integer)
-        and isinstance(value, types.Integer)
-    ):
+    if not (_is_int64_slot(counter, index) and isinstance(value, types.Integer)):
         return None
-    sig = types.void(counter, index, value)
 
     def codegen(context, builder, signature, args):  # type: ignore[no-untyped-def]
-        aryty = signature.args[0]
-        ary = context.make_array(aryty)(context, builder, args[0])
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1]])  # type: ignore[no-untyped-call]
         val = context.cast(builder, args[2], signature.args[2], types.int64)
-        builder.store_atomic(val, ptr, "seq_cst", 8)
+        builder.store_atomic(val, _slot_pointer(context, builder, signature, args), "seq_cst", 8)
         return context.get_dummy_value()
 
-    return sig, codegen
+    return types.void(counter, index, value), codegen
 
 
 _atomic_store: Any = intrinsic(_atomic_store_typing)
