@@ -8,7 +8,7 @@ service.
 """
 
 from afmdrift.config import DriverConfig
-from afmdrift.drivers._base import Instrument, VelocityActuator
+from afmdrift.drivers._base import EventBacklog, Instrument, VelocityActuator
 from afmdrift.drivers._folder import FolderInstrument, OffsetNotSupportedError
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers._open import instrument_from_config
@@ -29,6 +29,7 @@ __all__ = [
     "ChecksumError",
     "DriverConfig",
     "Event",
+    "EventBacklog",
     "EventKind",
     "FolderInstrument",
     "Frame",

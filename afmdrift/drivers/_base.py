@@ -13,7 +13,7 @@ from typing import Protocol, TypeVar, runtime_checkable
 
 from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
-__all__ = ["ConnectOnEnter", "Instrument", "VelocityActuator"]
+__all__ = ["ConnectOnEnter", "EventBacklog", "Instrument", "VelocityActuator"]
 
 
 @runtime_checkable
@@ -68,6 +68,22 @@ class VelocityActuator(Protocol):
     async def set_drift_velocity(self, vx_nm_per_s: float, vy_nm_per_s: float) -> None:
         """Move the XY offset at this velocity (nm/s) from now until the next call."""
         ...
+
+
+@runtime_checkable
+class EventBacklog(Protocol):
+    """An instrument whose :meth:`Instrument.events` reads a bounded share of a
+    long (or endless) event log per call, and says what it left (an optional
+    capability, e.g. the NanoScope-style driver).
+
+    The service holds frames back from the model while the log is behind,
+    since commanded moves may be among the entries not read yet, but it no
+    longer waits for the log before it measures them.
+    """
+
+    #: Entries the last ``events()`` call left unread although the log
+    #: announced them (0 when it read the whole log).
+    event_backlog: int
 
 
 class _Connectable(Protocol):

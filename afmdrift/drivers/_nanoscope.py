@@ -66,6 +66,8 @@ T = TypeVar("T")
 
 #: Event-log entries one ``events()`` call reads at most.
 MAX_EVENTS_PER_READ = 4096
+#: Longest flush of unread input before the line is reopened instead.
+_FLUSH_MAX_S = 1.0
 
 
 class NanoScopeDriver(ConnectOnEnter):
@@ -88,6 +90,9 @@ class NanoScopeDriver(ConnectOnEnter):
         Wait before attempt k is ``min(backoff_initial_s * 2**k, backoff_max_s)``.
     baudrate : int
         Used only when ``transport`` is a URL.
+    event_budget_s : float
+        Longest time one :meth:`events` call spends reading entry lines; a log
+        that sends more than it can in this time is read on later calls.
     """
 
     def __init__(
@@ -100,6 +105,7 @@ class NanoScopeDriver(ConnectOnEnter):
         backoff_initial_s: float = 0.1,
         backoff_max_s: float = 5.0,
         baudrate: int = 115200,
+        event_budget_s: float = 0.25,
     ) -> None:
         self._factory: Callable[[], Transport] | None = None
         self._opened = False  # the current transport has been opened once
@@ -114,6 +120,7 @@ class NanoScopeDriver(ConnectOnEnter):
             ("frame_timeout_s", frame_timeout_s),
             ("backoff_initial_s", backoff_initial_s),
             ("backoff_max_s", backoff_max_s),
+            ("event_budget_s", event_budget_s),
         ):
             if not value > 0:
                 raise ValueError(f"{name} must be > 0, got {value!r}")
@@ -125,11 +132,18 @@ class NanoScopeDriver(ConnectOnEnter):
         self.reconnect_attempts = reconnect_attempts
         self.backoff_initial_s = backoff_initial_s
         self.backoff_max_s = backoff_max_s
+        self.event_budget_s = event_budget_s
         self._lock = asyncio.Lock()
         self._io_lock = threading.Lock()  # a cancelled exchange may still run in its thread
         self._tags = itertools.count(1)
         self._dirty = False
+        self._reopen = False  # the line carries more than a flush can clear
         self._cached: Frame | None = None
+        self.info: InstrumentInfo | None = None  # from the last identify()
+        #: Entries the last :meth:`events` call left unread although the log
+        #: announced them (0 when it read the whole log).
+        self.event_backlog = 0
+        self._log_faults: set[str] = set()  # kinds of event-log fault reported
         self.frame_transfers = 0  # frame blocks received (for cache checks and stats)
         self.resyncs = 0  # times the input was flushed after a bad reply
         self.stale_replies = 0  # late replies to earlier queries, skipped
@@ -170,12 +184,16 @@ class NanoScopeDriver(ConnectOnEnter):
 
     def _reopen_sync(self) -> None:
         with self._io_lock:
-            self.transport.close()
-            if self._factory is not None and self._opened:
-                self.transport = self._factory()
-            self.transport.open()
-            self._opened = True
-            self._dirty = False
+            self._reopen_locked()
+
+    def _reopen_locked(self) -> None:
+        self.transport.close()
+        if self._factory is not None and self._opened:
+            self.transport = self._factory()
+        self.transport.open()
+        self._opened = True
+        self._dirty = False
+        self._reopen = False
 
     # ---------------------------------------------------------------- exchange core
 
@@ -218,6 +236,9 @@ class NanoScopeDriver(ConnectOnEnter):
 
     def _guarded(self, fn: Callable[[], T]) -> T:
         with self._io_lock:
+            if self._reopen:
+                log.info("%s: reopening the line to drop an unread reply", self.transport.name)
+                self._reopen_locked()
             if self._dirty:
                 self._resync()
             try:
@@ -233,7 +254,12 @@ class NanoScopeDriver(ConnectOnEnter):
     def _resync(self) -> None:
         self.resyncs += 1
         self._dirty = False
-        self.transport.flush_input()
+        started = time.monotonic()
+        self.transport.flush_input(max_s=_FLUSH_MAX_S)
+        if time.monotonic() - started >= _FLUSH_MAX_S:
+            # The line never went quiet (a reply without end): only a new
+            # connection clears it.
+            self._reopen = True
 
     def _send(self, header: str, *args: float | int | str, query: bool) -> tuple[int, str]:
         tag = next(self._tags) % 10**10
@@ -241,16 +267,21 @@ class NanoScopeDriver(ConnectOnEnter):
         self.transport.write(data)
         return tag, data.decode("ascii").strip()
 
-    def _read_tagged(self, tag: int) -> Reply:
-        """The next reply line carrying ``tag``, skipping complete late replies to
-        earlier queries (lower tags, including their frame payloads)."""
-        deadline = time.monotonic() + self.timeout_s
+    def _read_tagged(
+        self, tag: int, *, fence: int | None = None, timeout_s: float | None = None
+    ) -> Reply:
+        """The next reply line carrying ``tag`` (or ``fence``, a later query sent
+        behind it), skipping complete late replies to earlier queries (lower
+        tags, including their frame payloads)."""
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 raise InstrumentTimeout(f"{self.transport.name}: timed out waiting for @{tag}")
             reply = parse_reply(self.transport.read_line(remaining))
             if reply.tag is None or reply.tag >= tag:
+                if fence is not None and reply.tag == fence:
+                    return reply
                 check_tag(reply, tag)
                 return reply
             self.stale_replies += 1
@@ -304,7 +335,8 @@ class NanoScopeDriver(ConnectOnEnter):
         parts = body.split(",")
         if len(parts) != 4:
             raise ProtocolError(f"*IDN reply needs 4 fields, got {body[:80]!r}")
-        return InstrumentInfo(*parts)
+        self.info = InstrumentInfo(*parts)
+        return self.info
 
     async def now_s(self) -> float:
         """``SYST:TIME?``: the instrument clock in s."""
@@ -350,29 +382,88 @@ class NanoScopeDriver(ConnectOnEnter):
         return parse_int(await self._query("EVENT:COUNT"), "EVENT:COUNT")
 
     async def events(self, start: int = 0) -> list[Event]:
-        """Entries ``start, start+1, ...`` of the event log."""
+        """Entries ``start, start+1, ...`` of the event log, as many as one bounded
+        read takes (at most ``MAX_EVENTS_PER_READ`` lines in ``event_budget_s``);
+        :attr:`event_backlog` says how many more the log announced.
+
+        A log that announces more entries than it sends, or streams without
+        end, costs at most that budget: it is reported once (a warning naming
+        the instrument) and read on from where this call stopped."""
         if start < 0:
             raise ValueError(f"events: start must be >= 0, got {start}")
         return await self._call(lambda: self._events_sync(start))
 
     def _events_sync(self, start: int) -> list[Event]:
+        """One bounded read of the event log (see :meth:`events`).
+
+        ``SYST:TIME?`` is sent right behind ``EVENT:LOG?`` as a fence: its
+        reply follows the log's last line, so a log that announces more lines
+        than it sends is over when the fence arrives, not after a timeout.
+        """
         tag, text = self._send("EVENT:LOG", start, query=True)
+        fence, _ = self._send("SYST:TIME", query=True)
+        self._dirty = True  # until the fence's reply is read
         head = self._read_reply(tag, "EVENT:LOG", text)
         first, count = (parse_int(p, "EVENT:LOG") for p in _two(head.body, "EVENT:LOG"))
         if first != start or count < 0:
             raise ProtocolError(f"EVENT:LOG reply {head.body!r} does not answer start={start}")
         out: list[Event] = []
-        # At most MAX_EVENTS_PER_READ lines per call: memory stays bounded
-        # whatever the instrument announces. Lines beyond them are late replies
-        # to this tag, skipped by the next call; the caller's cursor advances
-        # by what was returned, so the rest is read on later polls.
-        for k in range(min(count, MAX_EVENTS_PER_READ)):
-            reply = self._read_reply(tag, "EVENT", text)
+        deadline = time.monotonic() + self.event_budget_s
+        fenced = False
+        # At most MAX_EVENTS_PER_READ lines and event_budget_s per call: memory
+        # and time stay bounded whatever the instrument announces or sends.
+        while len(out) < min(count, MAX_EVENTS_PER_READ):
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            try:
+                reply = self._read_tagged(tag, fence=fence, timeout_s=remaining)
+            except InstrumentTimeout:
+                break
+            if reply.tag == fence:
+                fenced = True
+                break
+            check_header(reply, "EVENT", command=text)
             index, event = decode_event(reply.body)
-            if index != start + k:
-                raise ProtocolError(f"event line {index} out of order (expected {start + k})")
+            if index != start + len(out):
+                raise ProtocolError(
+                    f"event line {index} out of order (expected {start + len(out)})"
+                )
             out.append(event)
+        backlog = count - len(out)
+        if fenced:
+            self._dirty = False
+            if backlog:
+                self._report_log(
+                    "short",
+                    f"its event log announced {count} entries from {start} but sent "
+                    f"{len(out)}; taking those",
+                )
+            backlog = 0
+        elif backlog == 0:
+            self._read_reply(fence, "SYST:TIME", "SYST:TIME?")
+            self._dirty = False
+        elif backlog > MAX_EVENTS_PER_READ or len(out) < MAX_EVENTS_PER_READ:
+            # Lines still on their way (or without end): skipping them on the next
+            # call would cost more than a new connection.
+            self._reopen = True
+            self._report_log(
+                "flood",
+                f"its event log announced {count} entries from {start}; read {len(out)} "
+                f"within {self.event_budget_s:g} s, the rest on later polls",
+            )
+        self.event_backlog = backlog
         return out
+
+    def _report_log(self, kind: str, text: str) -> None:
+        """Warn once per kind of event-log fault, naming the instrument; later ones at debug."""
+        level = logging.DEBUG if kind in self._log_faults else logging.WARNING
+        self._log_faults.add(kind)
+        who = self.transport.name
+        if self.info is not None:
+            i = self.info
+            who = f"{i.vendor} {i.model} (serial {i.serial}) at {who}"
+        log.log(level, "instrument %s: %s (reported once)", who, text)
 
     async def set_offset(self, x_nm: float, y_nm: float) -> None:
         """``SCAN:OFFS x,y``: command the absolute XY scan offset in nm."""

@@ -19,8 +19,10 @@ holds its per-connection lock).
 from __future__ import annotations
 
 import abc
+import contextlib
 import logging
 import math
+import socket
 import time
 from collections import deque
 from collections.abc import Iterable
@@ -242,9 +244,18 @@ class SerialTransport(Transport):
         port, self._port = self._port, None
         if port is None:
             return
-        # pyserial's socket:// handler skips socket.close() when shutdown() fails (as it
-        # does once the peer has gone), leaking the socket; close it ourselves as well.
         sock = getattr(port, "_socket", None)
+        if type(port).__module__ == "serial.urlhandler.protocol_socket" and sock is not None:
+            # pyserial's socket:// close() sleeps 0.3 s ("give the server some
+            # time") and skips socket.close() when shutdown() fails, as it does
+            # once the peer has gone; a driver that reopens its line to drop an
+            # endless reply cannot afford the one nor the other.
+            with contextlib.suppress(OSError):
+                sock.shutdown(socket.SHUT_RDWR)
+            sock.close()
+            port._socket = None
+            port.is_open = False
+            return
         try:
             port.close()
         except OSError as err:

@@ -17,6 +17,7 @@ import time
 from dataclasses import dataclass, field
 
 from afmdrift.config import ServiceConfig
+from afmdrift.drivers import EventBacklog
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, LoggedEvent
 from afmdrift.service._link import InstrumentDownError, InstrumentLink, every
 
@@ -26,6 +27,8 @@ log = logging.getLogger(__name__)
 
 #: Frames waiting for the worker before the oldest is dropped (and logged).
 _FRAME_QUEUE = 32
+#: Most event polls left out after a read that left the log further behind.
+_BEHIND_MAX_POLLS = 64
 
 
 @dataclass(slots=True)
@@ -61,6 +64,10 @@ class Acquisition:
         self.events: list[Event] = []
         self.event_cursor = 0
         self.frames_dropped = 0
+        #: Entries the event log announced but the last read left (see EventBacklog).
+        self.event_backlog = 0
+        self._behind_polls = 0  # event polls left out after each read while behind
+        self._skip_polls = 0
         self._last_frame_key: tuple[int, float] | None = None
         self._channels: list[ChannelSample] = []
         self._events: list[LoggedEvent] = []
@@ -100,10 +107,26 @@ class Acquisition:
         await every(self.config.channel_poll_interval_s, tick)
 
     async def event_loop(self) -> None:
-        await every(self.config.event_poll_interval_s, self.poll_events)
+        await every(self.config.event_poll_interval_s, self._poll_events_paced)
 
-    async def poll_events(self) -> None:
-        """Read the event log from the cursor; the cursor has one owner, this lock."""
+    async def _poll_events_paced(self) -> None:
+        """A poll of the event loop. While the log is further behind than one read
+        takes (a log that streams without end), reads are spaced out, doubling up
+        to ``_BEHIND_MAX_POLLS`` poll periods, so that the log costs a bounded share
+        of the line and of the worker; a log that catches up is polled as usual."""
+        if self._skip_polls:
+            self._skip_polls -= 1
+            return
+        read = await self.poll_events()
+        if self.event_backlog > read:
+            self._behind_polls = min(2 * self._behind_polls or 1, _BEHIND_MAX_POLLS)
+            self._skip_polls = self._behind_polls
+        else:
+            self._behind_polls = 0
+
+    async def poll_events(self) -> int:
+        """Read the event log from the cursor; the cursor has one owner, this lock.
+        Returns the number of entries read."""
         async with self._event_lock:
             epoch = self.link.epoch
             if self._log_to_check is not None:
@@ -113,7 +136,7 @@ class Acquisition:
             if self.link.epoch != epoch:
                 # The instrument restarted while this read was in flight: the
                 # entries belong to no known epoch; the next poll starts over.
-                return
+                return 0
             for k, e in enumerate(entries):
                 self._events.append(LoggedEvent(epoch, start + k, e))
                 self.events.append(e)
@@ -126,6 +149,11 @@ class Acquisition:
                     last.t_s - self.link.t_offset_s,
                 )
             self.event_cursor = start + len(entries)
+            instrument = self.link.instrument
+            self.event_backlog = (
+                instrument.event_backlog if isinstance(instrument, EventBacklog) else 0
+            )
+            return len(entries)
 
     async def _check_log_kept(self) -> None:
         """After an epoch: keep the cursor if the instrument's log still ends where
@@ -179,12 +207,17 @@ class Acquisition:
                 frame.index - 1,
             )
         hold = None
-        try:
-            await self.poll_events()  # every offset move up to this frame is known
-        except InstrumentDownError:
-            # The frame is still measured and recorded (nothing is lost), but
-            # commanded moves may be missing from its drift position.
-            hold = "event log unreadable up to this frame"
+        if not self.event_backlog:
+            # One bounded read, so every offset move up to this frame is known. A
+            # log that is behind is left to the event loop: the frame does not wait.
+            try:
+                await self.poll_events()
+            except InstrumentDownError:
+                # The frame is still measured and recorded (nothing is lost), but
+                # commanded moves may be missing from its drift position.
+                hold = "event log unreadable up to this frame"
+        if self.event_backlog:
+            hold = f"event log behind: {self.event_backlog} announced entries not read yet"
         self._last_frame_key = key
         batch = FrameBatch(self.link.frame_on_service_axis(frame), detected, hold=hold)
         batch.channels, self._channels = self._channels, []

@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
+import logging
 import os
 import signal
 import sqlite3
@@ -31,6 +32,7 @@ from service_sim import (
 
 from afmdrift.client import Subscriber
 from afmdrift.drivers import NanoScopeDriver
+from afmdrift.drivers.sim._server import ServerFaults
 from afmdrift.service import RunStore
 from afmdrift.wire import OffsetMsg
 
@@ -362,3 +364,70 @@ async def test_offsets_turn_invalid_within_the_silence_limit_when_the_line_goes_
         ctx.term()
     # the clock is read every 0.1 s here: the first unanswered request comes at once
     assert invalid_after_s <= 2.5, invalid_after_s
+
+
+async def _frames_in(
+    tmp_path: Path, name: str, seconds: float, fault: Callable[[ServerFaults], None] | None
+) -> tuple[int, int, list[str]]:
+    """Frames the daemon stores in ``seconds`` (after its first frame), with
+    ``fault`` applied to the simulator; also the records held from the model and
+    the warnings about the event log."""
+    ctx = zmq.asyncio.Context()
+    run = tmp_path / name
+    handler = _Warnings()
+    logging.getLogger("afmdrift").addHandler(handler)
+    try:
+        async with (
+            sim_server(small_scenario(), speed=100.0) as (server, url),
+            running_service(service_config(run), driver(url), ctx) as service,
+        ):
+            async with asyncio.timeout(30):
+                await service.wait_for_frames(1)
+            if fault is not None:
+                fault(server.faults)
+            first = service.frames_processed
+            await asyncio.sleep(seconds)
+            stored = service.frames_processed - first
+            server.faults.clear()
+    finally:
+        logging.getLogger("afmdrift").removeHandler(handler)
+        ctx.term()
+    records = _check_store(run)
+    held = sum(r.reason.startswith("event log behind") for r in records)
+    return stored, held, [m for m in handler.messages if "event log" in m]
+
+
+class _Warnings(logging.Handler):
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.messages: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.messages.append(record.getMessage())
+
+
+@pytest.mark.asyncio
+async def test_a_lying_or_flooding_event_log_does_not_starve_the_frames(tmp_path: Path) -> None:
+    """Regression: an event log that announced more entries than it sent let 4 frames
+    be stored in 30 s (28 without the fault); one that streamed without end, 1.
+    Each now costs at most its bounded read per poll: frames are stored at >= 80 %
+    of the healthy rate, and the fault is reported once, naming the instrument."""
+    seconds = 6.0
+    healthy, _, quiet = await _frames_in(tmp_path, "healthy", seconds, None)
+    assert healthy >= 8, f"only {healthy} frames in {seconds} s without a fault"
+    assert quiet == []
+    lying, held, said = await _frames_in(
+        tmp_path, "lying", seconds, lambda f: f.overcount_event_log(3, count=10**6)
+    )
+    assert lying >= 0.8 * healthy, (lying, healthy)
+    assert held == 0  # the fence shows the log sent all it had: nothing is unknown
+    assert len(said) == 1, said
+    assert "announced" in said[0]
+    assert "afmdrift SimulatedAFM" in said[0]  # the instrument is named
+    flood, held, said = await _frames_in(
+        tmp_path, "flood", seconds, lambda f: f.flood_event_log(count=10**6)
+    )
+    assert flood >= 0.8 * healthy, (flood, healthy)
+    assert held >= flood - 1  # moves may hide in the unread entries: not fed to the model
+    assert len(said) == 1, said
+    assert "announced 1000000000 entries" in said[0]

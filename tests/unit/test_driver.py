@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import logging
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -117,8 +119,10 @@ async def test_event_log_table() -> None:
                 b"@1 EVENT 1,5.0,offset_move,3.0,-1.0\n"
                 b"@1 EVENT 2,9.5,manipulation,0.5,0.25\n",
             ),
-            (b"@2 EVENT:LOG? 3\n", b"@2 EVENT:LOG 3,0\n"),
-            (b"@3 EVENT:COUNT?\n", b"@3 EVENT:COUNT 3\n"),
+            (b"@2 SYST:TIME?\n", b"@2 SYST:TIME 10.0\n"),  # the fence
+            (b"@3 EVENT:LOG? 3\n", b"@3 EVENT:LOG 3,0\n"),
+            (b"@4 SYST:TIME?\n", b"@4 SYST:TIME 10.5\n"),
+            (b"@5 EVENT:COUNT?\n", b"@5 EVENT:COUNT 3\n"),
         ]
     )
     async with driver:
@@ -328,7 +332,8 @@ async def test_event_lines_out_of_order_are_rejected() -> None:
                 b"@1 EVENT:LOG? 0\n",
                 b"@1 EVENT:LOG 0,2\n@1 EVENT 1,5.0,power_on,0.0,0.0\n"
                 b"@1 EVENT 0,1.0,power_on,0.0,0.0\n",
-            )
+            ),
+            (b"@2 SYST:TIME?\n", b"@2 SYST:TIME 10.0\n"),
         ]
     )
     async with driver:
@@ -463,36 +468,66 @@ async def test_transport_factory_gives_a_fresh_transport_on_reconnect() -> None:
 
 
 @pytest.mark.asyncio
-async def test_event_log_announcing_more_than_it_sends_times_out() -> None:
-    """Regression: such an instrument stopped all frame processing; the driver
-    gives up on the missing line within its timeout (the daemon then records
-    frames held, see test_service_link)."""
-    driver, _ = _driver(
-        [(b"@1 EVENT:LOG? 0\n", b"@1 EVENT:LOG 0,5\n@1 EVENT 0,1.0,power_on,0.0,0.0\n")]
+async def test_event_log_announcing_more_than_it_sends_ends_at_the_fence(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Regression: such an instrument starved the daemon (4 frames stored in 30 s
+    against 28), each read waiting out the driver's timeout for a line that never
+    came. The fence query sent behind EVENT:LOG ends the read at once: the entry
+    sent is taken, nothing is left behind, and the fault is reported once, naming
+    the instrument."""
+    short = b"@%d EVENT:LOG 0,5\n@%d EVENT 0,1.0,power_on,0.0,0.0\n"
+    driver, t = _driver(
+        [
+            (b"@1 *IDN?\n", b"@1 *IDN ACME,AFM-9,SN42,1.0\n"),
+            (b"@2 EVENT:LOG? 0\n", short % (2, 2)),
+            (b"@3 SYST:TIME?\n", b"@3 SYST:TIME 10.0\n"),
+            (b"@4 EVENT:LOG? 0\n", short % (4, 4)),
+            (b"@5 SYST:TIME?\n", b"@5 SYST:TIME 10.5\n"),
+        ]
     )
+    caplog.set_level(logging.DEBUG, logger="afmdrift.drivers._nanoscope")
     async with driver:
-        with pytest.raises(InstrumentTimeout):
-            await driver.events(0)
+        await driver.identify()
+        started = time.monotonic()
+        for _ in range(2):
+            events = await driver.events(0)
+            assert [(e.t_s, e.kind) for e in events] == [(1.0, EventKind.POWER_ON)]
+            assert driver.event_backlog == 0
+        assert time.monotonic() - started < driver.timeout_s  # never waited it out
+    t.assert_done()
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1
+    assert "ACME AFM-9 (serial SN42)" in warned[0].getMessage()
+    assert "announced 5 entries from 0 but sent 1" in warned[0].getMessage()
 
 
 @pytest.mark.asyncio
 async def test_event_log_read_is_bounded_whatever_the_instrument_announces() -> None:
     """Regression: an instrument streaming 10^9 entries grew RSS without bound;
-    one call reads at most MAX_EVENTS_PER_READ lines, the cursor goes on from there."""
+    one call reads at most MAX_EVENTS_PER_READ lines, the cursor goes on from there,
+    the rest of the endless reply is dropped with the connection (reopened), and
+    the backlog says the log is behind."""
     n = MAX_EVENTS_PER_READ + 50
     lines = b"".join(b"@1 EVENT %d,%d.0,power_on,0.0,0.0\n" % (i, i) for i in range(n))
-    driver, _ = _driver(
+    driver, t = _driver(
         [
             (b"@1 EVENT:LOG? 0\n", b"@1 EVENT:LOG 0,1000000000\n" + lines),
+            (b"@2 SYST:TIME?\n", b"@2 SYST:TIME 10.0\n"),
             (
-                b"@2 EVENT:LOG? %d\n" % MAX_EVENTS_PER_READ,
-                b"@2 EVENT:LOG %d,1\n@2 EVENT %d,7.0,power_on,0.0,0.0\n"
+                b"@3 EVENT:LOG? %d\n" % MAX_EVENTS_PER_READ,
+                b"@3 EVENT:LOG %d,1\n@3 EVENT %d,7.0,power_on,0.0,0.0\n"
                 % (MAX_EVENTS_PER_READ, MAX_EVENTS_PER_READ),
             ),
-        ]
+            (b"@4 SYST:TIME?\n", b"@4 SYST:TIME 10.5\n"),
+        ],
+        event_budget_s=10.0,  # the bound under test is the line count
     )
     async with driver:
         first = await driver.events(0)
         assert len(first) == MAX_EVENTS_PER_READ
-        # the 50 unread lines of @1 are skipped as late replies
+        assert driver.event_backlog == 1_000_000_000 - MAX_EVENTS_PER_READ
+        opens = t.opens
         assert len(await driver.events(MAX_EVENTS_PER_READ)) == 1
+        assert t.opens == opens + 1  # the line was reopened before the next query
+        assert driver.event_backlog == 0

@@ -114,7 +114,9 @@ class SimulatedInstrument(Protocol):
 
 # --------------------------------------------------------------------------- faults
 
-FaultKind = Literal["corrupt", "delay", "drop", "truncate", "stale", "disconnect"]
+FaultKind = Literal[
+    "corrupt", "delay", "drop", "truncate", "stale", "disconnect", "overcount", "flood"
+]
 
 
 @dataclass(slots=True)
@@ -126,6 +128,8 @@ class _Fault:
     nbytes: int = 1
     keep_bytes: int = 0
     where: Literal["any", "header", "payload"] = "any"
+    #: ``overcount``: entries announced beyond those sent; ``flood``: the count claimed.
+    claim: int = 0
 
 
 class ServerFaults:
@@ -189,6 +193,21 @@ class ServerFaults:
     def disconnect_on_next_reply(self, *, match: str | None = None) -> None:
         """Close the connection instead of replying (on a pty: drop the reply)."""
         self._push(_Fault("disconnect", match, 1))
+
+    def overcount_event_log(self, extra: int, *, count: int = 1) -> None:
+        """Make the next ``EVENT:LOG?`` replies announce ``extra`` more entries
+        than they send (a lying event log: the client waits for lines that never come)."""
+        if extra < 1:
+            raise ValueError(f"extra must be >= 1, got {extra}")
+        self._push(_Fault("overcount", "EVENT:LOG", count, claim=extra))
+
+    def flood_event_log(self, *, claim: int = 10**9, count: int = 1) -> None:
+        """Make the next ``EVENT:LOG?`` replies announce ``claim`` entries and stream
+        event lines without end, until the client closes the connection (an event
+        log gone mad). The connection answers nothing else meanwhile."""
+        if claim < 1:
+            raise ValueError(f"claim must be >= 1, got {claim}")
+        self._push(_Fault("flood", "EVENT:LOG", count, claim=claim))
 
     def clear(self) -> None:
         """Forget every queued fault."""
@@ -554,7 +573,31 @@ class SimulatorServer:
             await line.write(last_reply + reply)
         elif fault.kind == "disconnect" and isinstance(line, _StreamLine):
             raise _DisconnectRequestedError
+        elif fault.kind == "overcount":
+            await line.write(_announce(reply, lambda start, n: n + fault.claim))
+        elif fault.kind == "flood":
+            await self._flood(line, reply, fault.claim)
         # "drop" (and "disconnect" on a pty): send nothing
+
+    async def _flood(self, line: _Line, reply: bytes, claim: int) -> None:
+        """Announce ``claim`` entries, then send made-up ``note`` entries until the
+        client hangs up (or ``claim`` lines went out)."""
+        head = reply.split(b"\n", 1)[0] + b"\n"
+        m = _TAG_RE.match(head)
+        tag = int(m.group(1)) if m else None
+        start = int(head.rsplit(b" ", 1)[-1].split(b",")[0])
+        await line.write(_announce(head, lambda s, n: claim))
+        t_s = self.clock.now_s()
+        sent = 0
+        while sent < claim:
+            chunk = min(256, claim - sent)
+            await line.write(
+                b"".join(
+                    encode_event(start + sent + k, Event(t_s, "note", 0.0, 0.0), tag=tag)
+                    for k in range(chunk)
+                )
+            )
+            sent += chunk
 
     # ---------------------------------------------------------------- dispatch
 
@@ -711,6 +754,15 @@ class SimulatorServer:
         out = [encode_value("EVENT:LOG", start, len(events), tag=c.tag)]
         out.extend(encode_event(start + k, e, tag=c.tag) for k, e in enumerate(events))
         return b"".join(out)
+
+
+def _announce(reply: bytes, count: Callable[[int, int], int]) -> bytes:
+    """``reply`` (an ``EVENT:LOG start,n`` reply) with its header announcing
+    ``count(start, n)`` entries instead of ``n``; the entry lines are unchanged."""
+    head, sep, rest = reply.partition(b"\n")
+    prefix, _, values = head.rpartition(b" ")
+    start, n = (int(v) for v in values.split(b","))
+    return b"%s %d,%d%s%s" % (prefix, start, count(start, n), sep, rest)
 
 
 def _tag_bytes(tag: int | None) -> bytes:
