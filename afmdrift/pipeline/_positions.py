@@ -32,6 +32,13 @@ A new reference (a reset, a changed frame shape or pixel size) has no
 measurement of its own: its trajectory samples continue the curve from the
 frames before it (the smoothness prior), so p stays continuous; it does not
 feed the model.
+
+Each scan geometry (frame shape and pixel size) keeps its own reference: a
+frame of another size now and then, or a zoom in and back out, is measured
+against the reference of its own geometry when there is one (its position
+chain goes on where it stopped), and only a geometry seen for the first time
+takes a new reference, with the position carried across from the trajectory.
+At most ``_GEOMETRIES_KEPT`` geometries are kept; a reset forgets them all.
 """
 
 from __future__ import annotations
@@ -69,6 +76,21 @@ FloatArray = npt.NDArray[np.float64]
 
 #: Frame timings kept for the reference lookup (keyframes are rarely older).
 _TIMINGS_KEPT = 256
+#: Scan geometries whose reference is kept besides the current one.
+_GEOMETRIES_KEPT = 4
+
+GeometryKey = tuple[tuple[int, int], tuple[float, float]]
+
+
+@dataclass(slots=True)
+class _Parked:
+    """The reference of a scan geometry not in use: its tracker, the image
+    position m of its reference, its frame keys and its last frame's time."""
+
+    tracker: DriftTracker
+    base_nm: FloatArray
+    keys: dict[int, int]
+    last_t_s: float | None
 
 
 @dataclass(slots=True)
@@ -153,7 +175,8 @@ class DriftPositions:
         self.config = config
         self._tracker_factory = tracker_factory or self._default_tracker_factory
         self._tracker: DriftTracker | None = None
-        self._tracker_key: tuple[tuple[int, int], tuple[float, float]] | None = None
+        self._tracker_key: GeometryKey | None = None
+        self._parked: dict[GeometryKey, _Parked] = {}  # other geometries' references
         self._base_nm = np.zeros(2)  # image position m of the tracker's reference
         self.t_ref_s: float | None = None  # session reference time (p = 0)
         self.last_p_nm: FloatArray | None = None
@@ -188,8 +211,10 @@ class DriftPositions:
         return ScanDirection.UP if sign > 0 else ScanDirection.DOWN
 
     def request_reset(self) -> None:
-        """Make the next frame the registration reference (p stays continuous)."""
+        """Make the next frame the registration reference (p stays continuous);
+        the references of other scan geometries are forgotten too."""
         self._reset_requested = True
+        self._parked.clear()
 
     # ------------------------------------------------------------------ resume
 
@@ -287,6 +312,8 @@ class DriftPositions:
         :meth:`request_reset`, and when the frame's shape or pixel size changed.
         """
         key = (frame.shape, frame.pixel_size_nm)
+        if not self._reset_requested and key != self._tracker_key and key in self._parked:
+            self._take_up(key, seq)
         new_reference = self._tracker is None or self._reset_requested or key != self._tracker_key
         tracker = self._tracker
         moved = (0.0, 0.0)
@@ -303,9 +330,37 @@ class DriftPositions:
             log.warning("frame %d (instrument %d): %s", seq, frame.index, reason)
             return None, reason, None
         if new_reference:
+            if not self._reset_requested:
+                self._park()
+                log.info(
+                    "frame %d: scan geometry %s: a new reference for it, its position "
+                    "carried across from the drift trajectory", seq, _geometry(key),
+                )  # fmt: skip
             self._tracker, self._tracker_key, self._reset_requested = tracker, key, False
             self._keys = {}
         return step, "", tracker
+
+    def _park(self) -> None:
+        """Keep the current reference for its scan geometry's return."""
+        if self._tracker is None or self._tracker_key is None:
+            return
+        self._parked[self._tracker_key] = _Parked(
+            self._tracker, self._base_nm, self._keys, self._last_t_s
+        )
+        while len(self._parked) > _GEOMETRIES_KEPT:
+            self._parked.pop(next(iter(self._parked)))
+
+    def _take_up(self, key: GeometryKey, seq: int) -> None:
+        """The frame's scan geometry was seen before: park the current reference
+        and take up that geometry's, so its position chain goes on."""
+        self._park()
+        back = self._parked.pop(key)
+        self._tracker, self._tracker_key = back.tracker, key
+        self._base_nm, self._keys, self._last_t_s = back.base_nm, back.keys, back.last_t_s
+        log.info(
+            "frame %d: scan geometry %s again: measured against its reference (frame %s)",
+            seq, _geometry(key), self._keys.get(back.tracker.keyframe_index, "?"),
+        )  # fmt: skip
 
     def _register_ahead(self, frame: Frame, last: Frame, events: Sequence[Event]) -> None:
         """Start registering ``frame`` against the current tracker, with the
@@ -354,6 +409,8 @@ class DriftPositions:
                 kept.add(in_use)
             self._keys = {i: k for i, k in self._keys.items() if i in kept}
             values = set(self._keys.values())
+            for parked in self._parked.values():
+                values.update(parked.keys.values())
             self._timings = {k: v for k, v in self._timings.items() if k in values}
         self._last_t_s = frame.t_mid_s
 
@@ -554,6 +611,11 @@ class DriftPositions:
                 f"service.min_valid_blocks={min_blocks}"
             )
         pos.fed = not low and not held and bool(np.all(np.isfinite(pos.m)))
+
+
+def _geometry(key: GeometryKey) -> str:
+    (rows, cols), (px, py) = key
+    return f"{cols}x{rows} px at {px:.4g} x {py:.4g} nm/px"
 
 
 def _content_moved_px(frame: Frame, since_s: float, events: Sequence[Event]) -> tuple[float, float]:
