@@ -10,7 +10,7 @@ see the same machine load:
 * a 200² HS-AFM-like movie (smooth texture, 0.5 nm/px, SNR 10), with the
   automatic block size (32/64 px).
 
-For every frame: the step of :func:`afmdrift.cli._measure.track_stack` (what
+For every frame: the step of :func:`afmdrift.pipeline.track_stack` (what
 ``afmdrift measure STACK`` runs per frame: the daemon's position component,
 the drift trajectory, the record), :meth:`DriftTracker.update` alone on the
 same frame, and the bare FFTW transforms the frame needs (one forward and one
@@ -52,9 +52,9 @@ from pathlib import Path
 import numpy as np
 from bench_registration import BareFFT
 
-from afmdrift.cli._measure import track_stack
 from afmdrift.config import AfmdriftConfig
 from afmdrift.io import AfmImage
+from afmdrift.pipeline import track_stack
 from afmdrift.registration import DriftTracker
 from afmdrift.registration._blocks import config_for_image
 from afmdrift.registration._engine import BlockEngine

@@ -34,6 +34,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._config_cmd",
     "afmdrift.cli._import",
     "afmdrift.cli._measure",
+    "afmdrift.cli._batch",
     "afmdrift.cli._sim",
     "afmdrift.cli._evaluate",
     "afmdrift.cli._run",

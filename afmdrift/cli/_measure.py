@@ -38,7 +38,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -282,6 +281,8 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
         "channel": args.channel,
         "height_unit": args.height_unit,
     }
+    from afmdrift.pipeline import track_stack
+
     frames = load_stack(args.ref, **read)
     if len(frames) < 2:
         raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
@@ -296,96 +297,6 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
     if args.plot:
         _plot_track(track, frames[0], Path(args.plot))
     return 0 if all_valid else 1
-
-
-def track_stack(
-    frames: Sequence[AfmImage],
-    config: AfmdriftConfig | RegistrationConfig,
-    *,
-    dewarp: Path | None = None,
-) -> Iterator[dict[str, Any]]:
-    """Track a stack or movie through the daemon's position component
-    (:class:`afmdrift.pipeline.DriftPositions`: the keyframe policy of
-    ``[registration] reference``, the drift trajectory with each block row
-    placed at its scan time), frame by frame.
-
-    Frames are timed as ``afmdrift import`` times them
-    (:func:`afmdrift.session.session_from_images`, in time order); a file
-    without any timing is taken as frames 1 s apart, back to back (positions
-    do not depend on it; trajectory times do). Yields one JSON-ready dict per
-    frame ``i >= 1``: ``ref_frame`` (the frame it was measured against),
-    ``cur_frame``, ``t_s`` (mid-scan time; ``ref_t_s``/``cur_t_s``: scan
-    starts since frame 0's, when the file has timestamps), the increment since the previous
-    valid frame (``dx_px`` ... as :meth:`DriftResult.to_dict`), and, when
-    valid, ``cumulative_{dx,dy}_{px,nm}`` since frame 0 (the drift trajectory
-    at the frame's mid-scan time) and ``trajectory`` (its samples: ``t_s``,
-    ``x_nm``, ``y_nm``, ``sigma_x_nm``, ``sigma_y_nm``). A frame the engine
-    refuses (blank, NaN) gives ``{"valid": false, "error": ...}``. With
-    ``dewarp``, the de-warped frames are written there (``frames.npy``,
-    ``frames.csv``) once the stack is done.
-    """
-    from afmdrift.model import make_predictor
-    from afmdrift.pipeline import FramePipeline, correct_session, with_next
-    from afmdrift.session import SessionError, session_from_images
-
-    cfg = config if isinstance(config, AfmdriftConfig) else AfmdriftConfig(registration=config)
-    try:
-        session = session_from_images(frames)
-    except SessionError as err:
-        if "no frame timing" not in str(err):
-            raise
-        session = session_from_images(frames, frame_time_s=1.0)
-    # Positions do not depend on the model: the model stage is skipped.
-    pipeline = FramePipeline(
-        config=cfg, predictor=make_predictor("last_value", cfg.model), model=False
-    )
-    px, py = session.meta.pixel_size_nm
-    timed = all(im.timestamp is not None for im in frames)
-    for k, frame, upcoming in with_next(session.iter_frames()):
-        # The next frame's blocks are measured while this one is placed.
-        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming)
-        if k == 0:
-            continue
-        r, pos = outcome.record, outcome.position
-        ref_frame = None if pos is None else pos.reference_key
-        doc: dict[str, Any] = {"ref_frame": ref_frame, "cur_frame": k, "t_s": r.t_mid_s}
-        if timed:
-            # scan starts since frame 0's, as the file headers give them
-            if ref_frame is not None:
-                doc["ref_t_s"] = float(session.frame_times[ref_frame, 0])
-            doc["cur_t_s"] = r.t_start_s
-        if r.reason.startswith("registration failed"):
-            doc.update(valid=False, error=r.reason.removeprefix("registration failed: "))
-            yield doc
-            continue
-        if pos is not None and pos.increment is not None:
-            doc.update(pos.increment.to_dict())
-        valid = r.valid and not r.reason
-        doc["valid"] = bool(valid)
-        doc["reason"] = r.reason or None
-        if valid:
-            doc.update(
-                cumulative_dx_px=r.image_x_nm / px,
-                cumulative_dy_px=r.image_y_nm / py,
-                cumulative_dx_nm=r.image_x_nm,
-                cumulative_dy_nm=r.image_y_nm,
-                sigma_position_nm=r.sigma_nm,
-            )
-            traj = outcome.trajectory
-            if traj is not None:
-                doc["trajectory"] = [
-                    {
-                        "t_s": float(traj.t_s[j]),
-                        "x_nm": float(traj.xy_nm[j, 0]),
-                        "y_nm": float(traj.xy_nm[j, 1]),
-                        "sigma_x_nm": float(traj.sigma_nm[j, 0]),
-                        "sigma_y_nm": float(traj.sigma_nm[j, 1]),
-                    }
-                    for j in range(traj.t_s.size)
-                ]
-        yield doc
-    if dewarp is not None:
-        correct_session(session, dewarp, config=cfg, output="npy", fill="nan")
 
 
 # --------------------------------------------------------------------------- plots

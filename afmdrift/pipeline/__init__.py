@@ -24,6 +24,7 @@ from afmdrift.pipeline._series import (
     measure_session,
     series_from_records,
 )
+from afmdrift.pipeline._track import track_session, track_stack
 
 __all__ = [
     "FRAME_COLUMNS",
@@ -44,5 +45,7 @@ __all__ = [
     "record_from_row",
     "series_from_records",
     "summarise_field",
+    "track_session",
+    "track_stack",
     "with_next",
 ]

@@ -26,9 +26,10 @@ import pytest
 from scipy.ndimage import fourier_shift
 
 from afmdrift.cli import main
-from afmdrift.cli._measure import measure_pair, track_stack
+from afmdrift.cli._measure import measure_pair
 from afmdrift.cli._measure import measurement_config as _config
 from afmdrift.io import AfmImage, load_image, load_stack
+from afmdrift.pipeline import track_stack
 from afmdrift.registration import (
     DriftTracker,
     InvalidFrameError,

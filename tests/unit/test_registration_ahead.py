@@ -167,8 +167,8 @@ def test_tracker_steps_are_bit_for_bit_the_same_with_passes_started_ahead() -> N
 def test_track_stack_output_is_the_same_with_and_without_lookahead(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    from afmdrift.cli._measure import track_stack
     from afmdrift.io import AfmImage
+    from afmdrift.pipeline import track_stack
 
     frames = _frames(8, seed=5)
     images = [

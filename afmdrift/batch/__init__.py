@@ -1,0 +1,24 @@
+"""Re-analyse an archive of recordings on Dask: ``afmdrift batch``.
+
+Each recording (a stack or movie in any format ``afmdrift measure`` reads, or
+a session directory) is one task on a Dask worker, which reads it and writes
+``OUT/<stem>/track.jsonl`` (the lines of ``afmdrift measure STACK --json``)
+and, for ``--task correct``, the drift-corrected frames. ``OUT/summary.csv``
+has one row per recording; a run started again skips what is done.
+"""
+
+from afmdrift.batch._jobs import TASKS, Job, Result, run_job
+from afmdrift.batch._run import SCHEDULER_ENV, BatchReport, expand_inputs, run_batch
+from afmdrift.batch._summary import SUMMARY_COLUMNS
+
+__all__ = [
+    "SCHEDULER_ENV",
+    "SUMMARY_COLUMNS",
+    "TASKS",
+    "BatchReport",
+    "Job",
+    "Result",
+    "expand_inputs",
+    "run_batch",
+    "run_job",
+]

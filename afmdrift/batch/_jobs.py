@@ -1,0 +1,279 @@
+"""One recording of an archive: what a worker does with it, and how a later run
+knows that it is done.
+
+A :class:`Job` names a recording (a stack or movie file, or a session
+directory), the task and every option that changes its output. The worker
+reads the recording itself (frames are never shipped from the client), runs
+the task, writes its output under ``OUT/<stem>/`` and, last, ``result.json``
+with the job's fingerprint: a later run with the same input and configuration
+finds it and skips the recording, also after the first run was killed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import time
+import traceback
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from afmdrift._version import __version__
+from afmdrift.config import AfmdriftConfig
+from afmdrift.errors import AfmdriftError
+
+__all__ = ["TASKS", "Job", "Result", "fingerprint", "load_result", "run_job"]
+
+Task = Literal["measure", "correct"]
+#: What ``afmdrift batch --task`` can do to each recording.
+TASKS: tuple[Task, ...] = ("measure", "correct")
+
+RESULT_FILE = "result.json"
+
+
+@dataclass(frozen=True, slots=True)
+class Job:
+    """One recording and what to do with it (picklable: it travels to a worker).
+
+    ``recording`` is the input as given, ``path`` its absolute path, ``out``
+    the recording's own output directory.
+    """
+
+    recording: str
+    path: str
+    out: str
+    task: Task
+    config: dict[str, Any]
+    pixel_size_nm: tuple[float, float] | None = None
+    channel: str = "Height"
+    height_unit: str | None = None
+    key: str = field(default="")
+
+
+@dataclass(slots=True)
+class Result:
+    """What a job gives the summary (one row of ``summary.csv``)."""
+
+    recording: str
+    status: Literal["done", "failed"]
+    frames: int = 0
+    valid_frames: int = 0
+    drift_x_nm: float = math.nan
+    drift_y_nm: float = math.nan
+    worker: str = ""
+    seconds: float = 0.0
+    error: str = ""
+    #: Time from the first to the last frame, s (for the archive's picture).
+    duration_s: float = math.nan
+    fingerprint: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {k: (None if isinstance(v, float) and not math.isfinite(v) else v)
+                for k, v in asdict(self).items()}  # fmt: skip
+
+    @classmethod
+    def from_json(cls, doc: dict[str, Any]) -> Result:
+        known = set(cls.__dataclass_fields__)
+        values: dict[str, Any] = {
+            k: (math.nan if v is None else v) for k, v in doc.items() if k in known
+        }
+        return cls(**values)
+
+
+def fingerprint(job: Job) -> str:
+    """What makes a job's output: the input's files (size and modification time),
+    the task, the options and the configuration, and afmdrift's version."""
+    path = Path(job.path)
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    stats = []
+    for p in files:
+        try:
+            st = p.stat()
+        except OSError:
+            continue
+        stats.append((str(p), st.st_size, st.st_mtime_ns))
+    doc = {
+        "version": __version__,
+        "task": job.task,
+        "files": stats,
+        "config": job.config,
+        "pixel_size_nm": job.pixel_size_nm,
+        "channel": job.channel,
+        "height_unit": job.height_unit,
+    }
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def load_result(job: Job, key: str) -> Result | None:
+    """The recorded result of ``job`` if it is done with this fingerprint ``key``."""
+    try:
+        doc = json.loads((Path(job.out) / RESULT_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(doc, dict) or doc.get("fingerprint") != key or doc.get("status") != "done":
+        return None
+    try:
+        return Result.from_json(doc)
+    except TypeError:
+        return None
+
+
+def run_job(job: Job) -> Result:
+    """Run ``job`` (on a Dask worker or in this process); never raises for a bad
+    recording: the failure is the result, with one line naming the file."""
+    started = time.perf_counter()
+    result = Result(recording=job.recording, status="done", worker=_worker_address())
+    try:
+        out = Path(job.out)
+        out.mkdir(parents=True, exist_ok=True)
+        _clear_result(out)
+        session, timed = _read(job)
+        config = AfmdriftConfig.model_validate(job.config)
+        docs = _measure(session, config, timed, out / "track.jsonl", result)
+        if job.task == "correct":
+            _correct(session, config, out)
+        if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
+            result.duration_s = docs[-1][0] - docs[0][0]
+    except (AfmdriftError, OSError, ValueError, MemoryError) as err:
+        result.status = "failed"
+        result.error = _one_line(job.recording, err)
+    except Exception as err:  # a bug must not stop the archive: it is this row's error
+        result.status = "failed"
+        where = traceback.extract_tb(err.__traceback__)[-1]
+        result.error = _one_line(
+            job.recording, f"{type(err).__name__}: {err} (at {where.filename}:{where.lineno})"
+        )
+    result.seconds = time.perf_counter() - started
+    result.fingerprint = job.key
+    if result.status == "done":
+        _atomic_write(Path(job.out) / RESULT_FILE, json.dumps(result.to_json()) + "\n")
+    return result
+
+
+# --------------------------------------------------------------------------- steps
+
+
+def _read(job: Job) -> tuple[Any, bool]:
+    """The recording as a session, and whether its frame times are the instrument's."""
+    from afmdrift.io import load_stack
+    from afmdrift.session import SessionError, read_session, session_from_images
+
+    path = Path(job.path)
+    if path.is_dir():
+        return read_session(path, mmap=True), True
+    images = load_stack(
+        path, pixel_size_nm=job.pixel_size_nm, channel=job.channel, height_unit=job.height_unit
+    )
+    if len(images) < 2:
+        raise SessionError(f"{path}: holds one image; a recording needs two frames or more")
+    try:
+        return session_from_images(images), all(im.timestamp is not None for im in images)
+    except SessionError as err:
+        if "no frame timing" not in str(err):
+            raise
+        return session_from_images(images, frame_time_s=1.0), False
+
+
+def _measure(
+    session: Any, config: AfmdriftConfig, timed: bool, path: Path, result: Result
+) -> list[tuple[float, float, float]]:
+    """``afmdrift measure STACK --json``'s lines into ``path``; the summary's
+    counts and last valid drift into ``result``. Returns ``(t_s, x_nm, y_nm)``
+    of the valid frames."""
+    from afmdrift.pipeline import track_session
+
+    valid: list[tuple[float, float, float]] = [(float(session.frame_times[0].mean()), 0.0, 0.0)]
+    tmp = path.with_name(path.name + ".tmp")
+    result.frames = 1
+    result.valid_frames = 1
+    with tmp.open("w", encoding="utf-8") as fh:
+        for doc in track_session(session, config, timed=timed):
+            fh.write(json.dumps(doc) + "\n")
+            result.frames += 1
+            if doc.get("valid"):
+                result.valid_frames += 1
+                valid.append((doc["t_s"], doc["cumulative_dx_nm"], doc["cumulative_dy_nm"]))
+    os.replace(tmp, path)
+    result.drift_x_nm, result.drift_y_nm = valid[-1][1], valid[-1][2]
+    return valid
+
+
+def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
+    """``afmdrift correct --format npy``'s output, and the same frames as an
+    ImageJ TIFF stack (pixel size and frame times) that Fiji and Gwyddion open."""
+    import numpy as np
+    import tifffile
+
+    from afmdrift.pipeline import correct_session
+
+    summary = correct_session(session, out / "corrected", config=config, output="npy")
+    frames = np.load(out / "corrected" / "frames.npy", mmap_mode="r")
+    px, py = session.meta.pixel_size_nm
+    skipped = set(summary.frames_skipped)
+    kept = [k for k in range(len(session)) if k not in skipped]
+    starts = session.frame_times[kept, 0] if kept else np.zeros(0)
+    interval = float(np.median(np.diff(starts))) if starts.size > 1 else 1.0
+    tmp = out / "corrected.tif.tmp"
+    tifffile.imwrite(
+        tmp,
+        np.asarray(frames, dtype=np.float32),
+        imagej=True,
+        resolution=(1.0 / px, 1.0 / py),
+        metadata={
+            "axes": "TYX",
+            "unit": "nm",
+            "finterval": interval,
+            "spacing": 1.0,
+            "Info": json.dumps({"frame_start_s": [float(t) for t in starts]}),
+        },
+    )
+    os.replace(tmp, out / "corrected.tif")
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _clear_result(out: Path) -> None:
+    with contextlib.suppress(FileNotFoundError):
+        (out / RESULT_FILE).unlink()
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)
+
+
+def _one_line(recording: str, err: object) -> str:
+    text = " ".join(str(err).split()) or type(err).__name__
+    return text if recording in text or Path(recording).name in text else f"{recording}: {text}"
+
+
+def _worker_address() -> str:
+    try:
+        from distributed import get_worker
+
+        return str(get_worker().address)
+    except (ImportError, ValueError):
+        return "local"
+
+
+def stems(recordings: Iterable[str]) -> list[str]:
+    """A distinct output directory name for each recording, stable for the same
+    list: the file or directory name without its suffix, with ``-2``, ``-3``
+    ... for a name already taken."""
+    taken: dict[str, int] = {}
+    out = []
+    for rec in recordings:
+        p = Path(rec.rstrip("/"))
+        base = p.name if p.is_dir() else p.stem
+        base = base or "recording"
+        n = taken.get(base, 0) + 1
+        taken[base] = n
+        out.append(base if n == 1 else f"{base}-{n}")
+    return out

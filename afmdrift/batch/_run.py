@@ -1,0 +1,259 @@
+"""An archive of recordings through Dask.distributed: a LocalCluster on this
+machine by default, or an existing cluster (``dask scheduler`` with ``dask
+worker``s, dask-jobqueue on SLURM, Kubernetes) by its scheduler address.
+
+The client only names the recordings: each worker reads its recording itself
+and writes its output under ``OUT/<stem>/``. As each recording finishes, the
+client rewrites ``OUT/summary.csv``; a recording already done with the same
+input and configuration (its ``result.json``) is not run again.
+"""
+
+from __future__ import annotations
+
+import glob
+import logging
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TextIO
+
+from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, run_job, stems
+from afmdrift.batch._summary import plot_archive, write_summary
+from afmdrift.config import AfmdriftConfig
+from afmdrift.errors import ConfigError, InputError
+
+__all__ = ["SCHEDULER_ENV", "BatchReport", "expand_inputs", "run_batch"]
+
+log = logging.getLogger(__name__)
+
+#: Environment variable naming the scheduler when ``--scheduler`` is not given.
+SCHEDULER_ENV = "AFMDRIFT_SCHEDULER"
+
+
+@dataclass(frozen=True, slots=True)
+class BatchReport:
+    """What :func:`run_batch` did."""
+
+    results: list[Result]
+    skipped: int
+    summary: Path
+
+    @property
+    def failed(self) -> int:
+        return sum(r.status == "failed" for r in self.results)
+
+
+def expand_inputs(inputs: Sequence[str]) -> list[str]:
+    """Recordings named by ``inputs``: files and session directories as given,
+    globs expanded (sorted), and the image files directly inside a directory that
+    is not a session. A name that matches nothing is kept: it becomes a failed
+    row naming it.
+
+    Raises
+    ------
+    InputError
+        A glob matches nothing (a usage error).
+    """
+    from afmdrift.io import SUFFIXES
+
+    out: list[str] = []
+    for spec in inputs:
+        if glob.has_magic(spec):
+            matches = sorted(glob.glob(spec, recursive=True))
+            if not matches:
+                raise InputError(f"{spec}: matches no file")
+            out.extend(matches)
+        elif Path(spec).is_dir() and not (Path(spec) / "session.json").is_file():
+            files = sorted(
+                str(p) for p in Path(spec).iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
+            )
+            if not files:
+                raise InputError(f"{spec}: neither a session directory nor a folder of images")
+            out.extend(files)
+        else:
+            out.append(spec)
+    seen: set[str] = set()
+    unique = []
+    for rec in out:
+        key = os.path.abspath(rec)
+        if key not in seen:
+            seen.add(key)
+            unique.append(rec)
+    return unique
+
+
+def run_batch(
+    inputs: Sequence[str],
+    out: Path,
+    *,
+    task: Task,
+    config: AfmdriftConfig,
+    workers: int | None = None,
+    scheduler: str | None = None,
+    pixel_size_nm: tuple[float, float] | None = None,
+    channel: str = "Height",
+    height_unit: str | None = None,
+    progress: TextIO | None = None,
+) -> BatchReport:
+    """Run ``task`` on every recording of ``inputs``; see the module docstring.
+
+    ``workers``: LocalCluster processes (default: one per core) when no
+    ``scheduler`` address is given (nor ``$AFMDRIFT_SCHEDULER``). Each worker
+    runs one recording at a time with one registration thread. ``progress``:
+    a terminal to show recordings and frames done, with the rate.
+    """
+    recordings = expand_inputs(inputs)
+    out.mkdir(parents=True, exist_ok=True)
+    # one registration thread per worker: the workers are the parallelism
+    registration = config.registration.model_copy(update={"threads": 1})
+    cfg = config.model_copy(update={"registration": registration}).model_dump(mode="json")
+    jobs = []
+    for rec, stem in zip(recordings, stems(recordings), strict=True):
+        job = Job(
+            recording=rec,
+            path=os.path.abspath(rec),
+            out=str(out / stem),
+            task=task,
+            config=cfg,
+            pixel_size_nm=pixel_size_nm,
+            channel=channel,
+            height_unit=height_unit,
+        )
+        jobs.append(Job(**{**_fields(job), "key": fingerprint(job)}))
+    rows: list[Result | None] = [load_result(job, job.key) for job in jobs]
+    skipped = sum(r is not None for r in rows)
+    todo = [k for k, r in enumerate(rows) if r is None]
+    summary = out / "summary.csv"
+    write_summary(summary, rows, recordings)
+    show = _Progress(progress, total=len(jobs), done=skipped)
+    if skipped:
+        show.line(f"{skipped} of {len(jobs)} recordings already done; skipping them")
+    if todo:
+        address = scheduler or os.environ.get(SCHEDULER_ENV) or None
+
+        def finished(k: int, result: Result) -> None:
+            rows[k] = result
+            write_summary(summary, rows, recordings)
+            show.advance(result)
+
+        _on_cluster([jobs[k] for k in todo], todo, finished, address, workers, show)
+    show.close()
+    final = [r for r in rows if r is not None]
+    try:
+        plot_archive(out / "archive.png", rows, [Path(j.out).name for j in jobs])
+    except (OSError, ValueError) as err:
+        log.warning("archive picture not written: %s", err)
+    return BatchReport(results=final, skipped=skipped, summary=summary)
+
+
+def _fields(job: Job) -> dict[str, Any]:
+    return {f: getattr(job, f) for f in job.__dataclass_fields__}
+
+
+def _on_cluster(
+    jobs: list[Job],
+    index: list[int],
+    finished: Callable[[int, Result], None],
+    address: str | None,
+    workers: int | None,
+    show: _Progress,
+) -> None:
+    """Submit ``jobs`` and hand each result to ``finished`` as it comes."""
+    from distributed import Client, as_completed
+
+    logging.getLogger("distributed").setLevel(logging.ERROR)
+    cluster = None
+    try:
+        if address is None:
+            cluster = _local_cluster(workers)
+            client = Client(cluster)
+        else:
+            client = Client(address, timeout="20s")
+    except (OSError, TimeoutError, ValueError) as err:
+        target = address or "a local cluster"
+        raise ConfigError(f"cannot reach the Dask scheduler {target}: {err}") from None
+    try:
+        link = getattr(client, "dashboard_link", None)
+        if link and (cluster is None or _has_dashboard()):
+            show.line(f"Dask dashboard: {link}")
+        futures = {
+            client.submit(run_job, job, key=f"afmdrift-batch-{job.key[:16]}-{k}", retries=1): k
+            for k, job in zip(index, jobs, strict=True)
+        }
+        for future in as_completed(futures):
+            k = futures[future]
+            try:
+                result = future.result()
+            except Exception as err:  # a worker died on it (KilledWorker, lost memory)
+                job = jobs[index.index(k)]
+                text = " ".join(str(err).split()) or type(err).__name__
+                result = Result(
+                    recording=job.recording,
+                    status="failed",
+                    error=f"{job.recording}: {type(err).__name__}: {text}",
+                )
+            finished(k, result)
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _has_dashboard() -> bool:
+    try:
+        import bokeh  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _local_cluster(workers: int | None) -> Any:
+    from distributed import LocalCluster
+
+    n = workers if workers is not None else len(os.sched_getaffinity(0))
+    if n < 1:
+        raise ConfigError(f"--workers must be >= 1, got {n}")
+    return LocalCluster(
+        n_workers=n,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=":0" if _has_dashboard() else None,
+        silence_logs=logging.ERROR,
+    )
+
+
+class _Progress:
+    """Recordings and frames done, with the rate, on one terminal line."""
+
+    def __init__(self, stream: TextIO | None, *, total: int, done: int) -> None:
+        self.stream = stream
+        self.total = total
+        self.done = done
+        self.frames = 0
+        self.failed = 0
+        self.started = time.monotonic()
+
+    def line(self, text: str) -> None:
+        print(text, file=self.stream or sys.stderr, flush=True)
+
+    def advance(self, result: Result) -> None:
+        self.done += 1
+        self.frames += result.frames
+        self.failed += result.status == "failed"
+        if self.stream is None:
+            return
+        rate = self.frames / max(time.monotonic() - self.started, 1e-9)
+        self.stream.write(
+            f"\r{self.done}/{self.total} recordings ({self.failed} failed), "
+            f"{self.frames} frames, {rate:.1f} frames/s"
+        )
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.stream is not None and self.done:
+            self.stream.write("\n")
+            self.stream.flush()

@@ -1,0 +1,77 @@
+"""``afmdrift batch INPUT... --out DIR``: re-analyse an archive on Dask."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+from typing import Any
+
+from afmdrift.cli._import import add_file_options, pixel_size_option
+
+
+def register(sub: Any) -> None:
+    p = sub.add_parser(
+        "batch",
+        help="Re-analyse many recordings on Dask (this machine or a cluster).",
+        description="Run a task on every recording (stacks and movies in any format "
+        "'afmdrift measure' reads, session directories, globs, folders of images) as "
+        "Dask tasks. Writes DIR/<stem>/track.jsonl (the lines of 'afmdrift measure STACK "
+        "--json'), DIR/summary.csv (one row per recording, rewritten as each finishes) "
+        "and DIR/archive.png. A run started again skips the recordings done with the "
+        "same input and configuration. Exit 0: all done; 1: some failed; 2: usage error.",
+    )
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="recordings, globs or folders")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p.add_argument(
+        "--task",
+        choices=("measure", "correct"),
+        default="measure",
+        help="measure (default): the drift track; correct: also the drift-corrected "
+        "frames (DIR/<stem>/corrected/frames.npy and an ImageJ corrected.tif)",
+    )
+    add_file_options(p)
+    p.add_argument("--config", metavar="FILE", help="TOML config (default config/default.toml)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="worker processes of the local cluster (default: one per core)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="an existing Dask scheduler (tcp://HOST:PORT; default $AFMDRIFT_SCHEDULER, "
+        "else a local cluster)",
+    )
+    p.set_defaults(handler=_run)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from afmdrift.batch import run_batch
+    from afmdrift.config import load_config
+
+    terminal = sys.stderr.isatty() and not os.environ.get("CI")
+    report = run_batch(
+        args.inputs,
+        Path(args.out),
+        task=args.task,
+        config=load_config(args.config),
+        workers=args.workers,
+        scheduler=args.scheduler,
+        pixel_size_nm=pixel_size_option(args.pixel_size_nm),
+        channel=args.channel,
+        height_unit=args.height_unit,
+        progress=sys.stderr if terminal else None,
+    )
+    done = len(report.results) - report.failed
+    print(
+        f"{done} done, {report.failed} failed, {report.skipped} skipped as already done: "
+        f"{report.summary}",
+        file=sys.stderr,
+    )
+    for r in report.results:
+        if r.status == "failed":
+            print(f"failed: {r.error}", file=sys.stderr)
+    return 1 if report.failed else 0

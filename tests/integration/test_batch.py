@@ -1,0 +1,234 @@
+"""``afmdrift batch`` against a real Dask cluster: a ``dask scheduler`` and two
+``dask worker`` processes started from this venv on 127.0.0.1, the command run
+as a user runs it (a subprocess with ``--scheduler``)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from afmdrift.config import AfmdriftConfig
+from afmdrift.io import load_stack
+from afmdrift.pipeline import track_stack
+from afmdrift.testing import rough_texture, shifted_crop
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _movie(path: Path, seed: int, frames: int = 8, size: int = 128) -> Path:
+    rng = np.random.default_rng(seed)
+    tex = rough_texture((size + 200, size + 200), pixel_size_nm=1.0, rng=rng,
+                        correlation_length_nm=4.0)  # fmt: skip
+    step = rng.uniform(-0.8, 0.8, size=2)
+    stack = [
+        shifted_crop(tex, shape=(size, size), dx_px=step[0] * k, dy_px=step[1] * k)
+        for k in range(frames)
+    ]
+    np.save(path, np.asarray(stack, dtype=np.float32))
+    return path
+
+
+@pytest.fixture(scope="module")
+def scheduler(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A ``dask scheduler`` and two ``dask worker`` processes on loopback."""
+    root = tmp_path_factory.mktemp("dask")
+    file = root / "scheduler.json"
+    env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    common = ["--no-dashboard"]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "distributed.cli.dask_scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--scheduler-file",
+                str(file),
+                *common,
+            ],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            env=env,
+            cwd=root,
+        )
+    ]
+    try:
+        for _ in range(300):
+            if file.is_file() and file.stat().st_size:
+                break
+            time.sleep(0.1)
+        address = json.loads(file.read_text())["address"]
+        for _ in range(2):
+            procs.append(
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        "-m",
+                        "distributed.cli.dask_worker",
+                        address,
+                        "--host",
+                        "127.0.0.1",
+                        "--nworkers",
+                        "1",
+                        "--nthreads",
+                        "1",
+                        *common,
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                    env=env,
+                    cwd=REPO,
+                )
+            )
+        from distributed import Client
+
+        with Client(address, timeout="30s") as client:
+            client.wait_for_workers(2, timeout=60)
+        yield address
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def _batch(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "afmdrift", "batch", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+
+
+def _summary(out: Path) -> dict[str, dict[str, str]]:
+    with (out / "summary.csv").open(encoding="utf-8") as fh:
+        return {row["recording"]: row for row in csv.DictReader(fh)}
+
+
+def _same(a: object, b: object) -> bool:
+    """Equal documents, floats within 1e-6."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, float) and isinstance(b, float):
+        return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-6
+    return a == b
+
+
+def test_batch_on_a_cluster_equals_measure_and_reports_a_bad_file(
+    scheduler: str, tmp_path: Path
+) -> None:
+    arc = tmp_path / "arc"
+    arc.mkdir()
+    movies = [_movie(arc / f"m{k}.npy", seed=k) for k in range(3)]
+    good = movies[0].read_bytes()
+    (arc / "cut.npy").write_bytes(good[: len(good) // 3])  # a truncated file
+    out = tmp_path / "out"
+    done = _batch(str(arc / "*.npy"), "--out", str(out), "--pixel-size-nm", "1",
+                  "--scheduler", scheduler, cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    rows = _summary(out)
+    assert set(rows) == {str(p) for p in [*movies, arc / "cut.npy"]}
+    cut = rows[str(arc / "cut.npy")]
+    assert cut["status"] == "failed"
+    assert "cut.npy" in cut["error"]
+    assert "\n" not in cut["error"]
+    workers = {rows[str(m)]["worker"] for m in movies}
+    assert all(w.startswith("tcp://127.0.0.1:") for w in workers)
+    for m in movies:
+        row = rows[str(m)]
+        assert row["status"] == "done"
+        serial = list(track_stack(load_stack(m, pixel_size_nm=(1.0, 1.0)), AfmdriftConfig()))
+        lines = [json.loads(x) for x in (out / m.stem / "track.jsonl").read_text().splitlines()]
+        assert _same(lines, serial), m
+        assert int(row["frames"]) == len(serial) + 1
+        last = [d for d in serial if d["valid"]][-1]
+        assert float(row["drift_x_nm"]) == pytest.approx(last["cumulative_dx_nm"], abs=1e-6)
+        assert float(row["drift_y_nm"]) == pytest.approx(last["cumulative_dy_nm"], abs=1e-6)
+    assert (out / "archive.png").stat().st_size > 0
+
+
+def test_a_batch_killed_with_sigkill_redoes_nothing_that_was_done(
+    scheduler: str, tmp_path: Path
+) -> None:
+    arc = tmp_path / "arc"
+    arc.mkdir()
+    movies = [_movie(arc / f"m{k:02d}.npy", seed=10 + k, frames=30) for k in range(10)]
+    out = tmp_path / "out"
+    args = [str(arc), "--out", str(out), "--pixel-size-nm", "1", "--scheduler", scheduler]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "afmdrift", "batch", *args],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    try:
+        for _ in range(1200):
+            results = list(out.glob("*/result.json"))
+            if len(results) >= 2:
+                break
+            assert proc.poll() is None, "the batch ended before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait(timeout=30)
+    time.sleep(3.0)  # a task running when its client died may still finish on its worker
+    before = {p.parent.name: p.stat().st_mtime_ns for p in out.glob("*/result.json")}
+    assert 2 <= len(before) < len(movies), "kill the batch while it runs"
+    again = _batch(*args, cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    assert f"{len(before)} of {len(movies)} recordings already done" in again.stderr
+    after = {p.parent.name: p.stat().st_mtime_ns for p in out.glob("*/result.json")}
+    assert set(after) == {m.stem for m in movies}
+    assert all(after[k] == t for k, t in before.items()), "a done recording was redone"
+    assert all(r["status"] == "done" for r in _summary(out).values())
+
+
+def test_a_local_cluster_corrects_into_an_imagej_stack(tmp_path: Path) -> None:
+    """No scheduler given: a LocalCluster of two workers; ``--task correct`` writes
+    the corrected frames as a TIFF stack that Fiji opens with its pixel size."""
+    import tifffile
+
+    movie = _movie(tmp_path / "m.npy", seed=3)
+    out = tmp_path / "out"
+    done = _batch(str(movie), "--out", str(out), "--pixel-size-nm", "2", "--workers", "2",
+                  "--task", "correct", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    with tifffile.TiffFile(out / "m" / "corrected.tif") as tif:
+        assert tif.is_imagej
+        frames = tif.asarray()
+        meta = tif.imagej_metadata
+        x_res = tif.pages[0].tags["XResolution"].value
+    assert frames.shape == (8, 128, 128)
+    assert meta is not None
+    assert meta["unit"] == "nm"
+    assert x_res[1] / x_res[0] == pytest.approx(2.0)  # nm per pixel
+    assert (out / "m" / "track.jsonl").is_file()
+
+
+def test_usage_errors_exit_2(tmp_path: Path) -> None:
+    bad = _batch(str(tmp_path / "none-*.npy"), "--out", str(tmp_path / "o"), cwd=tmp_path)
+    assert bad.returncode == 2
+    assert "matches no file" in bad.stderr
+    movie = _movie(tmp_path / "m.npy", seed=4)
+    bad = _batch(str(movie), "--out", str(tmp_path / "o"), "--workers", "0", cwd=tmp_path)
+    assert bad.returncode == 2
+    assert "--workers must be >= 1" in bad.stderr
