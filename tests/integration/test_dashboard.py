@@ -302,8 +302,8 @@ async def test_dashboard_started_before_the_daemon_waits_and_then_follows_the_ru
             assert store_text.startswith(f"waiting for {store} ("), store_text
             link = await browser.evaluate("document.getElementById('daemon-link').textContent")
             assert link == f"waiting for the daemon on {pub}", link
-            shot = await browser.screenshot(tmp_path / "dashboard-waiting.png")
-            _save_screenshot(shot, "dashboard-waiting.png")
+            # Left in the test's directory to look at (not a figure of docs/).
+            await browser.screenshot(tmp_path / "dashboard-waiting.png")
             # Several store polls find nothing; the dashboard keeps serving.
             await asyncio.sleep(2.5)
             assert not run_dir.exists()
@@ -327,7 +327,7 @@ async def test_dashboard_started_before_the_daemon_waits_and_then_follows_the_ru
             )
             link = await browser.evaluate("document.getElementById('daemon-link').textContent")
             assert link.startswith("live from"), link
-            shot = await browser.screenshot(tmp_path / "dashboard-after-wait.png")
+            await browser.screenshot(tmp_path / "dashboard-after-wait.png")
             assert await browser.evaluate("window.afmdriftDashboard.lastError") is None
             assert browser.errors == []
         assert dashboard.proc.poll() is None
