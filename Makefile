@@ -10,8 +10,10 @@ $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 
 # constraints.txt pins torch to the CPU wheel; never install without it.
-$(STAMP): $(BIN)/python pyproject.toml constraints.txt
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+# nanonis-test is the official Nanonis client, installed from PyPI for
+# tests/integration/test_nanonis_vendor.py (its licence forbids copying it here).
+$(STAMP): $(BIN)/python pyproject.toml constraints.txt Makefile
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev,nanonis-test]'
 	@touch $(STAMP)
 
 install: $(STAMP)

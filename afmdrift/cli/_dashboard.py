@@ -14,12 +14,19 @@ def register(sub: Any) -> None:
         "ZeroMQ topics and its run store (read-only), or shows a finished run directory. "
         "Without --run-dir it follows the configured daemon (service.pub_endpoint and "
         "service.run_dir); with --run-dir alone the run is shown as finished; add --pub "
-        "(or --live for the configured endpoint) to follow its daemon. See docs/dashboard.md.",
+        "(or --live for the configured endpoint) to follow its daemon. Following a daemon, "
+        "it waits for the run directory and its store to appear (the daemon creates them "
+        "when it starts). See docs/dashboard.md.",
     )
     p.add_argument(
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
-    p.add_argument("--run-dir", default=None, help="run directory to read (read-only)")
+    p.add_argument(
+        "--run-dir",
+        default=None,
+        help="run directory to read (read-only); with --pub or --live, waited for until "
+        "the daemon creates it",
+    )
     p.add_argument("--pub", default=None, help="the daemon's PUB endpoint to follow")
     p.add_argument(
         "--live",
@@ -72,13 +79,13 @@ def _dashboard(args: argparse.Namespace) -> int:
         raise DashboardError(f"--wait-s must be > 0, got {args.wait_s}")
     run_dir = args.run_dir
     pub = args.pub
-    wait_for_store = False
     if run_dir is None and pub is None:
-        # The configured daemon: its store appears when it starts.
         run_dir, pub = config.service.run_dir, config.service.pub_endpoint
-        wait_for_store = True
     elif args.live and pub is None:
         pub = config.service.pub_endpoint
+    # Following a daemon: its run directory and store appear when it starts,
+    # which may be after the dashboard (a service unit, a script starting both).
+    wait_for_store = run_dir is not None and pub is not None
     token = None
     if args.token_file is not None:
         try:
@@ -145,6 +152,8 @@ async def _serve(
             what = f"following {pub}" if pub else "finished run"
             where = f"run directory {run_dir}" if run_dir else "no run directory"
             print(f"afmdrift dashboard: {dash.url} ({what}; {where})", flush=True)
+            if dash.waiting_for_store is not None:
+                print(f"afmdrift dashboard: {dash.waiting_for_store}", flush=True)
             await dash.serve_forever()
     except asyncio.CancelledError:
         return 0

@@ -16,13 +16,15 @@ Public API
     True drift for simulated or recorded sessions.
 :class:`DashboardError`
     Unusable input (run directory, store, endpoint, address, token).
+:class:`StoreNotReadyError`
+    The run store does not exist yet (a live dashboard waits for it).
 """
 
 from afmdrift.dashboard._app import Dashboard
 from afmdrift.dashboard._envelope import Envelope
 from afmdrift.dashboard._sources import load_session
 from afmdrift.dashboard._state import ArrayTruth, FunctionTruth, RunState, TruthSource
-from afmdrift.dashboard._store import DashboardError, RunReader
+from afmdrift.dashboard._store import DashboardError, RunReader, StoreNotReadyError
 
 __all__ = [
     "ArrayTruth",
@@ -32,6 +34,7 @@ __all__ = [
     "FunctionTruth",
     "RunReader",
     "RunState",
+    "StoreNotReadyError",
     "TruthSource",
     "load_session",
 ]

@@ -37,7 +37,7 @@ from aiohttp import WSMsgType, web
 from afmdrift.config import AfmdriftConfig, check_endpoint, host_is_loopback
 from afmdrift.dashboard._sources import DiagnosisFile, FrameImages, frame_view
 from afmdrift.dashboard._state import RunState, TruthSource
-from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader
+from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader, StoreNotReadyError
 from afmdrift.errors import AfmdriftError, InputError
 from afmdrift.model import OffsetCurve
 from afmdrift.service import OffsetLimiter
@@ -56,6 +56,8 @@ _TOKEN_COOKIE = "afmdrift_dashboard_token"
 _DRAIN_MAX = 2000
 #: Shortest interval between two reads of the SUB socket, s.
 _BATCH_S = 0.01
+#: While waiting for a run store, the log repeats that it waits this often, s.
+_STORE_WAIT_LOG_S = 60.0
 
 
 def _dumps(doc: Any) -> str:
@@ -113,7 +115,11 @@ class Dashboard:
     store_poll_s, tick_s : float
         Store polling and page update periods, s.
     wait_for_store : bool
-        Live mode: wait for ``RUN_DIR/run.sqlite`` to appear instead of failing.
+        Live mode (with ``pub_endpoint``): when the run directory, its
+        ``run.sqlite`` or the store's tables do not exist yet, wait for them
+        (the page and the log say so) and follow the run once they appear,
+        instead of failing. The daemon creates them when it starts, so a
+        dashboard started first (a service unit, a script) waits for it.
     first_message_timeout_s : float
         Live mode without a run store: fail when the daemon sends nothing this long.
     """
@@ -157,6 +163,8 @@ class Dashboard:
             truth=truth,
             pub_endpoint=pub_endpoint,
         )
+        if self.run_dir is not None:
+            self.state.store_path = str(self.run_dir / DB_FILE)
         self.images = FrameImages(run_dir=self.run_dir, session=session)
         diag = diagnosis_path or (None if self.run_dir is None else self.run_dir / "diagnosis.json")
         self.diagnosis = None if diag is None else DiagnosisFile(Path(diag))
@@ -170,6 +178,8 @@ class Dashboard:
         self.first_message_timeout_s = first_message_timeout_s
         self.silent_after_s = 3.0 * max(self.config.service.heartbeat_interval_s, 1.0)
         self._reader: RunReader | None = None
+        self._store_wait_since: float | None = None
+        self._store_wait_logged = 0.0
         self._sub: zmq.asyncio.Socket | None = None
         self._cursors = {"frame": -1, "channel": 0, "event": 0, "model": -1}
         self._registration_config = self.config
@@ -204,12 +214,13 @@ class Dashboard:
         return self.url
 
     async def _start(self) -> None:
-        if self.run_dir is not None and (
-            self.pub_endpoint is None
-            or not self.wait_for_store
-            or (self.run_dir / DB_FILE).is_file()
-        ):
-            self._open_store()
+        if self.run_dir is not None:
+            try:
+                self._open_store()
+            except StoreNotReadyError as err:
+                if self.pub_endpoint is None or not self.wait_for_store:
+                    raise
+                self._store_missing(err)
         if self._reader is not None:
             await self._poll_store_once(first=True)
             if self.pub_endpoint is None:
@@ -464,20 +475,68 @@ class Dashboard:
 
     # ------------------------------------------------------------------ store
 
+    @property
+    def waiting_for_store(self) -> str | None:
+        """What the dashboard is waiting for (the run store and why it is not
+        usable yet), or ``None`` when it is not waiting."""
+        return self.state.store_note if self.state.store_state == "waiting" else None
+
+    def _store_missing(self, err: StoreNotReadyError) -> None:
+        """Live mode, no usable store yet: say what is awaited, on the page and,
+        from time to time, in the log."""
+        assert self.run_dir is not None
+        now = time.monotonic()
+        if self._store_wait_since is None:
+            self._store_wait_since = self._store_wait_logged = now
+            log.info("waiting for the run store %s (%s)", self.run_dir / DB_FILE, err)
+        waited = now - self._store_wait_since
+        self.state.store_state = "waiting"
+        self.state.store_note = (
+            f"waiting for {self.run_dir / DB_FILE} ({err}); the run is followed once "
+            "afmdrift run creates it"
+        )
+        if now - self._store_wait_logged >= _STORE_WAIT_LOG_S:
+            self._store_wait_logged = now
+            log.warning(
+                "still waiting for the run store %s after %.0f s (%s): is afmdrift run "
+                "writing its run directory there?",
+                self.run_dir / DB_FILE,
+                waited,
+                err,
+            )
+
     def _open_store(self) -> None:
         assert self.run_dir is not None
-        self._reader = RunReader(self.run_dir)
-        meta = self._reader.meta()
-        self.state.meta = meta
+        reader = RunReader(self.run_dir)
+        try:
+            self._set_meta(reader.meta())
+            ref = reader.session_reference()
+        except DashboardError:
+            reader.close()
+            raise
+        self._reader = reader
+        if ref is not None:
+            self.state.add_records([ref])
+        self.state.store_state = "open"
+        self.state.store_note = f"{reader.path} (read-only)"
+        if self._store_wait_since is not None:
+            log.info(
+                "run store %s appeared after %.0f s; following it",
+                reader.path,
+                time.monotonic() - self._store_wait_since,
+            )
+            self._store_wait_since = None
+
+    def _set_meta(self, meta: dict[str, str]) -> None:
+        """The store's ``meta`` table; a replay's stored configuration gives the
+        frame view's registration parameters."""
         stored = meta.get("config")
-        if stored:
+        if stored and stored != self.state.meta.get("config"):
             try:
                 self._registration_config = AfmdriftConfig.model_validate_json(stored)
             except ValueError:
                 log.warning("%s: stored configuration not readable; using --config", self.run_dir)
-        ref = self._reader.session_reference()
-        if ref is not None:
-            self.state.add_records([ref])
+        self.state.meta = meta
 
     async def _poll_store_once(self, *, first: bool = False) -> None:
         reader = self._reader
@@ -506,6 +565,9 @@ class Dashboard:
         if rows.model is not None:
             c["model"] = rows.model[0]
             self.state.set_model_state(rows.model[1], rows.model[2])
+        if rows.meta != self.state.meta:
+            self._set_meta(rows.meta)
+        self.state.store_state = "open"
         self.state.store_note = f"{reader.path} (read-only)"
 
     def _offsets_from_stored_curves(self) -> None:
@@ -552,24 +614,32 @@ class Dashboard:
         while True:
             await asyncio.sleep(self.store_poll_s)
             if self._reader is None:
-                assert self.run_dir is not None
-                if not (self.run_dir / DB_FILE).is_file():
-                    self.state.store_note = f"waiting for {self.run_dir / DB_FILE}"
-                    continue
                 try:
                     self._open_store()
+                except StoreNotReadyError as err:
+                    # Not there yet, or removed: a live dashboard waits for it.
+                    if self.pub_endpoint is not None and self.wait_for_store:
+                        self._store_missing(err)
+                    else:
+                        self._store_unusable(err)
+                    continue
                 except DashboardError as err:
-                    self.state.store_note = str(err)
+                    self._store_unusable(err)
                     continue
             try:
                 await self._poll_store_once()
             except DashboardError as err:
                 # A removed or damaged store: say so, reopen on the next poll.
-                self.state.store_note = str(err)
-                log.warning("%s", err)
+                self._store_unusable(err)
                 if self._reader is not None:
                     self._reader.close()
                     self._reader = None
+
+    def _store_unusable(self, err: DashboardError) -> None:
+        if str(err) != self.state.store_note:
+            log.warning("%s", err)
+        self.state.store_state = "error"
+        self.state.store_note = str(err)
 
     # ------------------------------------------------------------------ pages
 

@@ -243,6 +243,10 @@ class RunState:
         self.diagnosis_note = ""
         self.frame_view: dict[str, Any] | None = None
         self.store_note = ""
+        #: The run store: "" (none followed), "waiting" (not there yet), "open", "error".
+        self.store_state = ""
+        #: Its path (``RUN_DIR/run.sqlite``), when a run directory is followed.
+        self.store_path: str | None = None
         # Truth points not yet sent to the pages; a reset resends them all.
         self._pending_truth: list[tuple[float, float, float]] = []
         self._truth_reset = False
@@ -505,6 +509,8 @@ class RunState:
             "diagnosis": self.diagnosis,
             "diagnosis_note": self.diagnosis_note,
             "store_note": self.store_note,
+            "store_state": self.store_state,
+            "store_path": self.store_path,
             "meta": {k: v for k, v in self.meta.items() if k != "config"},
         }
 

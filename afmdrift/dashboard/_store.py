@@ -23,7 +23,7 @@ from afmdrift.errors import AfmdriftError
 from afmdrift.pipeline import FRAME_COLUMNS, FrameRecord, record_from_row
 from afmdrift.service import DB_NAME, STORE_SCHEMA_VERSION
 
-__all__ = ["DB_FILE", "DashboardError", "RunReader", "StoreRows"]
+__all__ = ["DB_FILE", "DashboardError", "RunReader", "StoreNotReadyError", "StoreRows"]
 
 #: Database file of a run directory (``docs/service.md``).
 DB_FILE = DB_NAME
@@ -39,19 +39,29 @@ class DashboardError(AfmdriftError):
     """The dashboard cannot start: unknown run directory, unusable store, bad option."""
 
 
+class StoreNotReadyError(DashboardError):
+    """The run store is not there yet: no run directory, no ``run.sqlite``, or a
+    database without the store's tables (the daemon creates the directory, then
+    the file, then its schema). A dashboard following a daemon waits for it; a
+    finished run is refused."""
+
+
 @dataclasses.dataclass(frozen=True, slots=True)
 class StoreRows:
     """What :meth:`RunReader.read_since` found after the given cursors.
 
     ``channels`` rows are ``(id, t_s, name, value_or_nan)``; ``events`` rows are
     ``(id, epoch, t_s, kind, x_nm, y_nm)``; ``model`` is the newest
-    ``(seq, predictor, state)`` when it is newer than the cursor, else ``None``.
+    ``(seq, predictor, state)`` when it is newer than the cursor, else ``None``;
+    ``meta`` is the whole ``meta`` table (the daemon adds to it after it starts:
+    the instrument's identity once connected).
     """
 
     frames: list[FrameRecord]
     channels: list[tuple[int, float, str, float]]
     events: list[tuple[int, int, float, str, float, float]]
     model: tuple[int, str, dict[str, Any]] | None
+    meta: dict[str, str]
 
 
 class RunReader:
@@ -64,18 +74,21 @@ class RunReader:
 
     Raises
     ------
+    StoreNotReadyError
+        The directory or its ``run.sqlite`` does not exist, or the database has
+        no tables yet (a daemon that is creating it).
     DashboardError
-        The directory or its ``run.sqlite`` does not exist, the file is not a
-        run store, or its schema version is not 1.
+        The file is not a run store, or its schema version is not the one
+        this reader understands.
     """
 
     def __init__(self, run_dir: str | Path) -> None:
         self.run_dir = Path(run_dir)
         if not self.run_dir.is_dir():
-            raise DashboardError(f"{self.run_dir}: no such run directory")
+            raise StoreNotReadyError(f"{self.run_dir}: no such run directory")
         self.path = self.run_dir / DB_FILE
         if not self.path.is_file():
-            raise DashboardError(
+            raise StoreNotReadyError(
                 f"{self.run_dir}: not a run directory (no {DB_FILE}; written by afmdrift run "
                 "or afmdrift replay)"
             )
@@ -87,6 +100,16 @@ class RunReader:
         except sqlite3.Error as err:
             raise DashboardError(f"{self.path}: cannot open read-only ({err})") from None
         try:
+            # The daemon creates the file, then its tables in one transaction:
+            # a database without tables (an empty file too) is one on its way.
+            begun = self._db.execute(
+                "SELECT 1 FROM sqlite_master WHERE type = 'table' LIMIT 1"
+            ).fetchone()
+            if begun is None:
+                self._db.close()
+                raise StoreNotReadyError(
+                    f"{self.path}: no tables yet (afmdrift run creates them when it starts)"
+                )
             row = self._db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
             self._db.execute(f"SELECT {_COLUMNS} FROM frames LIMIT 0").fetchall()
         except sqlite3.DatabaseError as err:
@@ -110,7 +133,19 @@ class RunReader:
         self.close()
 
     def meta(self) -> dict[str, str]:
-        """The ``meta`` table as a mapping."""
+        """The ``meta`` table as a mapping.
+
+        Raises
+        ------
+        DashboardError
+            The database cannot be read.
+        """
+        try:
+            return self._meta()
+        except sqlite3.DatabaseError as err:
+            raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
+
+    def _meta(self) -> dict[str, str]:
         return {str(k): str(v) for k, v in self._db.execute("SELECT key, value FROM meta")}
 
     def frame(self, seq: int) -> FrameRecord | None:
@@ -119,10 +154,19 @@ class RunReader:
         return None if row is None else record_from_row(row)
 
     def session_reference(self) -> FrameRecord | None:
-        """The session reference frame (drift position 0), or ``None`` before it."""
-        row = self._db.execute(
-            f"SELECT {_COLUMNS} FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
-        ).fetchone()
+        """The session reference frame (drift position 0), or ``None`` before it.
+
+        Raises
+        ------
+        DashboardError
+            The database cannot be read.
+        """
+        try:
+            row = self._db.execute(
+                f"SELECT {_COLUMNS} FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
+            ).fetchone()
+        except sqlite3.DatabaseError as err:
+            raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
         return None if row is None else record_from_row(row)
 
     def stored_curves(self) -> list[tuple[float, dict[str, Any]]]:
@@ -211,8 +255,9 @@ class RunReader:
                 if row is not None:
                     state = json.loads(row[2])
                     model = (int(row[0]), str(row[1]), state if isinstance(state, dict) else {})
+                meta = self._meta()
             finally:
                 self._db.execute("COMMIT")
         except (sqlite3.DatabaseError, json.JSONDecodeError) as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
-        return StoreRows(frames=frames, channels=channels, events=events, model=model)
+        return StoreRows(frames=frames, channels=channels, events=events, model=model, meta=meta)

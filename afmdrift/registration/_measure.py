@@ -697,19 +697,26 @@ def warm_up(config: RegistrationConfig | None = None) -> float:
     Numba compiles the kernels on their first call (about 10 s after an
     install, while its on-disk cache is empty; about 0.5 s to load them
     from the cache later), holding the GIL meanwhile. This measures a small
-    synthetic pair, in float32 and float64 (the dtypes frames come in), so
-    that the first real frame does not pay it: call it where a pause is
-    harmless, as the drift service does before it starts publishing.
+    synthetic pair, in float32 and float64 (the dtypes frames come in), with
+    each pre-filter ``gradient = "auto"`` can pick for an image
+    (:func:`~afmdrift.registration._blocks.choose_prefilter`), so that the
+    first real frame does not pay it: call it where a pause is harmless, as
+    the drift service does before it starts publishing.
     """
     cfg = config if config is not None else RegistrationConfig()
     start = time.perf_counter()
     rng = np.random.default_rng(0)
     base = rng.standard_normal((264, 264))
-    for dtype in (np.float32, np.float64):
-        ref = base[4:260, 4:260].astype(dtype)
-        cur = base[2:258, 5:261].astype(dtype)  # a shift of (1, 2) px
-        result = measure_drift(ref, cur, pixel_size_nm=1.0, config=cfg, prior_px=(0.0, 0.0))
-        # what the position component reads of every measured frame
-        result.field.valid_row_means_px()
-        result.field.valid_mean_std_px(ddof=0)
+    # The pair is white noise, for which "auto" picks the levelled heights;
+    # a smooth texture gets the compiled x-gradient pass.
+    gradients = ("x", "levelled") if cfg.gradient == "auto" else (cfg.gradient,)
+    for gradient in gradients:
+        each = cfg.model_copy(update={"gradient": gradient})
+        for dtype in (np.float32, np.float64):
+            ref = base[4:260, 4:260].astype(dtype)
+            cur = base[2:258, 5:261].astype(dtype)  # a shift of (1, 2) px
+            result = measure_drift(ref, cur, pixel_size_nm=1.0, config=each, prior_px=(0.0, 0.0))
+            # what the position component reads of every measured frame
+            result.field.valid_row_means_px()
+            result.field.valid_mean_std_px(ddof=0)
     return time.perf_counter() - start

@@ -231,6 +231,113 @@ async def test_live_page_follows_the_daemon_and_recovers_from_a_restart(tmp_path
         sim.kill()
 
 
+def _log_lines(log: Path) -> list[str]:
+    return log.read_text(encoding="utf-8").splitlines() if log.exists() else []
+
+
+async def _first_lines(log: Path, proc: _Process, n: int, timeout_s: float = 30.0) -> list[str]:
+    """The first ``n`` lines a process wrote to its log (fails if it exits first)."""
+    async with asyncio.timeout(timeout_s):
+        while len(lines := _log_lines(log)) < n:
+            assert proc.proc is not None
+            assert proc.proc.poll() is None, "\n".join(lines)
+            await asyncio.sleep(0.05)
+    return lines[:n]
+
+
+@needs_chromium
+@pytest.mark.asyncio
+async def test_dashboard_started_before_the_daemon_waits_and_then_follows_the_run(
+    tmp_path: Path,
+) -> None:
+    """Regression (issue 31): ``afmdrift dashboard --run-dir RUN --pub ...``
+    started before ``afmdrift run`` (a service unit, a script that starts both)
+    ended with "no such run directory". It now waits, says for which path (in
+    its output and on the page), and shows the run once the daemon has made it:
+    the directory, then the store, then its frames."""
+    run_dir = tmp_path / "run"
+    store = run_dir / "run.sqlite"
+    pub = f"tcp://127.0.0.1:{_free_port()}"
+    cfg_path = _daemon_config(
+        tmp_path / "daemon.toml", run_dir, pub, f"tcp://127.0.0.1:{_free_port()}"
+    )
+    scenario = write_scenario(
+        tmp_path / "scenario.toml", scenario_data(frame_period_s=32.0, thermal=True)
+    )
+    sim_port = _free_port()
+    sim = _Process(
+        ["sim", "serve", "--port", str(sim_port), "--scenario", str(scenario), "--speed", "32"],
+        tmp_path / "sim.log",
+    )
+    dash_log = tmp_path / "dashboard.log"
+    dashboard = _Process(
+        [
+            *("dashboard", "--config", str(cfg_path), "--run-dir", str(run_dir)),
+            *("--pub", pub, "--port", str(_free_port())),
+        ],
+        dash_log,
+    )
+    daemon = _Process(
+        ["run", "--config", str(cfg_path), "--instrument", f"socket://127.0.0.1:{sim_port}"],
+        tmp_path / "daemon.log",
+    )
+    dashboard.start()
+    sim.start()
+    try:
+        first, second = await _first_lines(dash_log, dashboard, 2)
+        assert first.startswith("afmdrift dashboard: http://127.0.0.1:"), first
+        assert f"following {pub}; run directory {run_dir}" in first
+        assert second.startswith(f"afmdrift dashboard: waiting for {store} ("), second
+        assert "no such run directory" in second
+        url = first.split()[2]
+
+        async with HeadlessChromium() as browser:
+            await browser.goto(url)
+            await browser.wait_for(
+                "!document.getElementById('store-link').hidden && document.getElementById"
+                f"('store-link').textContent === {json.dumps(f'waiting for {store}')}",
+                timeout_s=30,
+            )
+            store_text = await browser.evaluate("document.getElementById('store-text').textContent")
+            assert store_text.startswith(f"waiting for {store} ("), store_text
+            link = await browser.evaluate("document.getElementById('daemon-link').textContent")
+            assert link == f"waiting for the daemon on {pub}", link
+            # Left in the test's directory to look at (not a figure of docs/).
+            await browser.screenshot(tmp_path / "dashboard-waiting.png")
+            # Several store polls find nothing; the dashboard keeps serving.
+            await asyncio.sleep(2.5)
+            assert not run_dir.exists()
+            assert dashboard.proc is not None
+            assert dashboard.proc.poll() is None
+
+            daemon.start()
+            await browser.wait_for(
+                "window.afmdriftDashboard && Object.keys(window.afmdriftDashboard.frameShown)"
+                ".length >= 3",
+                timeout_s=90,
+            )
+            await browser.wait_for("document.getElementById('store-link').hidden", timeout_s=10)
+            store_text = await browser.evaluate("document.getElementById('store-text').textContent")
+            assert store_text == f"{store} (read-only)"
+            # The run store is followed: channels and events exist only there.
+            await browser.wait_for(
+                "document.getElementById('plot-channels').data.some("
+                "(t) => (t.x || []).length > 0 && t.name !== 'events')",
+                timeout_s=15,
+            )
+            link = await browser.evaluate("document.getElementById('daemon-link').textContent")
+            assert link.startswith("live from"), link
+            await browser.screenshot(tmp_path / "dashboard-after-wait.png")
+            assert await browser.evaluate("window.afmdriftDashboard.lastError") is None
+            assert browser.errors == []
+        assert dashboard.proc.poll() is None
+    finally:
+        daemon.kill()
+        dashboard.kill()
+        sim.kill()
+    assert not any("Traceback" in line for line in _log_lines(dash_log))
+
+
 @needs_chromium
 @pytest.mark.asyncio
 async def test_finished_replay_shows_the_whole_run(tmp_path: Path) -> None:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import os
 import sqlite3
 from pathlib import Path
+from typing import Any
 
 import aiohttp
 import numpy as np
@@ -21,6 +23,7 @@ from afmdrift.dashboard import (
     Envelope,
     RunReader,
     RunState,
+    StoreNotReadyError,
 )
 from afmdrift.pipeline import FrameRecord
 from afmdrift.service import RunStore
@@ -281,7 +284,131 @@ def test_reader_refuses_bad_run_directories_with_one_line(
     assert "\n" not in str(info.value)
 
 
+@pytest.mark.parametrize(
+    "made",
+    ["nothing", "directory", "empty file", "database without tables"],
+)
+def test_reader_tells_a_run_store_on_its_way_from_a_bad_one(tmp_path: Path, made: str) -> None:
+    """The daemon creates the directory, then run.sqlite, then its tables:
+    each stage before the last is "not ready" (a live dashboard waits), not
+    an unusable store."""
+    run = tmp_path / "run"
+    if made != "nothing":
+        run.mkdir()
+    if made == "empty file":
+        (run / "run.sqlite").touch()
+    if made == "database without tables":
+        db = sqlite3.connect(run / "run.sqlite")
+        db.execute("PRAGMA journal_mode=WAL")
+        db.close()
+    with pytest.raises(StoreNotReadyError):
+        RunReader(run)
+    (run / "run.sqlite").unlink(missing_ok=True)
+    _store(run, 1)
+    with RunReader(run) as reader:
+        assert reader.session_reference() is not None
+
+
+def test_reader_calls_an_unusable_store_unusable_not_unready(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.sqlite").write_bytes(b"this is not a database" * 100)
+    with pytest.raises(DashboardError, match="not a usable run store") as info:
+        RunReader(run)
+    assert not isinstance(info.value, StoreNotReadyError)
+
+
 # --------------------------------------------------------------------------- server
+
+
+def _silent_endpoint() -> str:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp://127.0.0.1:{s.getsockname()[1]}"
+
+
+async def _until(condition: Any, timeout_s: float = 10.0) -> None:
+    """Wait until ``condition()`` holds; the dashboard's store poll changes it."""
+    async with asyncio.timeout(timeout_s):
+        while not condition():  # noqa: ASYNC110 (polls as the dashboard's store poll does)
+            await asyncio.sleep(0.02)
+
+
+@pytest.mark.asyncio
+async def test_live_dashboard_waits_for_the_run_directory_and_follows_the_run(
+    tmp_path: Path,
+) -> None:
+    """Regression (issue 31): a dashboard started before the daemon ended with
+    "no such run directory". It waits, says for what, on the page and in
+    the first log line, and follows the run once the store appears, also
+    through a half-made store (directory, then an empty file, then tables,
+    then the instrument's identity in meta)."""
+    run = tmp_path / "run"
+    async with (
+        Dashboard(
+            run_dir=run,
+            pub_endpoint=_silent_endpoint(),
+            port=0,
+            store_poll_s=0.05,
+            wait_for_store=True,
+        ) as dash,
+        aiohttp.ClientSession() as http,
+    ):
+        waiting = dash.waiting_for_store
+        assert waiting is not None
+        assert str(run / "run.sqlite") in waiting
+        assert "no such run directory" in waiting
+        async with http.get(dash.url + "state.json") as resp:
+            summary = await resp.json()
+        assert summary["store_state"] == "waiting"
+        assert summary["store_path"] == str(run / "run.sqlite")
+        assert summary["store_note"] == waiting
+
+        run.mkdir()
+        await _until(lambda: "not a run directory" in (dash.waiting_for_store or ""))
+        (run / "run.sqlite").touch()
+        await _until(lambda: "no tables yet" in (dash.waiting_for_store or ""))
+        assert dash.state.store_state == "waiting"
+
+        _store(run, 3)
+        await _until(lambda: len(dash.state.frames) == 3)
+        assert dash.waiting_for_store is None
+        assert dash.state.store_state == "open"
+        assert dash.state.store_note == f"{run / 'run.sqlite'} (read-only)"
+        with RunStore(run) as store:
+            store.set_meta({"instrument_model": "a later fact"})
+        await _until(lambda: "instrument_model" in dash.state.meta)
+
+
+@pytest.mark.asyncio
+async def test_a_run_directory_that_never_appears_is_repeated_in_the_log(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A mistyped --run-dir does not hang silently: the log says, again and
+    again (every minute; here every 0.1 s), which path is still awaited."""
+    import afmdrift.dashboard._app as app
+
+    monkeypatch.setattr(app, "_STORE_WAIT_LOG_S", 0.1)
+    run = tmp_path / "typo"
+    caplog.set_level("WARNING", logger="afmdrift.dashboard")
+    async with Dashboard(
+        run_dir=run, pub_endpoint=_silent_endpoint(), port=0, store_poll_s=0.05, wait_for_store=True
+    ):
+        await _until(lambda: len(caplog.records) >= 2)
+    for record in caplog.records[:2]:
+        assert record.getMessage().startswith(
+            f"still waiting for the run store {run / 'run.sqlite'} after "
+        )
+        assert "no such run directory" in record.getMessage()
+
+
+@pytest.mark.asyncio
+async def test_a_finished_run_is_not_waited_for(tmp_path: Path) -> None:
+    with pytest.raises(DashboardError, match="no such run directory"):
+        async with Dashboard(run_dir=tmp_path / "nope", port=0, wait_for_store=True):
+            pass
 
 
 def test_loopback_addresses() -> None:
@@ -377,6 +504,38 @@ def test_cli_unknown_run_dir_is_one_line(
     assert main(["dashboard", "--run-dir", str(tmp_path / "nope"), "--port", "0"]) == 2
     err = capsys.readouterr().err.strip()
     assert err == f"afmdrift: error: {tmp_path / 'nope'}: no such run directory"
+
+
+def test_cli_following_a_daemon_waits_for_its_run_directory_and_says_so(
+    tmp_path: Path,
+) -> None:
+    """Regression (issue 31): ``--run-dir RUN --pub ...`` started before the
+    daemon ended with "no such run directory". It now serves, and its second
+    line says which path it waits for (a wrong --run-dir shows there)."""
+    import signal
+    import subprocess
+    import sys
+
+    run = tmp_path / "not-yet"
+    args = ["dashboard", "--run-dir", str(run), "--pub", _silent_endpoint(), "--port", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "afmdrift", *args],
+        cwd=Path(__file__).resolve().parents[2],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout is not None
+        first, second = proc.stdout.readline(), proc.stdout.readline()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=30)
+    assert first.startswith("afmdrift dashboard: http://127.0.0.1:"), (first, err)
+    assert f"run directory {run}" in first
+    assert second.startswith(f"afmdrift dashboard: waiting for {run / 'run.sqlite'} (")
+    assert "no such run directory" in second
+    assert proc.returncode == 0, err
 
 
 def test_cli_corrupt_store_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

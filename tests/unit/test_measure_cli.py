@@ -170,12 +170,21 @@ def test_bad_input_is_one_clear_error(
 def test_unrelated_images_are_not_a_confident_drift(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """Two unrelated textures: the coarse peak is not trusted (z below the cut-off)."""
+    """Two unrelated textures have no drift between them: the coarse peak is not
+    trusted (z below the cut-off), the result is refused with a reason and no
+    drift, and the command exits 1 (a result printed, but invalid)."""
     a = _save(tmp_path / "a.npy", _texture(seed=7))
     b = _save(tmp_path / "b.npy", _texture(seed=8))
-    main(["measure", a, b, "--pixel-size-nm", "1", "--json"])
+    code = main(["measure", a, b, "--pixel-size-nm", "1", "--json"])
     doc = json.loads(capsys.readouterr().out)
     assert "not used" in doc["prior"]
+    assert doc["valid"] is False
+    assert doc["reason"], doc
+    assert (doc["dx_px"], doc["dy_px"], doc["sigma_nm"]) == (None, None, None)
+    assert code == 1
+    # The same refusal without --json: said in words, same exit status.
+    assert main(["measure", a, b, "--pixel-size-nm", "1"]) == 1
+    assert f"INVALID    {doc['reason']}" in capsys.readouterr().out
 
 
 def test_measurement_config_overrides() -> None:

@@ -292,6 +292,7 @@
     let note = names.length ? "" : "No channels logged. ";
     if (!evs.length) note += "No events logged.";
     if (s && !s.store_note) note += " Channels and events come from the run store; no run directory is followed.";
+    else if (s && s.store_state === "waiting") note += " Channels and events come from the run store, which does not exist yet.";
     $("channels-note").textContent = note.trim();
     $("plot-channels").style.height = Math.max(220, 110 * rows) + "px";
     return render("plot-channels", data, layout);
@@ -305,6 +306,14 @@
     const s = state.summary;
     if (!s) return;
     badge($("daemon-link"), s.link.state, s.link.endpoint === null ? "" : s.link.live ? "ok" : "bad");
+    // The run store, when it is not simply open: awaited (live, before the
+    // daemon has created it) or unreadable. The facts line gives the whole note.
+    const store = $("store-link");
+    store.hidden = s.store_state !== "waiting" && s.store_state !== "error";
+    if (!store.hidden) {
+      badge(store, s.store_state === "waiting" ? "waiting for " + s.store_path : "run store unreadable", s.store_state === "waiting" ? "warn" : "bad");
+      store.title = s.store_note;
+    }
     const st = s.status;
     const flags = $("flags");
     flags.textContent = "";
