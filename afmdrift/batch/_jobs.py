@@ -167,7 +167,11 @@ def _read(job: Job) -> tuple[Any, bool]:
     if path.is_dir():
         return read_session(path, mmap=True), True
     images = load_stack(
-        path, pixel_size_nm=job.pixel_size_nm, channel=job.channel, height_unit=job.height_unit
+        path,
+        pixel_size_nm=job.pixel_size_nm,
+        channel=job.channel,
+        height_unit=job.height_unit,
+        stream=True,
     )
     if len(images) < 2:
         raise SessionError(f"{path}: holds one image; a recording needs two frames or more")

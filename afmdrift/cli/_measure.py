@@ -283,7 +283,7 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
     }
     from afmdrift.pipeline import track_stack
 
-    frames = load_stack(args.ref, **read)
+    frames = load_stack(args.ref, **read, stream=True)
     if len(frames) < 2:
         raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
     all_valid = True

@@ -143,8 +143,9 @@ def height_factor_nm(file_unit: str, height_unit: str | None, *, where: str) -> 
     )
 
 
-def check_calibration(image: AfmImage, *, what: str = "pixel size") -> None:
-    """Refuse a calibration outside plausible AFM bounds (see :data:`MAX_SCAN_NM`).
+def check_calibration(image: AfmImage, *, what: str = "pixel size", heights: bool = True) -> None:
+    """Refuse a calibration outside plausible AFM bounds (see :data:`MAX_SCAN_NM`);
+    ``heights=False`` checks the pixel size only (no pass over the heights).
 
     Raises
     ------
@@ -165,6 +166,8 @@ def check_calibration(image: AfmImage, *, what: str = "pixel size") -> None:
                 f"{MAX_PIXEL_NM:g} nm and a scan at most {MAX_SCAN_NM:g} nm: the header "
                 "calibration is corrupt (or give pixel_size_nm / --pixel-size-nm)"
             )
+    if not heights:
+        return
     span = float(np.ptp(image.heights_nm)) if image.heights_nm.size else 0.0
     if not span <= MAX_HEIGHT_RANGE_NM:
         raise ImageFileError(

@@ -252,18 +252,26 @@ def load_stack(
     pixel_size_nm: PixelSize | None = None,
     channel: str = "Height",
     height_unit: str | None = None,
+    stream: bool = False,
 ) -> list[AfmImage]:
     """Read every frame of a file: an (N, rows, cols) ``.npy``/``.tif``/``.nc``
     stack, an ``.asd`` or ``.h5-jpk`` movie (a single-image file gives a list of one).
 
+    With ``stream``, the frames of a ``.npy`` stack of float32 or float64
+    heights in nm are views of a read-only memory map: a caller that goes
+    through them in turn holds a few frames, however long the stack, and
+    nothing is converted. A frame with non-finite heights is then refused
+    when it is measured rather than when the file is read. Other files are
+    read whole.
+
     Parameters and errors are those of :func:`load_image`.
     """
-    return _read_all(
-        Path(path),
-        pixel_size_nm=_pixel_pair(pixel_size_nm),
-        channel=channel,
-        height_unit=height_unit,
-    )
+    pixel = _pixel_pair(pixel_size_nm)
+    if stream:
+        mapped = _map_npy(Path(path), pixel, height_unit)
+        if mapped is not None:
+            return mapped
+    return _read_all(Path(path), pixel_size_nm=pixel, channel=channel, height_unit=height_unit)
 
 
 # --------------------------------------------------------------------------- arrays
@@ -290,6 +298,43 @@ def _check_size(path: Path, shape: tuple[int, ...]) -> None:
         raise ImageFileError(
             f"{path}: declares {n} values (shape {tuple(shape)}); the limit is {MAX_VALUES}"
         )
+
+
+def _map_npy(
+    path: Path, pixel_size_nm: tuple[float, float] | None, height_unit: str | None
+) -> list[AfmImage] | None:
+    """The frames of a ``.npy`` stack as views of a read-only memory map, or
+    ``None`` when it must be read whole (another suffix, another dtype or
+    byte order, heights in another unit, a single image)."""
+    if path.suffix.lower() != ".npy" or not path.is_file():
+        return None
+    if height_unit is not None and length_unit_to_nm(height_unit, where="height_unit") != 1.0:
+        return None
+    try:
+        data = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as err:
+        raise ImageFileError(f"{path}: not a readable .npy array ({err})") from None
+    if not (
+        isinstance(data, np.ndarray)
+        and data.ndim == 3
+        and min(data.shape) > 0
+        and data.dtype in (np.dtype(np.float32), np.dtype(np.float64))
+        and data.flags.c_contiguous
+    ):
+        return None
+    if pixel_size_nm is None:
+        raise ImageFileError(
+            f"{path}: a .npy array carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
+        )
+    _check_size(path, data.shape)
+    images = [
+        AfmImage(heights_nm=data[i], pixel_size_nm=pixel_size_nm, path=path, frame=i,
+                 channel="Height")
+        for i in range(data.shape[0])
+    ]  # fmt: skip
+    # the pixel size once; heights are the caller's, in nm, and read frame by frame
+    check_calibration(images[0], heights=False)
+    return images
 
 
 def _read_array(

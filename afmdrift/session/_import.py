@@ -156,21 +156,21 @@ def session_from_images(
     )
 
 
-def _frames_array(images: list[AfmImage]) -> npt.NDArray[np.float64]:
-    """The (N, rows, cols) float64 heights of ``images``, in order: the array
-    they are views of when they are its consecutive frames (a stack file's
-    reader gives them so), else a copy. A long stack is then held once, and
-    not copied again (the copy cost ~5 ms per 512² frame, mostly in page
-    faults)."""
+def _frames_array(images: list[AfmImage]) -> npt.NDArray[np.floating]:
+    """The (N, rows, cols) heights of ``images``, in order: the array they are
+    views of when they are its consecutive frames (a stack file's reader gives
+    them so, float64; a memory-mapped ``.npy`` stack, float32 or float64), else
+    a float64 copy. A long stack is then held once, and not copied again (the
+    copy cost ~5 ms per 512² frame, mostly in page faults)."""
     base = images[0].heights_nm.base
     if (
         isinstance(base, np.ndarray)
-        and base.dtype == np.float64
+        and base.dtype in (np.dtype(np.float32), np.dtype(np.float64))
         and base.ndim == 3
         and base.shape[0] == len(images)
         and base.flags.c_contiguous
         and all(
-            im.heights_nm.dtype == np.float64
+            im.heights_nm.dtype == base.dtype
             and im.heights_nm.shape == base.shape[1:]
             and im.heights_nm.strides == base.strides[1:]
             and im.heights_nm.ctypes.data == base[i].ctypes.data
