@@ -2,7 +2,11 @@
 
 Two images: ``afmdrift measure REF CUR`` prints the drift of CUR relative to
 REF (a feature at u in REF appears at u + d in CUR; x along columns, y along
-rows), in px and nm, with its uncertainty and the valid block count.
+rows), in px and nm, with its uncertainty and the valid block count. The
+default ``--channel Height`` takes each file's height channel of whatever
+name (``HeightRetrace``, ``ZSensor``, ``Z``, ``Topography``, ...); the channel
+read is named on stderr when it is not the one asked for, and in the output
+(``reference_channel``, ``current_channel``).
 
 One stack or movie: ``afmdrift measure STACK`` streams the frames through
 the daemon's position component (:class:`afmdrift.pipeline.DriftPositions`:
@@ -38,6 +42,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -125,10 +131,13 @@ def _run(args: argparse.Namespace) -> int:
     coarse = not args.no_coarse
     ref = load_image(args.ref, **read)
     cur = load_image(args.cur, **read)
+    report_channels([ref, cur], args.channel)
     result = measure_pair(ref, cur, config, prior_px=given, coarse=coarse)
     doc = {
         "reference": ref.source,
         "current": cur.source,
+        "reference_channel": ref.channel,
+        "current_channel": cur.channel,
         "pixel_size_nm": list(ref.pixel_size_nm),
         **result.to_dict(),
     }
@@ -228,14 +237,27 @@ def measure_pair(
     return result
 
 
+def report_channels(images: Sequence[AfmImage], asked: str) -> None:
+    """Say on stderr which channel was read where it is not the one asked for
+    by name (the default ``Height`` takes each format's height channel:
+    ``HeightRetrace``, ``ZSensor``, ``Z``, ``Topography``, ...; see
+    :func:`afmdrift.io.pick_channel`)."""
+    for img in images:
+        if img.channel != asked:
+            print(
+                f"afmdrift: {img.source}: read channel {img.channel!r} for {asked!r}",
+                file=sys.stderr,
+            )
+
+
 def _describe(doc: dict[str, Any]) -> str:
     def num(key: str, fmt: str = "+.3f") -> str:
         v = doc.get(key)
         return "n/a" if v is None else format(v, fmt)
 
     lines = [
-        f"reference  {doc['reference']}",
-        f"current    {doc['current']}",
+        f"reference  {doc['reference']} (channel {doc['reference_channel']})",
+        f"current    {doc['current']} (channel {doc['current_channel']})",
         f"drift      dx = {num('dx_px')} px, dy = {num('dy_px')} px",
         f"           dx = {num('dx_nm', '+.2f')} nm, dy = {num('dy_nm', '+.2f')} nm",
         f"sigma      x = {num('sigma_x_nm', '.2f')} nm, y = {num('sigma_y_nm', '.2f')} nm "
@@ -284,6 +306,7 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
     from afmdrift.pipeline import track_stack
 
     frames = load_stack(args.ref, **read, stream=True)
+    report_channels(frames[:1], args.channel)
     if len(frames) < 2:
         raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
     all_valid = True

@@ -5,10 +5,13 @@
 ``i`` of a movie or stack) and :func:`load_stack` every frame of a file, as
 :class:`AfmImage` records with heights in nm and the pixel size (x, y) in nm.
 Format readers (AFMReader, igor2, tifffile, h5py, scipy) are imported only when used.
+:func:`pick_channel` finds a file's height channel for the default ``Height``
+(``HeightRetrace``, ``ZSensor``, ``Z``, ``Topography``, ...).
 :func:`write_tif` and :func:`write_sxm` save simulator frames as instrument
 software would (for the folder instrument's tests and benchmark).
 """
 
+from afmdrift.io._channels import DEFAULT_CHANNEL, pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 from afmdrift.io._load import SUFFIXES, PixelSize, load_image, load_stack, parse_spec
 from afmdrift.io._nanoscope import NanoscopeHeader, parse_nanoscope_header
@@ -16,6 +19,7 @@ from afmdrift.io._sxm import write_sxm
 from afmdrift.io._write import write_tif
 
 __all__ = [
+    "DEFAULT_CHANNEL",
     "SUFFIXES",
     "AfmImage",
     "ImageFileError",
@@ -26,6 +30,7 @@ __all__ = [
     "load_stack",
     "parse_nanoscope_header",
     "parse_spec",
+    "pick_channel",
     "write_sxm",
     "write_tif",
 ]

@@ -57,6 +57,7 @@ from typing import Any
 
 import numpy as np
 
+from afmdrift.io._channels import pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 from afmdrift.records import ScanDirection
 
@@ -67,7 +68,7 @@ _WAVE_HEADER = 320
 #: Igor number types (TN003): NT_FP32, NT_FP64, NT_I8, NT_I16, NT_I32 and the unsigned ones.
 _ITEM_SIZE = {2: 4, 4: 8, 8: 1, 0x10: 2, 0x20: 4, 0x48: 1, 0x50: 2, 0x60: 4}
 _METRE_CHANNELS = ("height", "zsensor", "amplitude", "deflection")
-_ALIASES = {"height": "HeightTrace", "topography": "HeightTrace"}
+_ALIASES = {"topography": "Height"}
 #: Most values one file may declare (the limit of :func:`afmdrift.io.load_image`).
 _MAX_VALUES = 1 << 28
 
@@ -214,9 +215,11 @@ def _select(labels: list[str], channel: str, path: Path) -> tuple[int, str]:
     if not re.search(r"(re)?trace$", want, re.IGNORECASE):
         candidates.append(f"{want}Trace")
     for candidate in candidates:
-        for k, label in enumerate(labels):
-            if label.lower() == candidate.lower():
-                return k, label
+        try:
+            label = pick_channel(labels, candidate, where=str(path))
+        except ImageFileError:
+            continue
+        return labels.index(label), label
     has = ", ".join(label or f"<layer {k}>" for k, label in enumerate(labels))
     raise ImageFileError(f"{path}: no channel {channel!r} in this .ibw file (has: {has})")
 

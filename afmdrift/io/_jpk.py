@@ -58,6 +58,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.io._afmreader import afmreader_module
+from afmdrift.io._channels import pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 
 __all__ = ["read_h5jpk", "read_jpk"]
@@ -122,10 +123,7 @@ def read_jpk(path: Path, *, channel: str) -> AfmImage:
             channels = {_page_channel(page, path): page for page in pages[1:]}
             want = _channel_key(channel)
             if want not in channels:
-                raise ImageFileError(
-                    f"{path}: no channel {channel!r} in this .jpk file "
-                    f"(has: {', '.join(channels) or 'none'})"
-                )
+                want = pick_channel(list(channels), channel, where=str(path))
             page = channels[want]
             shape = tuple(int(v) for v in page.shape)
             if len(shape) != 2 or min(shape) == 0 or shape[0] * shape[1] > _MAX_VALUES:

@@ -208,8 +208,11 @@ def load_image(
         Pixel size (x, y) in nm. Required for files without a calibration
         (``.npy``, most ``.tif``); overrides the file's calibration otherwise.
     channel : str
-        Channel to read. ``"Height"`` also selects ``TP`` in ``.asd`` movies and
-        the only (or the height/topography) field of a ``.gwy`` file.
+        Channel to read. ``"Height"`` also selects each format's height channel
+        of another name (``HeightTrace``/``HeightRetrace``, ``ZSensor``, ``Z``,
+        ``Topography``, ...: :func:`afmdrift.io.pick_channel`), ``TP`` in
+        ``.asd`` movies and the only (or the height/topography) field of a
+        ``.gwy`` file; the image's ``channel`` says which was read.
     height_unit : str, optional
         Unit of heights stored without one (``.npy``, ``.tif``: default nm;
         unitless ``.gwy``/``.nc`` fields: required).

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from afmdrift.io._afmreader import afmreader_module
+from afmdrift.io._channels import pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 from afmdrift.records import ScanDirection
 
@@ -182,11 +183,7 @@ def read_nanoscope(path: Path, *, channel: str) -> AfmImage:
         Not a NanoScope file, the channel is absent, or the data are truncated.
     """
     header = parse_nanoscope_header(path)
-    available = header.channels()
-    if channel not in available:
-        raise ImageFileError(
-            f"{path}: channel {channel!r} not in this NanoScope file (has: {', '.join(available)})"
-        )
+    channel = pick_channel(header.channels(), channel, where=str(path))
     spm = afmreader_module("spm")
     with tempfile.TemporaryDirectory(prefix="afmdrift-spm-") as tmp:
         copy = Path(tmp) / "image.spm"

@@ -4,7 +4,9 @@ There is no single AFM convention for NetCDF, so afmdrift reads this simple one
 (``docs/session-format.md`` has it with an example; any tool can write it):
 
 * A variable named after the channel (``Height`` by default; matched exactly,
-  then case-insensitively), with dimensions ``(y, x)`` for one image or
+  then ignoring case, spaces, ``_`` and ``-``; the default also takes a
+  height channel of another name, such as afspm's ``HeightRetrace``, see
+  :func:`afmdrift.io.pick_channel`), with dimensions ``(y, x)`` for one image or
   ``(frame, y, x)`` for a stack. Rows are y, columns x (fast axis).
 * Its ``units`` attribute is a length unit (``m``, ``um``, ``nm``, ``pm``,
   ``Å``...). Without it the caller must give ``height_unit``.
@@ -32,6 +34,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.io._channels import pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, height_factor_nm, length_unit_to_nm
 from afmdrift.records import ScanDirection
 
@@ -191,14 +194,7 @@ _MAX_VALUES = 1 << 28
 
 
 def _pick(variables: dict[str, Any], channel: str, path: Path) -> str:
-    if channel in variables:
-        return channel
-    lower = {k.lower(): k for k in variables}
-    if channel.lower() in lower:
-        return lower[channel.lower()]
-    raise ImageFileError(
-        f"{path}: no variable {channel!r} in this NetCDF file (has: {', '.join(variables)})"
-    )
+    return pick_channel(list(variables), channel, where=str(path), what="variable")
 
 
 def _pixel_from_coords(

@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.io._channels import pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
 from afmdrift.records import ScanDirection
 
@@ -150,12 +151,8 @@ def read_sxm(path: Path, *, channel: str) -> AfmImage:
             raise ImageFileError(f"{path}: .sxm :SCANIT_TYPE: {' '.join(kind)!r} is not supported")
         dtype = np.dtype((">" if kind[1] == "MSBFIRST" else "<") + _TYPES[kind[0]])
         channels = _channels(header, path)
-        want = _ALIASES.get(channel.lower(), channel)
         names = [c[0] for c in channels]
-        if want not in names:
-            raise ImageFileError(
-                f"{path}: no channel {want!r} in this .sxm file (has: {', '.join(names)})"
-            )
+        want = pick_channel(names, _ALIASES.get(channel.lower(), channel), where=str(path))
         k = names.index(want)
         image_bytes = rows * cols * dtype.itemsize
         total = data_start + sum(c[2] for c in channels) * image_bytes

@@ -21,9 +21,11 @@ Three things make a correlation peak lie, and each has its own step here:
 
 * **Wrap-around.** A circular correlation cannot tell a shift ``d`` from
   ``d − N``: 350 px of a 450 px image and −100 px give the same peak. Each
-  alternative is scored by the normalised cross-correlation of the levelled
-  images over its overlap (at least :data:`MIN_OVERLAP_PX` per axis), and
-  the best is kept.
+  alternative is scored by the evidence of its overlap (at least
+  :data:`MIN_OVERLAP_PX` per axis): the normalised cross-correlation of the
+  levelled images there, times the square root of the overlap's share of
+  the frame (the NCC of a thin strip is as high by chance as that of the
+  whole frame is with half its content changed), and the best is kept.
 * **Lattices.** On a periodic sample (graphite, a grating) the correlation
   has near-equal peaks at every lattice translation. Peaks of at least
   :data:`LATTICE_PEAK_RATIO` of the highest, at offsets from it where the
@@ -82,7 +84,8 @@ LATTICE_MSE_FLOOR = 2e-3
 LATTICE_CANDIDATES = 6
 #: Smallest overlap (px per axis) at which a wrap-around alternative is scored.
 MIN_OVERLAP_PX = 16
-#: NCC margin by which a wrapped alternative must beat the minimal-image shift.
+#: Margin by which a wrapped alternative's overlap score (:func:`_overlap_score`)
+#: must beat the minimal-image shift's.
 UNWRAP_MARGIN = 0.1
 #: Masked correlation: smallest normalised correlation that is trusted.
 MASKED_MIN_NCC = 0.5
@@ -277,18 +280,37 @@ def _difference(a: F64, b: F64, dx: int, dy: int) -> float:
     return float(diff.var()) / scale if scale > 0 else math.inf
 
 
+def _overlap_score(a: F64, b: F64, dx: int, dy: int) -> float:
+    """Evidence that the overlap at shift ``(dx, dy)`` shows the same sample:
+    its normalised cross-correlation times ``sqrt(overlap / frame)``.
+
+    The NCC alone favours small overlaps: its chance value grows as the
+    overlap shrinks, and a strip that happens to be unchanged correlates
+    better than the whole frame does when a quarter of it was changed
+    (manipulated frames whose content wraps around: a 22-row strip at
+    ``d + N`` scored 0.95 against 0.7 at ``d`` and took every block window
+    out of the frame). Weighted by the square root of its share, an NCC is
+    on the scale of its significance (the NCC of ``n`` independent pixels
+    has a chance spread of ``1/sqrt(n)``), so a thin strip must correlate
+    far better than a large overlap to replace it."""
+    rows, cols = a.shape
+    share = (rows - abs(dy)) * (cols - abs(dx)) / (rows * cols)
+    return _ncc(a, b, dx, dy) * math.sqrt(max(share, 0.0))
+
+
 def _unwrap(a: F64, b: F64, dx: int, dy: int) -> tuple[int, int]:
     """The shift behind the circular peak at minimal-image shift ``(dx, dy)``:
-    an alternative ``d ± N`` replaces it only when its overlap correlates
-    clearly better (:data:`UNWRAP_MARGIN`); on a tie the larger overlap wins."""
+    an alternative ``d ± N`` replaces it only when its overlap's evidence
+    (:func:`_overlap_score`) is clearly larger (:data:`UNWRAP_MARGIN`); on a
+    tie the larger overlap wins."""
     rows, cols = a.shape
-    best, best_score = (dx, dy), _ncc(a, b, dx, dy)
+    best, best_score = (dx, dy), _overlap_score(a, b, dx, dy)
     alt_x = [dx] + ([dx - cols] if dx > 0 else [dx + cols] if dx < 0 else [])
     alt_y = [dy] + ([dy - rows] if dy > 0 else [dy + rows] if dy < 0 else [])
     for ay in alt_y:
         for ax in alt_x:
             if (ax, ay) != (dx, dy):
-                score = _ncc(a, b, ax, ay)
+                score = _overlap_score(a, b, ax, ay)
                 if score > best_score + UNWRAP_MARGIN:
                     best, best_score = (ax, ay), score
     return best

@@ -163,3 +163,31 @@ def wsxm_stp(
     size_bytes = len(head.format(0).encode("latin-1")) + len(body.encode("latin-1"))
     text = head.format(size_bytes) + body
     return text.encode("latin-1") + np.ascontiguousarray(heights[::-1]).astype("<f8").tobytes()
+
+
+def write_nc4(
+    path: Path,
+    heights_m: np.ndarray,
+    *,
+    step_m: float = 2e-9,
+    variables: tuple[str, ...] = ("Height",),
+) -> Path:
+    """A NetCDF-4 file as netCDF4/xarray write it (afspm's files): HDF5 with
+    dimension scales; each of ``variables`` holds ``heights_m`` (in m)."""
+    import h5py
+
+    rows, cols = heights_m.shape[-2:]
+    with h5py.File(path, "w") as f:
+        f.attrs["start_time"] = "2025-03-04T05:06:07"
+        f.attrs["line_time_s"] = 0.5
+        f.attrs["scan_direction"] = b"down"
+        for name, n in (("y", rows), ("x", cols)):
+            d = f.create_dataset(name, data=np.arange(n) * step_m)
+            d.attrs["units"] = b"m"
+            d.make_scale(name)
+        for variable in variables:
+            h = f.create_dataset(variable, data=heights_m)
+            h.attrs["units"] = "m"
+            h.dims[0].attach_scale(f["y"])
+            h.dims[1].attach_scale(f["x"])
+    return path

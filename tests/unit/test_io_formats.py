@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _afm_writers import write_nc4 as _write_nc4
 
 from afmdrift.io import ImageFileError, load_image, write_sxm, write_tif
 from afmdrift.records import ScanDirection
@@ -143,26 +144,6 @@ def test_truncated_tif_is_refused(tmp_path: Path, keep: float) -> None:
 
 
 # --------------------------------------------------------------------------- NetCDF-4
-
-
-def _write_nc4(path: Path, heights_m: np.ndarray, *, step_m: float = 2e-9) -> Path:
-    """A NetCDF-4 file as netCDF4/xarray write it: HDF5 with dimension scales."""
-    import h5py
-
-    rows, cols = heights_m.shape[-2:]
-    with h5py.File(path, "w") as f:
-        f.attrs["start_time"] = "2025-03-04T05:06:07"
-        f.attrs["line_time_s"] = 0.5
-        f.attrs["scan_direction"] = b"down"
-        for name, n in (("y", rows), ("x", cols)):
-            d = f.create_dataset(name, data=np.arange(n) * step_m)
-            d.attrs["units"] = b"m"
-            d.make_scale(name)
-        h = f.create_dataset("Height", data=heights_m)
-        h.attrs["units"] = "m"
-        h.dims[0].attach_scale(f["y"])
-        h.dims[1].attach_scale(f["x"])
-    return path
 
 
 def test_netcdf4_round_trip(tmp_path: Path) -> None:

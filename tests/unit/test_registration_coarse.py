@@ -66,3 +66,25 @@ def test_measure_drift_uses_the_coarse_prior_beyond_the_block_search() -> None:
     assert abs(r.dy_px - 12.2) < 0.1
     blind = measure_drift(ref, cur, pixel_size_nm=1.0, config=RegistrationConfig(coarse=False))
     assert not (blind.valid and abs(blind.dx_px + 40.4) < 1.0)
+
+
+def test_a_thin_wrapped_strip_does_not_outweigh_a_partly_changed_frame() -> None:
+    """Regression (issue 29): frames whose content wraps around (a circular
+    shift) with a quarter of the current frame replaced. The wrapped
+    alternative ``d + N`` overlaps in a thin unchanged strip whose NCC beat
+    the partly changed minimal-image overlap's; it was taken, every block
+    window left the frame, and the pair was refused with 0 of 64 blocks."""
+    size = 512
+    ref = rough_texture(
+        (size, size), pixel_size_nm=1.0, rng=np.random.default_rng(29), rms_nm=5.0,
+        correlation_length_nm=4.0,
+    )  # fmt: skip
+    cur = _shifted(ref, 4.0, -22.0)
+    quarter = cur[: size // 2, : size // 2]
+    cur[: size // 2, : size // 2] = np.roll(quarter[:, ::-1], (70, 130), axis=(0, 1))
+    c = coarse_shift(ref, cur)
+    assert (c.dx_px, c.dy_px) == (4.0, -22.0)
+    r = measure_drift(ref, cur, pixel_size_nm=1.0)
+    assert r.valid, r.reason
+    assert abs(r.dx_px - 4.0) < 0.05
+    assert abs(r.dy_px + 22.0) < 0.05
