@@ -19,14 +19,18 @@ from typing import Any
 def register(sub: Any) -> None:
     p = sub.add_parser(
         "evaluate",
-        help="Compare drift predictors on a session directory.",
+        help="Compare drift predictors on a session directory or a drift log.",
         description="Measure every frame of SESSION with the registration engine, convert "
-        "to drift positions (commanded offset moves removed), run each predictor frame by "
+        "to drift positions (commanded offset moves removed), or read the positions of a "
+        "drift log (a folder with positions.csv, docs/session-format.md), run each "
+        "predictor frame by "
         "frame and report one-step prediction errors (nm), the error of the continuous "
         "offset d(t) against truth.csv when present, and time per frame. Predictors: "
         "last_value, constant_velocity, kalman, kalman_ca, nn, physics, physics_nn.",
     )
-    p.add_argument("session", metavar="SESSION", help="session directory (format v1)")
+    p.add_argument(
+        "session", metavar="SESSION|LOG", help="session directory (format v1) or drift log folder"
+    )
     p.add_argument(
         "--predictors",
         metavar="A,B,...",
@@ -48,8 +52,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.errors import ConfigError
     from afmdrift.model import PREDICTOR_NAMES, evaluate_series
-    from afmdrift.pipeline import measure_session
-    from afmdrift.session import read_session
+    from afmdrift.pipeline import measure_session, series_from_drift_log
+    from afmdrift.session import is_drift_log, read_drift_log, read_session
 
     config = load_config(args.config)
     names = (
@@ -65,9 +69,16 @@ def _evaluate(args: argparse.Namespace) -> int:
         )
     if args.skip < 0:
         raise ConfigError(f"--skip must be >= 0, got {args.skip}")
-    session = read_session(args.session)
-    series = measure_session(session, config)
-    report = evaluate_series(session, series, predictors=names, config=config.model, skip=args.skip)
+    if is_drift_log(args.session):
+        log = read_drift_log(args.session)
+        series = series_from_drift_log(log)
+        report = evaluate_series(log, series, predictors=names, config=config.model, skip=args.skip)
+    else:
+        session = read_session(args.session)
+        series = measure_session(session, config)
+        report = evaluate_series(
+            session, series, predictors=names, config=config.model, skip=args.skip
+        )
     report["session"] = str(args.session)
     if args.json:
         print(json.dumps(report, indent=2, allow_nan=False, default=_nan_to_none))

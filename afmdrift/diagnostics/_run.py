@@ -15,8 +15,10 @@ from pathlib import Path
 from afmdrift.config import AfmdriftConfig
 from afmdrift.diagnostics._data import RunData, load_run
 from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
+from afmdrift.diagnostics._driftlog import load_drift_log
 from afmdrift.errors import InputError
 from afmdrift.service import DB_NAME, replay_session
+from afmdrift.session import is_drift_log
 
 __all__ = ["config_with_effects", "diagnose_path", "is_run_dir", "prepare_run"]
 
@@ -70,8 +72,13 @@ def prepare_run(
         raise InputError(f"{p}: not a directory (expected a session or a run directory)")
     if is_run_dir(p):
         return load_run(p, session_dir=session_dir)
+    if is_drift_log(p):
+        return load_drift_log(p)
     if not (p / "session.json").is_file():
-        raise InputError(f"{p}: neither a run directory (run.sqlite) nor a session (session.json)")
+        raise InputError(
+            f"{p}: neither a run directory (run.sqlite), a session (session.json) "
+            "nor a drift log (positions.csv)"
+        )
 
     cfg = config_with_effects(config, effects)
     if run_dir is not None:

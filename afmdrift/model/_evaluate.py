@@ -41,7 +41,7 @@ from afmdrift.model._feed import HistoryFeed
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
 from afmdrift.model._registry import make_predictor
 from afmdrift.records import ScanDirection
-from afmdrift.session import Session
+from afmdrift.session import DriftLog, Session
 
 __all__ = ["MeasuredSeries", "evaluate_series"]
 
@@ -93,7 +93,7 @@ def _stats(e: FloatArray) -> dict[str, Any]:
 
 
 def evaluate_series(
-    session: Session,
+    session: Session | DriftLog,
     series: MeasuredSeries,
     *,
     predictors: list[str],
@@ -105,7 +105,7 @@ def evaluate_series(
 
     Parameters
     ----------
-    session : Session
+    session : Session or DriftLog
         Source of channels, events, frame timing and (optional) truth.
     series : MeasuredSeries
         From :func:`measure_session`.
@@ -127,7 +127,7 @@ def evaluate_series(
     if session.truth is not None:
         truth_t = session.truth[:, 0]
         truth_xy = session.truth[:, 1:3]
-        t0 = session.frame(0).t_mid_s
+        t0 = float(np.mean(session.frame_times[0]))
         ref = np.array([np.interp(t0, truth_t, truth_xy[:, a]) for a in (0, 1)])
         for i in range(len(session)):
             frame_truth[i] = [
@@ -160,7 +160,7 @@ def evaluate_series(
 
 def _run_one(
     name: str,
-    session: Session,
+    session: Session | DriftLog,
     series: MeasuredSeries,
     idx: npt.NDArray[np.intp],
     config: ModelConfig,

@@ -22,6 +22,7 @@ from afmdrift.pipeline._series import (
     CorrectionSummary,
     correct_session,
     measure_session,
+    series_from_drift_log,
     series_from_records,
 )
 from afmdrift.pipeline._track import track_session, track_stack
@@ -43,6 +44,7 @@ __all__ = [
     "measurement_row",
     "observation_from_record",
     "record_from_row",
+    "series_from_drift_log",
     "series_from_records",
     "summarise_field",
     "track_session",

@@ -22,9 +22,15 @@ from afmdrift.pipeline._records import (
     reference_direction_of,
 )
 from afmdrift.records import EventKind, ScanDirection
-from afmdrift.session import Session, write_session
+from afmdrift.session import DriftLog, Session, write_session
 
-__all__ = ["CorrectionSummary", "correct_session", "measure_session", "series_from_records"]
+__all__ = [
+    "CorrectionSummary",
+    "correct_session",
+    "measure_session",
+    "series_from_drift_log",
+    "series_from_records",
+]
 
 
 def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
@@ -50,6 +56,22 @@ def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
         measure_ms=np.array([r.latency_s * 1e3 for r in records], dtype=np.float64),
         valid_blocks=[int(r.valid_blocks) if math.isfinite(r.x_nm) else -1 for r in records],
         reference_direction=reference,
+    )
+
+
+def series_from_drift_log(log: DriftLog) -> MeasuredSeries:
+    """The observations of a drift log (its positions as measured elsewhere; a
+    frame without one fed nothing), for ``afmdrift evaluate DIR``."""
+    known = [d for d, ok in zip(log.directions, np.isfinite(log.xy_nm[:, 0]), strict=True) if ok]
+    return MeasuredSeries(
+        t_s=log.t_s.copy(),
+        t_end_s=log.frame_times[:, 1].copy(),
+        xy_nm=log.xy_nm.copy(),
+        sigma_nm=log.sigma_nm.copy(),
+        directions=list(log.directions),
+        measure_ms=np.zeros(len(log)),
+        valid_blocks=[-1] * len(log),
+        reference_direction=known[0] if known else None,
     )
 
 

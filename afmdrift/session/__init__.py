@@ -1,5 +1,7 @@
-"""Session directories (format v1): recorded, simulated or imported AFM sessions."""
+"""Session directories (format v1): recorded, simulated or imported AFM sessions;
+and drift logs (positions without images)."""
 
+from afmdrift.session._driftlog import DriftLog, is_drift_log, read_drift_log
 from afmdrift.session._format import (
     FORMAT_NAME,
     FORMAT_VERSION,
@@ -14,11 +16,14 @@ from afmdrift.session._import import attach_logs, import_files, session_from_ima
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "DriftLog",
     "Session",
     "SessionError",
     "SessionMeta",
     "attach_logs",
     "import_files",
+    "is_drift_log",
+    "read_drift_log",
     "read_session",
     "session_from_images",
     "write_session",

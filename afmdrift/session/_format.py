@@ -220,23 +220,8 @@ def read_session(path: str | Path, *, mmap: bool = True) -> Session:
         frames = np.load(frames_path, mmap_mode="r" if mmap else None, allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
         raise SessionError(f"{frames_path}: not a readable .npy array ({err})") from None
-    rows = _read_csv(root / "frames.csv", ["frame", "t_start_s", "t_end_s", "direction"])
-    times = np.zeros((len(rows), 2), dtype=np.float64)
-    directions: list[ScanDirection] = []
-    for k, (line, row) in enumerate(rows):
-        where = f"{root / 'frames.csv'}:{line}"
-        if _to_int(row["frame"], where, "frame") != k:
-            raise SessionError(f"{where}: frame numbers must be 0, 1, 2, ... (got {row['frame']})")
-        times[k] = (
-            _to_float(row["t_start_s"], where, "t_start_s"),
-            _to_float(row["t_end_s"], where, "t_end_s"),
-        )
-        try:
-            directions.append(ScanDirection(row["direction"].strip().lower()))
-        except ValueError:
-            raise SessionError(
-                f"{where}: direction must be 'up' or 'down', got {row['direction']!r}"
-            ) from None
+    times, given = read_frame_windows(root / "frames.csv", directions=True)
+    directions = [d or ScanDirection.UP for d in given]
     channel_t, channels = _read_channels(root / "channels.csv")
     events = _read_events(root / "events.csv")
     truth = _read_truth(root / "truth.csv")
@@ -433,6 +418,35 @@ def _to_int(text: str, where: str, column: str) -> int:
     except (TypeError, ValueError):
         shown = text if len(text or "") <= 40 else f"{text[:40]}..."
         raise SessionError(f"{where}: {column} is not an integer: {shown!r}") from None
+
+
+def read_frame_windows(
+    path: Path, *, directions: bool
+) -> tuple[npt.NDArray[np.float64], list[ScanDirection | None]]:
+    """``frames.csv``: each frame's ``(t_start_s, t_end_s)`` and its direction
+    (required with ``directions``, else ``None`` where the column is absent)."""
+    required = ["frame", "t_start_s", "t_end_s"] + (["direction"] if directions else [])
+    rows = _read_csv(path, required)
+    times = np.zeros((len(rows), 2), dtype=np.float64)
+    dirs: list[ScanDirection | None] = []
+    for k, (line, row) in enumerate(rows):
+        where = f"{path}:{line}"
+        if _to_int(row["frame"], where, "frame") != k:
+            raise SessionError(f"{where}: frame numbers must be 0, 1, 2, ... (got {row['frame']})")
+        times[k] = (
+            _to_float(row["t_start_s"], where, "t_start_s"),
+            _to_float(row["t_end_s"], where, "t_end_s"),
+        )
+        dirs.append(scan_direction(row["direction"], where) if row.get("direction") else None)
+    return times, dirs
+
+
+def scan_direction(text: str, where: str) -> ScanDirection:
+    """``up`` or ``down`` (any case) as a :class:`ScanDirection`."""
+    try:
+        return ScanDirection(text.strip().lower())
+    except ValueError:
+        raise SessionError(f"{where}: direction must be 'up' or 'down', got {text!r}") from None
 
 
 def _read_channels(
