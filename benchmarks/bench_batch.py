@@ -1,0 +1,209 @@
+"""Speed and memory of ``afmdrift batch``, the path users run on an archive.
+
+Run: ``.venv/bin/python benchmarks/bench_batch.py [--recordings N] [--frames M]``
+
+One archive of ``N`` float32 ``.npy`` movies of ``M`` 512² frames (a rough
+texture drifting on a slow path), plus one long movie, the largest file.
+Measured side by side in one run, nothing else running:
+
+1. **Throughput of a running cluster**: a ``dask scheduler`` with one, then two
+   ``dask worker`` processes (one thread each) on 127.0.0.1, warmed on a small
+   archive; ``afmdrift batch --scheduler`` over the archive; frames per
+   second, and the ratio two workers / one (the target is ≥ 1.8 on 2 cores).
+2. **The whole command** as a user runs it with no cluster: ``afmdrift batch
+   --workers 2`` (a LocalCluster started and stopped by the command), against
+   ``afmdrift measure`` run on each recording in turn (the target: the batch
+   takes no longer).
+3. **Peak worker memory** on the largest file: the resident memory of the
+   worker process while it tracks the long movie, against the file's size
+   (frames stream from a memory map, so a worker holds a few frames).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+from afmdrift.testing import TextureShifter, rough_texture
+
+EXE = [sys.executable, "-m", "afmdrift"]
+
+
+def movie(path: Path, frames: int, seed: int, size: int = 512) -> Path:
+    rng = np.random.default_rng(seed)
+    tex = rough_texture((size + 160, size + 160), pixel_size_nm=2.0, rng=rng,
+                        correlation_length_nm=12.0)  # fmt: skip
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32,
+                                    shape=(frames, size, size))  # fmt: skip
+    shifter = TextureShifter(tex)
+    for k in range(frames):
+        a = 2 * np.pi * k / max(frames, 1)
+        out[k] = shifter.crop((size, size), dx_px=30 * np.sin(a), dy_px=20 * np.sin(2 * a))
+        out[k] += rng.normal(0.0, 0.1, size=(size, size)).astype(np.float32)
+    out.flush()
+    del out
+    return path
+
+
+class Cluster:
+    """A dask scheduler and ``n`` workers (one thread each) on loopback."""
+
+    def __init__(self, n: int, root: Path) -> None:
+        self.file = root / f"scheduler-{n}.json"
+        self.procs = [
+            subprocess.Popen(
+                [
+                    sys.executable,
+                    "-m",
+                    "distributed.cli.dask_scheduler",
+                    "--host",
+                    "127.0.0.1",
+                    "--port",
+                    "0",
+                    "--no-dashboard",
+                    "--scheduler-file",
+                    str(self.file),
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+            )
+        ]
+        while not (self.file.is_file() and self.file.stat().st_size):
+            time.sleep(0.1)
+        self.address = json.loads(self.file.read_text())["address"]
+        for _ in range(n):
+            self.procs.append(
+                subprocess.Popen(
+                    [
+                        sys.executable,
+                        "-m",
+                        "distributed.cli.dask_worker",
+                        self.address,
+                        "--host",
+                        "127.0.0.1",
+                        "--nworkers",
+                        "1",
+                        "--nthreads",
+                        "1",
+                        "--no-dashboard",
+                    ],
+                    stdout=subprocess.DEVNULL,
+                    stderr=subprocess.DEVNULL,
+                )
+            )
+        from distributed import Client
+
+        with Client(self.address, timeout="60s") as client:
+            client.wait_for_workers(n, timeout=120)
+
+    def workers(self) -> list[psutil.Process]:
+        return [psutil.Process(p.pid) for p in self.procs[1:]]
+
+    def close(self) -> None:
+        for p in self.procs:
+            p.terminate()
+        for p in self.procs:
+            p.wait(timeout=30)
+
+
+def batch(args: list[str], cwd: Path) -> float:
+    t0 = time.perf_counter()
+    subprocess.run([*EXE, "batch", *args], cwd=cwd, check=False,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    return time.perf_counter() - t0
+
+
+def peak_rss_mb(procs: list[psutil.Process], stop: threading.Event, out: list[float]) -> None:
+    peak = 0.0
+    while not stop.is_set():
+        for p in procs:
+            try:
+                tree = [p, *p.children(recursive=True)]
+                peak = max(peak, sum(q.memory_info().rss for q in tree) / 2**20)
+            except psutil.Error:
+                pass
+        time.sleep(0.05)
+    out.append(peak)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--recordings", type=int, default=12)
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--long-frames", type=int, default=600, help="the largest file's frames")
+    a = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        arc = root / "arc"
+        arc.mkdir()
+        for k in range(a.recordings):
+            movie(arc / f"m{k:02d}.npy", a.frames, seed=k)
+        frames = a.recordings * a.frames
+        warm = root / "warm"
+        warm.mkdir()
+        movie(warm / "w.npy", 4, seed=99)
+        common = ["--pixel-size-nm", "2"]
+
+        fps: dict[int, float] = {}
+        for n in (1, 2):
+            cluster = Cluster(n, root)
+            try:
+                for k in range(n):  # every worker compiles its kernels first
+                    batch([str(warm / "w.npy"), "--out", str(root / f"w{n}{k}"), *common,
+                           "--scheduler", cluster.address], root)  # fmt: skip
+                wall = batch([str(arc), "--out", str(root / f"c{n}"), *common,
+                              "--scheduler", cluster.address], root)  # fmt: skip
+            finally:
+                cluster.close()
+            fps[n] = frames / wall
+            print(f"running cluster, {n} worker(s): {wall:.2f} s, {fps[n]:.0f} frames/s "
+                  f"({a.recordings} x {a.frames} frames of 512²)")  # fmt: skip
+        print(f"two workers / one: {fps[2] / fps[1]:.2f}x (target >= 1.8)")
+
+        whole = batch([str(arc), "--out", str(root / "local"), *common, "--workers", "2"], root)
+        t0 = time.perf_counter()
+        for f in sorted(arc.glob("*.npy")):
+            subprocess.run([*EXE, "measure", str(f), *common], cwd=root, check=False,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+        serial = time.perf_counter() - t0
+        print(f"afmdrift batch --workers 2 (LocalCluster started by the command): {whole:.2f} s; "
+              f"afmdrift measure on each recording in turn: {serial:.2f} s; "
+              f"batch/serial {whole / serial:.2f} (target <= 1)")  # fmt: skip
+
+        big = movie(root / "long.npy", a.long_frames, seed=123)
+        cluster = Cluster(1, root)
+        try:
+            batch([str(warm / "w.npy"), "--out", str(root / "wl"), *common,
+                   "--scheduler", cluster.address], root)  # fmt: skip
+            nanny = cluster.workers()[0]
+            base = sum(q.memory_info().rss for q in [nanny, *nanny.children(True)]) / 2**20
+            stop, peak = threading.Event(), []  # type: ignore[var-annotated]
+            watcher = threading.Thread(target=peak_rss_mb, args=(cluster.workers(), stop, peak))
+            watcher.start()
+            wall = batch([str(big), "--out", str(root / "long"), *common,
+                          "--scheduler", cluster.address], root)  # fmt: skip
+            stop.set()
+            watcher.join()
+        finally:
+            cluster.close()
+        size_mb = big.stat().st_size / 2**20
+        print(f"largest file: {size_mb:.0f} MB ({a.long_frames} frames of 512² float32) in "
+              f"{wall:.1f} s; worker resident memory {base:.0f} MB idle, peak {peak[0]:.0f} MB "
+              f"(+{peak[0] - base:.0f} MB)")  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()
