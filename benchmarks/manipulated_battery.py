@@ -1,6 +1,6 @@
 """Manipulated-frame battery of issue 29: one row per texture and manipulation.
 
-Builds the pairs of ``tests/manipulated/_battery.py`` (the same pairs the
+Builds the pairs of ``tests/manipulated/_manipulated_pairs.py`` (the same pairs the
 tests in ``tests/manipulated`` measure; textures, manipulations and noise are
 described there), measures each with ``measure_drift`` (default
 configuration, no prior: the coarse alignment finds the shift, as ``afmdrift
@@ -25,7 +25,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "manipulated"))
 
-import _battery as battery
+import _manipulated_pairs as battery
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -3,7 +3,7 @@ replaced quadrant, scattered patches, moved particles, a new particle, a
 scratch), the rest shifted by a known drift, SNR 10, a z offset and a tilt.
 The untouched part must be measured: valid, and within 0.1 px of the drift.
 
-The pairs are built in ``_battery.py``, which ``benchmarks/manipulated_battery.py``
+The pairs are built in ``_manipulated_pairs.py``, which ``benchmarks/manipulated_battery.py``
 runs at full size (the table per texture and manipulation). The default run
 measures two pairs per generated texture and manipulation and one per real
 texture; ``slow`` adds more seeds.
@@ -12,7 +12,7 @@ texture; ``slow`` adds more seeds.
 from __future__ import annotations
 
 import pytest
-from _battery import KINDS, REAL_TEXTURES, MissingDataError, make_pair, measure
+from _manipulated_pairs import KINDS, REAL_TEXTURES, MissingDataError, make_pair, measure
 
 #: Largest error of a valid result on the untouched part (px).
 TOLERANCE_PX = 0.1

@@ -17,7 +17,7 @@ arrangement instead shifts the whole frame circularly, so content wraps
 around, as in the issue's report.
 
 ``tests/manipulated/test_manipulated.py`` and
-``benchmarks/manipulated_battery.py`` both build their pairs here.
+``benchmarks/manipulated_manipulated_pairs.py`` both build their pairs here.
 """
 
 from __future__ import annotations
