@@ -160,19 +160,30 @@ def run_job(job: Job) -> Result:
 
 def _read(job: Job) -> tuple[Any, bool]:
     """The recording as a session, and whether its frame times are the instrument's."""
-    from afmdrift.io import load_stack
+    from afmdrift.io import MissingPixelSizeError, load_stack
     from afmdrift.session import SessionError, read_session, session_from_images
 
     path = Path(job.path)
     if path.is_dir():
         return read_session(path, mmap=True), True
-    images = load_stack(
-        path,
-        pixel_size_nm=job.pixel_size_nm,
-        channel=job.channel,
-        height_unit=job.height_unit,
-        stream=True,
-    )
+
+    def read(pixel_size_nm: tuple[float, float] | None) -> list[Any]:
+        return load_stack(
+            path,
+            pixel_size_nm=pixel_size_nm,
+            channel=job.channel,
+            height_unit=job.height_unit,
+            stream=True,
+        )
+
+    try:
+        # a file whose header has a calibration keeps it; the given pixel size
+        # serves the files without one
+        images = read(None)
+    except MissingPixelSizeError:
+        if job.pixel_size_nm is None:
+            raise
+        images = read(job.pixel_size_nm)
     if len(images) < 2:
         raise SessionError(f"{path}: holds one image; a recording needs two frames or more")
     try:

@@ -20,7 +20,8 @@ def register(sub: Any) -> None:
         "Dask tasks. Writes DIR/<stem>/track.jsonl (the lines of 'afmdrift measure STACK "
         "--json'), DIR/summary.csv (one row per recording, rewritten as each finishes) "
         "and DIR/archive.png. A run started again skips the recordings done with the "
-        "same input and configuration. Exit 0: all done; 1: some failed; 2: usage error.",
+        "same input and configuration. --pixel-size-nm serves only the files whose header "
+        "has no pixel size. Exit 0: all done; 1: some failed; 2: usage error.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="recordings, globs or folders")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")

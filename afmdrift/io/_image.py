@@ -40,6 +40,10 @@ class ImageFileError(InputError):
     or frame index. The message names the file and the problem."""
 
 
+class MissingPixelSizeError(ImageFileError):
+    """The file carries no pixel size (a bare array), and none was given."""
+
+
 @dataclass(frozen=True, slots=True)
 class AfmImage:
     """One height image read from a file.

@@ -55,7 +55,13 @@ import numpy.typing as npt
 from afmdrift.io._asd import read_asd
 from afmdrift.io._gwyddion import read_gwy
 from afmdrift.io._ibw import read_ibw
-from afmdrift.io._image import AfmImage, ImageFileError, check_calibration, length_unit_to_nm
+from afmdrift.io._image import (
+    AfmImage,
+    ImageFileError,
+    MissingPixelSizeError,
+    check_calibration,
+    length_unit_to_nm,
+)
 from afmdrift.io._jpk import read_h5jpk, read_jpk
 from afmdrift.io._nanoscope import is_nanoscope_suffix, read_nanoscope
 from afmdrift.io._netcdf import read_netcdf
@@ -326,7 +332,7 @@ def _map_npy(
     ):
         return None
     if pixel_size_nm is None:
-        raise ImageFileError(
+        raise MissingPixelSizeError(
             f"{path}: a .npy array carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
         )
     _check_size(path, data.shape)
@@ -352,7 +358,7 @@ def _read_array(
             f"{path}: {what} must be (rows, cols) or (N, rows, cols), got shape {data.shape}"
         )
     if pixel_size_nm is None:
-        raise ImageFileError(
+        raise MissingPixelSizeError(
             f"{path}: {what} carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
         )
     factor = length_unit_to_nm(height_unit, where="height_unit") if height_unit else 1.0

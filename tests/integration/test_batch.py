@@ -232,3 +232,34 @@ def test_usage_errors_exit_2(tmp_path: Path) -> None:
     bad = _batch(str(movie), "--out", str(tmp_path / "o"), "--workers", "0", cwd=tmp_path)
     assert bad.returncode == 2
     assert "--workers must be >= 1" in bad.stderr
+
+
+def test_the_given_pixel_size_serves_only_files_without_one(tmp_path: Path) -> None:
+    """``--pixel-size-nm`` applies to the inputs that need it: a bare .npy stack
+    takes it, an ImageJ TIFF stack with its own calibration keeps that."""
+    import tifffile
+
+    from afmdrift.batch import Job, run_job
+    from afmdrift.batch._jobs import fingerprint
+
+    npy = _movie(tmp_path / "bare.npy", seed=5)
+    tif = tmp_path / "calibrated.tif"
+    tifffile.imwrite(tif, np.load(npy), imagej=True, resolution=(2.0, 2.0),
+                     metadata={"axes": "TYX", "unit": "nm"})  # fmt: skip
+    config = AfmdriftConfig().model_dump(mode="json")
+    drift = {}
+    for path in (npy, tif):
+        job = Job(recording=str(path), path=str(path), out=str(tmp_path / path.stem),
+                  task="measure", config=config, pixel_size_nm=(3.0, 3.0))  # fmt: skip
+        result = run_job(Job(**{**{f: getattr(job, f) for f in job.__dataclass_fields__},
+                                "key": fingerprint(job)}))  # fmt: skip
+        assert result.status == "done", result.error
+        drift[path.suffix] = result.drift_x_nm
+    # the same frames: the drift in px is the same, in nm it scales with the pixel
+    assert drift[".tif"] / drift[".npy"] == pytest.approx(0.5 / 3.0, rel=1e-3)
+    bare = Job(recording=str(npy), path=str(npy), out=str(tmp_path / "no-px"),
+               task="measure", config=config)  # fmt: skip
+    failed = run_job(bare)
+    assert failed.status == "failed"
+    assert "carries no pixel size" in failed.error
+    assert "bare.npy" in failed.error
