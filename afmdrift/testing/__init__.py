@@ -13,8 +13,17 @@ Runtime code (the service) never imports this package.
   a frame, so content enters and leaves at the edges as in a real scan).
 * Artefacts: :func:`add_noise` (SNR = std of heights / std of noise),
   :func:`add_plane` (z offset and tilt), :func:`add_line_offsets`.
+* Drift logs from a second generator, different on purpose from the
+  simulator (noise processes, effect shapes, parameter ranges):
+  :func:`generate_drift_log`, :func:`write_drift_log`.
 """
 
+from afmdrift.testing._driftgen import (
+    DRIFTGEN_EFFECTS,
+    GeneratedLog,
+    generate_drift_log,
+    write_drift_log,
+)
 from afmdrift.testing._images import (
     Particles,
     TextureShifter,
@@ -30,6 +39,8 @@ from afmdrift.testing._images import (
 )
 
 __all__ = [
+    "DRIFTGEN_EFFECTS",
+    "GeneratedLog",
     "Particles",
     "TextureShifter",
     "add_line_offsets",
@@ -37,8 +48,10 @@ __all__ = [
     "add_plane",
     "band_limit",
     "fourier_shift",
+    "generate_drift_log",
     "particle_texture",
     "rough_texture",
     "shifted_crop",
     "terrace_texture",
+    "write_drift_log",
 ]
