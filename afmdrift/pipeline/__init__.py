@@ -7,7 +7,7 @@ the :class:`FrameRecord` it produces.
 """
 
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
-from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, with_next
+from afmdrift.pipeline._frame import FrameOutcome, FramePipeline
 from afmdrift.pipeline._positions import DriftPositions, FramePosition, summarise_field
 from afmdrift.pipeline._records import (
     FRAME_COLUMNS,
@@ -47,5 +47,4 @@ __all__ = [
     "summarise_field",
     "track_session",
     "track_stack",
-    "with_next",
 ]

@@ -15,7 +15,7 @@ import numpy.typing as npt
 from afmdrift.config import AfmdriftConfig
 from afmdrift.model import FrameTrajectory, MeasuredSeries
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
-from afmdrift.pipeline._frame import FramePipeline, with_next
+from afmdrift.pipeline._frame import FramePipeline
 from afmdrift.pipeline._records import (
     FrameRecord,
     observation_from_record,
@@ -60,10 +60,7 @@ def measure_session(session: Session, config: AfmdriftConfig) -> MeasuredSeries:
     ends after it), and return what the frames gave the model."""
     pipeline = FramePipeline(config=config)
     pipeline.push(session.channel_samples(), session.events)
-    records = [
-        pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming).record
-        for k, frame, upcoming in with_next(session.iter_frames())
-    ]
+    records = [outcome.record for outcome in pipeline.run(session.iter_frames())]
     return series_from_records(records)
 
 
@@ -103,8 +100,7 @@ def correct_session(
     pipeline.push(session.channel_samples(), session.events)
     causal: dict[int, FrameTrajectory] = {}
     records = []
-    for k, frame, upcoming in with_next(session.iter_frames()):
-        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming)
+    for k, outcome in enumerate(pipeline.run(session.iter_frames())):
         records.append(outcome.record)
         if outcome.trajectory is not None:
             causal[k] = outcome.trajectory

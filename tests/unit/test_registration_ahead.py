@@ -1,5 +1,5 @@
 """A block pass started ahead of its frame (BlockEngine.measure_ahead,
-DriftTracker.measure_ahead, FramePipeline.process(next_frame=...)) gives
+DriftTracker.measure_ahead, FramePipeline.run) gives
 exactly what measuring the frame then would; the three-point sub-pixel
 methods, now compiled into the pass, keep their formulas."""
 
