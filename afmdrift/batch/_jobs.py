@@ -185,7 +185,7 @@ def _measure(
     """``afmdrift measure STACK --json``'s lines into ``path``; the summary's
     counts and last valid drift into ``result``. Returns ``(t_s, x_nm, y_nm)``
     of the valid frames."""
-    from afmdrift.pipeline import track_session
+    from afmdrift.runs import track_session
 
     valid: list[tuple[float, float, float]] = [(float(session.frame_times[0].mean()), 0.0, 0.0)]
     tmp = path.with_name(path.name + ".tmp")
@@ -209,7 +209,7 @@ def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
     import numpy as np
     import tifffile
 
-    from afmdrift.pipeline import correct_session
+    from afmdrift.runs import correct_session
 
     summary = correct_session(session, out / "corrected", config=config, output="npy")
     frames = np.load(out / "corrected" / "frames.npy", mmap_mode="r")

@@ -48,7 +48,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.errors import ConfigError
     from afmdrift.model import PREDICTOR_NAMES, evaluate_series
-    from afmdrift.pipeline import measure_session
+    from afmdrift.runs import measure_session
     from afmdrift.session import read_session
 
     config = load_config(args.config)

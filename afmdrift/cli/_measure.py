@@ -281,7 +281,7 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
         "channel": args.channel,
         "height_unit": args.height_unit,
     }
-    from afmdrift.pipeline import track_stack
+    from afmdrift.runs import track_stack
 
     frames = load_stack(args.ref, **read)
     if len(frames) < 2:

@@ -9,7 +9,7 @@ Parts, each with one job:
     polls frames, channels and events into one batch per frame;
 :class:`~afmdrift.pipeline.FramePipeline`
     measures, predicts and rebuilds d(t) for each frame, in the worker thread
-    (:func:`~afmdrift.service._record.process_and_record` commits it);
+    (:func:`~afmdrift.runs.process_and_record` commits it to the run store);
 :class:`~afmdrift.service._publish.Publishing`
     the wire messages, the offset limiter, the flags and the status;
 :class:`~afmdrift.service._control.Controller`
@@ -57,12 +57,11 @@ from afmdrift.model import (
 from afmdrift.pipeline import FramePipeline
 from afmdrift.records import EventKind, InstrumentInfo
 from afmdrift.registration import warm_up
+from afmdrift.runs import RunStore, process_and_record
 from afmdrift.service._acquire import Acquisition, FrameBatch
 from afmdrift.service._control import Controller
 from afmdrift.service._link import INSTRUMENT_ERRORS, InstrumentLink, every
 from afmdrift.service._publish import Publishing
-from afmdrift.service._record import process_and_record
-from afmdrift.service._store import RunStore
 from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
 from afmdrift.wire import OffsetMsg, StatusMsg
 

@@ -22,8 +22,9 @@ from pathlib import Path
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
 from afmdrift.pipeline import FramePipeline
-from afmdrift.service._record import record_outcome
-from afmdrift.service._store import RunStore, trajectory_rows, write_trajectory_csv
+from afmdrift.runs._csv import trajectory_rows, write_trajectory_csv
+from afmdrift.runs._record import record_outcome
+from afmdrift.runs._store import RunStore
 from afmdrift.session import Session, read_session
 
 __all__ = ["ReplaySummary", "replay_session"]

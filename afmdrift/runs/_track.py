@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.model import make_predictor
-from afmdrift.pipeline._frame import FramePipeline
-from afmdrift.pipeline._series import correct_session
+from afmdrift.pipeline import FramePipeline
+from afmdrift.runs._correct import correct_session
 from afmdrift.session import Session, SessionError, session_from_images
 
 if TYPE_CHECKING:

@@ -6,7 +6,7 @@ from collections.abc import Iterable
 
 from afmdrift.pipeline import FrameOutcome, FramePipeline
 from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
-from afmdrift.service._store import RunStore
+from afmdrift.runs._store import RunStore
 
 __all__ = ["process_and_record", "record_outcome"]
 
