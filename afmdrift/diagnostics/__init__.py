@@ -33,13 +33,8 @@ from afmdrift.diagnostics._candidates import (
     evaluate_candidate,
 )
 from afmdrift.diagnostics._data import RunData, load_run
-from afmdrift.diagnostics._diagnose import (
-    DiagnoseOptions,
-    Diagnosis,
-    ModelRun,
-    diagnose,
-    run_model,
-)
+from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
+from afmdrift.diagnostics._model_run import ModelRun, run_model
 from afmdrift.diagnostics._run import diagnose_path
 from afmdrift.diagnostics._stats import Failure
 from afmdrift.diagnostics._text import diagnosis_text
