@@ -1,7 +1,8 @@
-"""The run store: SQLite (WAL) record of everything the service did.
+"""The run store: SQLite (WAL) record of everything a run did (the daemon or a replay).
 
 One database ``RUN_DIR/run.sqlite`` per run directory (schema in
-``docs/service.md``). Each frame is written in a single transaction together
+``docs/service.md``; the tables and their version in
+:mod:`afmdrift.runs._schema`). Each frame is written in a single transaction together
 with the channels and events logged since the previous frame, the predictor
 state after the frame and the published curve, so a ``kill -9`` at any moment
 loses at most the frame being processed, and a restarted service resumes
