@@ -10,7 +10,7 @@ see the same machine load:
 * a 200² HS-AFM-like movie (smooth texture, 0.5 nm/px, SNR 10), with the
   automatic block size (32/64 px).
 
-For every frame: the step of :func:`afmdrift.pipeline.track_stack` (what
+For every frame: the step of :func:`afmdrift.runs.track_stack` (what
 ``afmdrift measure STACK`` runs per frame: the daemon's position component,
 the drift trajectory, the record), :meth:`DriftTracker.update` alone on the
 same frame, and the bare FFTW transforms the frame needs (one forward and one
@@ -57,10 +57,10 @@ from bench_registration import BareFFT
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.io import AfmImage
-from afmdrift.pipeline import track_stack
 from afmdrift.registration import DriftTracker
 from afmdrift.registration._blocks import config_for_image
 from afmdrift.registration._engine import BlockEngine
+from afmdrift.runs import track_stack
 from afmdrift.testing import TextureShifter, add_noise, particle_texture, rough_texture
 
 

@@ -3,8 +3,11 @@
 Each recording (a stack or movie in any format ``afmdrift measure`` reads, or
 a session directory) is one task on a Dask worker, which reads it and writes
 ``OUT/<stem>/track.jsonl`` (the lines of ``afmdrift measure STACK --json``)
-and, for ``--task correct``, the drift-corrected frames. ``OUT/summary.csv``
-has one row per recording; a run started again skips what is done.
+and, for ``--task correct``, the drift-corrected frames; for a session
+directory, ``--task replay`` and ``--task diagnose`` write what ``afmdrift
+replay`` and ``afmdrift diagnose`` write (see :mod:`afmdrift.batch._jobs`).
+``OUT/summary.csv`` has one row per recording; a run started again skips what
+is done. A worker never imports the daemon nor ZeroMQ.
 """
 
 from afmdrift.batch._jobs import TASKS, Job, Result, run_job

@@ -7,6 +7,25 @@ reads the recording itself (frames are never shipped from the client), runs
 the task, writes its output under ``OUT/<stem>/`` and, last, ``result.json``
 with the job's fingerprint: a later run with the same input and configuration
 finds it and skips the recording, also after the first run was killed.
+
+The tasks (:data:`TASKS`):
+
+``measure``
+    ``track.jsonl``: the lines of ``afmdrift measure STACK --json``.
+``correct``
+    the same, and the drift-corrected frames (``corrected/frames.npy`` and
+    ``frames.csv`` as ``afmdrift correct --format npy`` writes them, and
+    ``corrected.tif``).
+``replay`` (a session directory)
+    ``run/``: the run directory ``afmdrift replay SESSION --out run`` writes.
+``diagnose`` (a session directory)
+    the same ``run/``, kept as ``afmdrift diagnose --run-dir run`` keeps it;
+    ``diagnosis.json`` (what ``--json`` prints), ``diagnosis.txt`` (what it
+    prints without) and ``report.html`` (``--report``).
+
+Every task goes through :mod:`afmdrift.runs` (and, for ``diagnose``,
+:mod:`afmdrift.diagnostics`): a worker never imports the daemon
+(:mod:`afmdrift.service`) nor ZeroMQ, which import-linter keeps so.
 """
 
 from __future__ import annotations
@@ -16,6 +35,7 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import time
 import traceback
 from collections.abc import Iterable
@@ -25,13 +45,15 @@ from typing import Any, Literal
 
 from afmdrift._version import __version__
 from afmdrift.config import AfmdriftConfig
-from afmdrift.errors import AfmdriftError
+from afmdrift.errors import AfmdriftError, InputError
 
 __all__ = ["TASKS", "Job", "Result", "fingerprint", "load_result", "run_job"]
 
-Task = Literal["measure", "correct"]
+Task = Literal["measure", "correct", "replay", "diagnose"]
 #: What ``afmdrift batch --task`` can do to each recording.
-TASKS: tuple[Task, ...] = ("measure", "correct")
+TASKS: tuple[Task, ...] = ("measure", "correct", "replay", "diagnose")
+#: The tasks that need a session directory (its channels and events).
+SESSION_TASKS: tuple[Task, ...] = ("replay", "diagnose")
 
 RESULT_FILE = "result.json"
 
@@ -132,9 +154,19 @@ def run_job(job: Job) -> Result:
         out = Path(job.out)
         out.mkdir(parents=True, exist_ok=True)
         _clear_result(out)
+        if job.task in SESSION_TASKS and not Path(job.path).is_dir():
+            raise InputError(
+                f"{job.recording}: --task {job.task} needs a session directory "
+                "(format v1, with its channels and events), not a stack or movie file"
+            )
         session, timed = _read(job)
         config = AfmdriftConfig.model_validate(job.config)
-        docs = _measure(session, config, timed, out / "track.jsonl", result)
+        if job.task in SESSION_TASKS:
+            docs = _replay(session, config, out / "run", result)
+            if job.task == "diagnose":
+                _diagnose(Path(job.path), config, out)
+        else:
+            docs = _measure(session, config, timed, out / "track.jsonl", result)
         if job.task == "correct":
             _correct(session, config, out)
         if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
@@ -200,7 +232,7 @@ def _measure(
     """``afmdrift measure STACK --json``'s lines into ``path``; the summary's
     counts and last valid drift into ``result``. Returns ``(t_s, x_nm, y_nm)``
     of the valid frames."""
-    from afmdrift.pipeline import track_session
+    from afmdrift.runs import track_session
 
     valid: list[tuple[float, float, float]] = [(float(session.frame_times[0].mean()), 0.0, 0.0)]
     tmp = path.with_name(path.name + ".tmp")
@@ -224,7 +256,7 @@ def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
     import numpy as np
     import tifffile
 
-    from afmdrift.pipeline import correct_session
+    from afmdrift.runs import correct_session
 
     summary = correct_session(session, out / "corrected", config=config, output="npy")
     frames = np.load(out / "corrected" / "frames.npy", mmap_mode="r")
@@ -248,6 +280,41 @@ def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
         },
     )
     os.replace(tmp, out / "corrected.tif")
+
+
+def _replay(
+    session: Any, config: AfmdriftConfig, run: Path, result: Result
+) -> list[tuple[float, float, float]]:
+    """``afmdrift replay SESSION --out run``; the summary's counts and the
+    last valid drift position p (commanded moves removed) into ``result``.
+    Returns ``(t_s, x_nm, y_nm)`` of the valid frames."""
+    from afmdrift.runs import RunStore, replay_session
+
+    # A run left by a job killed halfway: replay writes only into an empty directory.
+    shutil.rmtree(run, ignore_errors=True)
+    replay_session(session, run, config=config)
+    with RunStore(run) as store:
+        records = store.frames()
+    valid = [(r.t_mid_s, r.x_nm, r.y_nm) for r in records if r.valid]
+    result.frames = len(records)
+    result.valid_frames = len(valid)
+    if valid:
+        result.drift_x_nm, result.drift_y_nm = valid[-1][1], valid[-1][2]
+    return valid
+
+
+def _diagnose(session_dir: Path, config: AfmdriftConfig, out: Path) -> None:
+    """What ``afmdrift diagnose SESSION --run-dir run --report report.html``
+    writes and prints (``--json`` and without), from the run :func:`_replay`
+    wrote into ``out / "run"``."""
+    from afmdrift.diagnostics import diagnose, diagnosis_text, load_run, write_report
+
+    data = load_run(out / "run", session_dir=session_dir)
+    diagnosis = diagnose(data, config.model.physics)
+    doc = diagnosis.to_json()
+    _atomic_write(out / "diagnosis.json", json.dumps(doc, indent=2) + "\n")
+    _atomic_write(out / "diagnosis.txt", diagnosis_text(doc) + "\n")
+    write_report(diagnosis, data, out / "report.html", registration=config.registration)
 
 
 # --------------------------------------------------------------------------- helpers

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from afmdrift.batch._jobs import TASKS
 from afmdrift.cli._import import add_file_options, pixel_size_option
 
 
@@ -17,20 +18,24 @@ def register(sub: Any) -> None:
         help="Re-analyse many recordings on Dask (this machine or a cluster).",
         description="Run a task on every recording (stacks and movies in any format "
         "'afmdrift measure' reads, session directories, globs, folders of images) as "
-        "Dask tasks. Writes DIR/<stem>/track.jsonl (the lines of 'afmdrift measure STACK "
-        "--json'), DIR/summary.csv (one row per recording, rewritten as each finishes) "
-        "and DIR/archive.png. A run started again skips the recordings done with the "
-        "same input and configuration. --pixel-size-nm serves only the files whose header "
-        "has no pixel size. Exit 0: all done; 1: some failed; 2: usage error.",
+        "Dask tasks. Writes DIR/<stem>/ (per task, see --task), DIR/summary.csv (one row "
+        "per recording, rewritten as each finishes) and DIR/archive.png. A run started "
+        "again skips the recordings done with the same input and configuration. "
+        "--pixel-size-nm serves only the files whose header has no pixel size. Exit 0: "
+        "all done; 1: some failed; 2: usage error.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="recordings, globs or folders")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p.add_argument(
         "--task",
-        choices=("measure", "correct"),
+        choices=TASKS,
         default="measure",
-        help="measure (default): the drift track; correct: also the drift-corrected "
-        "frames (DIR/<stem>/corrected/frames.npy and an ImageJ corrected.tif)",
+        help="measure (default): the drift track (DIR/<stem>/track.jsonl, the lines of "
+        "'afmdrift measure STACK --json'); correct: also the drift-corrected frames "
+        "(DIR/<stem>/corrected/frames.npy and an ImageJ corrected.tif); for session "
+        "directories, replay: the run directory of 'afmdrift replay' (DIR/<stem>/run); "
+        "diagnose: that run and what 'afmdrift diagnose' writes (diagnosis.json, "
+        "diagnosis.txt, report.html)",
     )
     add_file_options(p)
     p.add_argument("--config", metavar="FILE", help="TOML config (default config/default.toml)")

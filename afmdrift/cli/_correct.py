@@ -43,7 +43,7 @@ def register(sub: Any) -> None:
 
 def _correct(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.pipeline import correct_session
+    from afmdrift.runs import correct_session
     from afmdrift.session import read_session
 
     config = load_config(args.config)

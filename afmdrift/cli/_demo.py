@@ -369,7 +369,7 @@ async def _summarise(
     import signal
     import time
 
-    from afmdrift.service import RunStore
+    from afmdrift.runs import RunStore
 
     with RunStore(run_dir) as store:
         csv_path = store.write_measurements_csv()

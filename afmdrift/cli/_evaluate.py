@@ -52,7 +52,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.errors import ConfigError
     from afmdrift.model import PREDICTOR_NAMES, evaluate_series
-    from afmdrift.pipeline import measure_session, series_from_drift_log
+    from afmdrift.runs import measure_session, series_from_drift_log
     from afmdrift.session import is_drift_log, read_drift_log, read_session
 
     config = load_config(args.config)

@@ -303,7 +303,7 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
         "channel": args.channel,
         "height_unit": args.height_unit,
     }
-    from afmdrift.pipeline import track_stack
+    from afmdrift.runs import track_stack
 
     frames = load_stack(args.ref, **read, stream=True)
     report_channels(frames[:1], args.channel)

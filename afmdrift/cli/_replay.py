@@ -24,7 +24,7 @@ def register(sub: Any) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.service import replay_session
+    from afmdrift.runs import replay_session
 
     config = load_config(args.config)
     summary = replay_session(args.session, args.out, config=config)

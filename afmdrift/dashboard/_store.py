@@ -1,6 +1,6 @@
 """Read-only access to a run store (``RUN_DIR/run.sqlite``) that a daemon may be writing.
 
-:class:`afmdrift.service.RunStore` opens its database for writing (it creates
+:class:`afmdrift.runs.RunStore` opens its database for writing (it creates
 the schema and takes write locks), which a viewer must never do to a live run.
 :class:`RunReader` opens the same file with SQLite's ``mode=ro`` URI, so it
 can neither write nor lock out the daemon; WAL mode lets it read committed
@@ -21,7 +21,7 @@ from typing import Any
 
 from afmdrift.errors import AfmdriftError
 from afmdrift.pipeline import FRAME_COLUMNS, FrameRecord, record_from_row
-from afmdrift.service import DB_NAME, STORE_SCHEMA_VERSION
+from afmdrift.runs import DB_NAME, STORE_SCHEMA_VERSION
 
 __all__ = ["DB_FILE", "DashboardError", "RunReader", "StoreNotReadyError", "StoreRows"]
 

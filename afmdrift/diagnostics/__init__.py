@@ -17,6 +17,9 @@ Public API
     Added-variable test of one effect term.
 :func:`write_report`
     Self-contained HTML report.
+:func:`diagnose_path`, :func:`diagnosis_text`
+    ``afmdrift diagnose``: a run or session directory to a diagnosis, and
+    the text it prints.
 """
 
 from __future__ import annotations
@@ -30,14 +33,11 @@ from afmdrift.diagnostics._candidates import (
     evaluate_candidate,
 )
 from afmdrift.diagnostics._data import RunData, load_run
-from afmdrift.diagnostics._diagnose import (
-    DiagnoseOptions,
-    Diagnosis,
-    ModelRun,
-    diagnose,
-    run_model,
-)
+from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
+from afmdrift.diagnostics._model_run import ModelRun, run_model
+from afmdrift.diagnostics._run import diagnose_path
 from afmdrift.diagnostics._stats import Failure
+from afmdrift.diagnostics._text import diagnosis_text
 
 if TYPE_CHECKING:
     from afmdrift.diagnostics._report import write_report
@@ -52,6 +52,8 @@ __all__ = [
     "RunData",
     "Thresholds",
     "diagnose",
+    "diagnose_path",
+    "diagnosis_text",
     "evaluate_candidate",
     "load_run",
     "run_model",

@@ -50,6 +50,9 @@ A candidate is **significant** when ΔAICc and the Wald test pass and its
 out-of-sample error is lower by ``min_cv_drop``: in blocked CV here, or in
 the online re-run that :func:`afmdrift.diagnostics.diagnose` makes of the
 leading candidates (prequential evaluation, Dawid 1984).
+
+The regression tools themselves (partialling, AICc, the HAC Wald test, the
+folds, φ) are in :mod:`afmdrift.diagnostics._regression`.
 """
 
 from __future__ import annotations
@@ -60,8 +63,17 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
 
+from afmdrift.diagnostics._regression import (
+    WaldTest,
+    aicc,
+    cv_folds,
+    ls_predict,
+    ml_phi,
+    nonzero_cols,
+    partial_out,
+    residual_basis,
+)
 from afmdrift.model import EffectTerm, GenericTerm, History
 
 __all__ = [
@@ -69,10 +81,8 @@ __all__ = [
     "ModelDesign",
     "Thresholds",
     "base_basis",
-    "cv_folds",
     "evaluate_candidate",
     "family_candidates",
-    "ml_phi",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -220,54 +230,6 @@ class CandidateResult:
         )
 
 
-def newey_west_lags(n: int) -> int:
-    """⌊4(n/100)^{2/9}⌋, Newey & West (1994) rule of thumb for the Bartlett kernel."""
-    return max(1, math.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))  # type: ignore[no-any-return]
-
-
-def _nonzero_cols(z: FloatArray, ref: float) -> npt.NDArray[np.bool_]:
-    out: npt.NDArray[np.bool_] = np.sqrt(np.sum(z * z, axis=0)) > 1e-9 * max(ref, 1e-30)
-    return out
-
-
-def _residual_maker(z: FloatArray) -> FloatArray:
-    """Orthonormal basis Q (n, r) of the column space of ``z``."""
-    if z.shape[1] == 0:
-        return np.zeros((z.shape[0], 0))
-    u, s, _ = np.linalg.svd(z, full_matrices=False)
-    tol = s.max() * max(z.shape) * np.finfo(float).eps if s.size else 0.0
-    return np.asarray(u[:, s > tol], dtype=np.float64)
-
-
-def _partial(q: FloatArray, a: FloatArray) -> FloatArray:
-    return np.asarray(a - q @ (q.T @ a), dtype=np.float64)
-
-
-def _aicc(rss: Sequence[float], n: int, k: int) -> float:
-    total_n = n * len(rss)
-    ll = sum(-0.5 * n * (math.log(2 * math.pi * max(r, 1e-300) / n) + 1.0) for r in rss)
-    if total_n - k - 1 <= 0:
-        return math.inf
-    return -2.0 * ll + 2.0 * k + 2.0 * k * (k + 1) / (total_n - k - 1)
-
-
-def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatArray]:
-    """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance)."""
-    from statsmodels.regression.linear_model import OLS
-
-    n, k = z.shape
-    if k == 0 or n <= k + 1:
-        return 0.0, 0, np.zeros(0)
-    fit = OLS(e0, z).fit()
-    gamma = np.asarray(fit.params, dtype=np.float64)
-    v_ols = np.asarray(fit.cov_params(), dtype=np.float64)
-    hac = fit.get_robustcov_results(cov_type="HAC", maxlags=lags, use_correction=True)
-    v_hac = np.asarray(hac.cov_params(), dtype=np.float64)
-    w_ols = float(gamma @ np.linalg.pinv(v_ols) @ gamma)
-    w_hac = float(gamma @ np.linalg.pinv(v_hac) @ gamma)
-    return min(w_ols, w_hac), k, gamma
-
-
 def _cand_block(
     term: EffectTerm, t_s: FloatArray, history: History, sign: FloatArray, params: dict[str, float]
 ) -> tuple[FloatArray, FloatArray]:
@@ -275,26 +237,6 @@ def _cand_block(
         term.design(t_s, history, scan_sign=sign, params=params, axis=0),
         term.design(t_s, history, scan_sign=sign, params=params, axis=1),
     )
-
-
-def cv_folds(m: int, folds: int) -> npt.NDArray[np.int64]:
-    """Fold label of each of ``m`` rows: contiguous blocks dealt out in turn.
-
-    Blocks are ``max(3, m // (4·folds))`` rows long and block j goes to fold
-    j mod ``folds``, so every training set spans the whole record (no
-    extrapolation to an unseen start or end, which would fail transient
-    effects such as warm-up for the wrong reason) while each held-out block
-    is contiguous.
-    """
-    length = max(3, m // (4 * folds))
-    return np.asarray((np.arange(m) // length) % folds, dtype=np.int64)
-
-
-def _ls_predict(z_train: FloatArray, y_train: FloatArray, z_test: FloatArray) -> FloatArray:
-    if z_train.shape[1] == 0:
-        return np.zeros(z_test.shape[0])
-    coef, *_ = np.linalg.lstsq(z_train, y_train, rcond=1e-10)
-    return np.asarray(z_test @ coef, dtype=np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -316,18 +258,18 @@ def _basis(design: ModelDesign, params: dict[str, dict[str, float]]) -> _Basis:
     zm, qm, e0 = [], [], []
     for a in (0, 1):
         z = design.qd(x[a], a)
-        z = z[:, _nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)]
-        q = _residual_maker(z)
+        z = z[:, nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)]
+        q = residual_basis(z)
         zm.append(z)
         qm.append(q)
-        e0.append(_partial(q, design.qd(design.y[:, a], a)))
+        e0.append(partial_out(q, design.qd(design.y[:, a], a)))
     return _Basis(params, zm, qm, e0)
 
 
 def _rss_with(basis: _Basis, zc: Sequence[FloatArray]) -> float:
     total = 0.0
     for a in (0, 1):
-        z = _partial(basis.qm[a], zc[a]) if zc[a].size else zc[a]
+        z = partial_out(basis.qm[a], zc[a]) if zc[a].size else zc[a]
         r = basis.e0[a]
         if z.size and z.shape[1]:
             coef, *_ = np.linalg.lstsq(z, r, rcond=1e-10)
@@ -373,9 +315,9 @@ def _scan(
         zc, rss1 = [], []
         for a in (0, 1):
             raw = design.qd(np.asarray(blocks[a], dtype=np.float64), a)
-            z = _partial(basis.qm[a], raw)
+            z = partial_out(basis.qm[a], raw)
             ref = float(np.abs(raw).max()) if raw.size else 0.0
-            z = z[:, _nonzero_cols(z, ref)] if z.size else z
+            z = z[:, nonzero_cols(z, ref)] if z.size else z
             zc.append(z)
             r = basis.e0[a]
             if z.shape[1]:
@@ -453,7 +395,7 @@ def evaluate_candidate(
     thresholds = thresholds or Thresholds()
     b0 = base if base is not None else base_basis(design)
     k_model = sum(q.shape[1] for q in b0.qm) + 2 + design.n_nonlinear
-    aicc0 = _aicc([float(e @ e) for e in b0.e0], n, k_model)
+    aicc0 = aicc([float(e @ e) for e in b0.e0], n, k_model)
     grid = term.nonlinear_grid()
     n_theta = len(term.nonlinear_params)
     scan = _scan(term, design, history, b0, grid)
@@ -476,7 +418,7 @@ def evaluate_candidate(
     if n_theta == 1:
         params, zc, rss1 = _refine(term, design_c, history, basis, grid, i_best, scan[i_best])
         d_aicc = _delta_aicc(aicc0, rss1, zc, n=n, k_base=k_base)
-    wald = _WaldTest.of(zc, basis.e0, n=n, n_tests=n_tests)
+    wald = WaldTest.of(zc, basis.e0, n=n, n_tests=n_tests)
     cv_base, cv_cand, cv_ok = _blocked_cv(
         term, design, design_c, history, b0.zm, basis.zm, grid, thresholds.folds
     )
@@ -564,7 +506,7 @@ def _delta_aicc(
 ) -> float:
     """AICc(M) − AICc(M + C): ``k_base`` parameters plus the candidate's columns ``zc``."""
     k_c = _n_cols(zc)
-    return aicc0 - _aicc(rss1, n, k_base + k_c)
+    return aicc0 - aicc(rss1, n, k_base + k_c)
 
 
 def _profile(term: EffectTerm, scan: _Scan, profile_d: list[float]) -> list[tuple[float, float]]:
@@ -580,43 +522,6 @@ def _av_data(
 ) -> list[tuple[FloatArray, FloatArray]]:
     """Added-variable plot data per axis: (first candidate column or zeros, residuals)."""
     return [(zc[a][:, 0] if zc[a].shape[1] else np.zeros(n), e0[a]) for a in (0, 1)]
-
-
-@dataclass(frozen=True, slots=True)
-class _WaldTest:
-    """Conservative HAC Wald test of γ = 0 over both axes, with its Bonferroni p-value."""
-
-    chi2: float
-    df: int
-    p_value: float
-    p_bonferroni: float
-
-    @classmethod
-    def of(
-        cls, zc: Sequence[FloatArray], e0: Sequence[FloatArray], *, n: int, n_tests: int
-    ) -> _WaldTest:
-        """The test of candidate columns ``zc`` against model residuals ``e0``.
-
-        Parameters
-        ----------
-        zc : sequence of two ndarrays, shapes (n, K_a)
-            Partialled candidate columns per axis.
-        e0 : sequence of two ndarrays, shape (n,)
-            Partialled model residuals per axis, nm.
-        n : int
-            Quasi-differenced rows (sets the Newey–West lags).
-        n_tests : int
-            (candidate, θ) pairs tried in the diagnosis (Bonferroni factor).
-        """
-        lags = newey_west_lags(n)
-        wald = 0.0
-        df = 0
-        for a in (0, 1):
-            w, k, _ = _wald(zc[a], e0[a], lags)
-            wald += w
-            df += k
-        p = float(stats.chi2.sf(wald, df)) if df else 1.0
-        return cls(wald, df, p, min(1.0, p * max(n_tests, 1)))
 
 
 def _decide(
@@ -664,8 +569,8 @@ def _named_params(
     units = term.coefficient_units
     for a, axis in enumerate("xy"):
         raw_a = design_c.qd(np.asarray(blocks[a], dtype=np.float64), a)
-        z_full = _partial(basis.qm[a], raw_a)
-        keep = _nonzero_cols(z_full, float(np.abs(raw_a).max()) if raw_a.size else 0.0)
+        z_full = partial_out(basis.qm[a], raw_a)
+        keep = nonzero_cols(z_full, float(np.abs(raw_a).max()) if raw_a.size else 0.0)
         coef_full = np.full(z_full.shape[1], math.nan)
         if keep.any():
             c, *_ = np.linalg.lstsq(z_full[:, keep], basis.e0[a], rcond=1e-10)
@@ -677,37 +582,6 @@ def _named_params(
     for term_name, pname, _ in design_c.grids:
         named[f"model.{term_name}.{pname}"] = float(basis.params[term_name][pname])
     return named
-
-
-#: AR(1) coefficients searched for each model's conditional likelihood.
-PHI_GRID = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0])
-
-
-def ml_phi(y: FloatArray, x: Sequence[FloatArray]) -> FloatArray:
-    """Per axis, the φ of :data:`PHI_GRID` that maximises the conditional
-    Gaussian likelihood of y_k | y_{k−1} (minimum quasi-differenced RSS).
-
-    Parameters
-    ----------
-    y : ndarray, shape (n, 2)
-    x : sequence of two ndarrays, shapes (n, K_a)
-        Level basis per axis.
-    """
-    phi = np.zeros(2)
-    for a in (0, 1):
-        best = math.inf
-        for f in PHI_GRID:
-            z = x[a][1:] - f * x[a][:-1]
-            yt = y[1:, a] - f * y[:-1, a]
-            keep = _nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)
-            r = yt
-            if keep.any():
-                coef, *_ = np.linalg.lstsq(z[:, keep], yt, rcond=1e-10)
-                r = yt - z[:, keep] @ coef
-            rss = float(r @ r)
-            if rss < best:
-                best, phi[a] = rss, float(f)
-    return phi
 
 
 def _level_phi(
@@ -788,7 +662,7 @@ def _blocked_cv(
                 best_rss, best_pred = rss, preds
         assert best_pred is not None
         for a in (0, 1):
-            base_pred = _ls_predict(zm_base[a][train], ytil_base[a][train], zm_base[a][test])
+            base_pred = ls_predict(zm_base[a][train], ytil_base[a][train], zm_base[a][test])
             se_base += float(np.sum((ytil_base[a][test] - base_pred) ** 2))
             se_cand += float(np.sum((ytil[a][test] - best_pred[a]) ** 2))
     return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable

@@ -22,7 +22,7 @@ import numpy.typing as npt
 from afmdrift.errors import InputError
 from afmdrift.model import History, HistoryFeed, Observation
 from afmdrift.records import ChannelSample, Event, ScanDirection
-from afmdrift.service import DB_NAME, RunStore
+from afmdrift.runs import DB_NAME, RunStore
 from afmdrift.session import read_session
 
 __all__ = ["RunData", "load_run"]

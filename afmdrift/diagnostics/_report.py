@@ -30,7 +30,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.diagnostics._data import RunData
-from afmdrift.diagnostics._diagnose import Diagnosis
+from afmdrift.diagnostics._diagnosis import Diagnosis
 from afmdrift.diagnostics._stats import cross_correlation, lomb_scargle
 from afmdrift.errors import InputError
 from afmdrift.registration import measure_drift

@@ -1,7 +1,7 @@
 """From a session or run directory to a :class:`Diagnosis`.
 
 A session directory (format v1) is first run through the drift service's
-pipeline with :func:`afmdrift.service.replay_session`, the function behind
+pipeline with :func:`afmdrift.runs.replay_session`, the function behind
 ``afmdrift replay``, so the diagnosis sees exactly what the daemon would have
 measured and predicted. A run directory (``run.sqlite``) is read as it is.
 """
@@ -17,7 +17,7 @@ from afmdrift.diagnostics._data import RunData, load_run
 from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
 from afmdrift.diagnostics._driftlog import load_drift_log
 from afmdrift.errors import InputError
-from afmdrift.service import DB_NAME, replay_session
+from afmdrift.runs import DB_NAME, replay_session
 from afmdrift.session import is_drift_log
 
 __all__ = ["config_with_effects", "diagnose_path", "is_run_dir", "prepare_run"]

@@ -19,14 +19,10 @@ from afmdrift.model._base import (
 )
 from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
 from afmdrift.model._effects import (
-    ENTRY_POINT_GROUP,
     LIBRARY,
     EffectTerm,
     LaggedChannel,
     NonlinearParam,
-    available_terms,
-    load_term_class,
-    make_term,
     offset_through_play,
     play_gaps,
     step_through_play,
@@ -40,8 +36,6 @@ from afmdrift.model._families import (
     GenericTerm,
     is_term_spec,
     parse_term_spec,
-    resolve_terms,
-    term_class,
 )
 from afmdrift.model._feed import FeedBatch, HistoryFeed
 from afmdrift.model._kalman import KalmanCAPredictor, KalmanPredictor
@@ -61,6 +55,14 @@ from afmdrift.model._reconstruct import (
     sinc_reconstruct,
 )
 from afmdrift.model._registry import PREDICTOR_NAMES, make_predictor
+from afmdrift.model._terms import (
+    ENTRY_POINT_GROUP,
+    available_terms,
+    load_term_class,
+    make_term,
+    resolve_terms,
+    term_class,
+)
 from afmdrift.model._trajectory import (
     BandConstraint,
     DriftTrajectory,

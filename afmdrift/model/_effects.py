@@ -29,47 +29,36 @@ Term API
 Users add terms without editing afmdrift: subclass :class:`EffectTerm`, give
 it a unique ``name`` and register it under the entry-point group
 ``afmdrift.effects`` or list ``"package.module:Class"`` in
-``[model.physics] plugins`` (see ``docs/effects-plugins.md``).
+``[model.physics] plugins`` (see ``docs/effects-plugins.md``); terms are
+found by name in :mod:`afmdrift.model._terms`.
 """
 
 from __future__ import annotations
 
 import abc
 import functools
-import importlib
 import itertools
-import logging
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from typing import ClassVar
 
 import numba
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.errors import ConfigError
 from afmdrift.model._base import History
 from afmdrift.records import EventKind
 
 __all__ = [
-    "ENTRY_POINT_GROUP",
     "LIBRARY",
     "EffectTerm",
     "LaggedChannel",
     "NonlinearParam",
-    "available_terms",
-    "load_term_class",
-    "make_term",
     "offset_through_play",
     "play_gaps",
     "step_through_play",
 ]
 
-_log = logging.getLogger(__name__)
-
-#: Entry-point group under which third-party packages register effect terms.
-ENTRY_POINT_GROUP = "afmdrift.effects"
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -674,69 +663,3 @@ LIBRARY: dict[str, type[EffectTerm]] = {
         TipChange,
     )
 }
-
-
-def load_term_class(spec: str) -> type[EffectTerm]:
-    """Import an :class:`EffectTerm` subclass from ``"package.module:Class"``.
-
-    Raises
-    ------
-    ConfigError
-        If the module cannot be imported, has no such attribute, or it is not
-        an :class:`EffectTerm` subclass.
-    """
-    module_name, sep, attr = spec.partition(":")
-    if not sep or not module_name or not attr:
-        raise ConfigError(f"effect plugin {spec!r}: expected 'package.module:ClassName'")
-    try:
-        module = importlib.import_module(module_name)
-    except ImportError as err:
-        raise ConfigError(f"effect plugin {spec!r}: cannot import {module_name!r}: {err}") from None
-    except (Exception, SystemExit) as err:
-        # A plugin is operator code: whatever its import raises (even
-        # sys.exit) is a configuration error, never the end of the daemon.
-        raise ConfigError(
-            f"effect plugin {spec!r}: importing {module_name!r} raised {type(err).__name__}: {err}"
-        ) from None
-    obj = getattr(module, attr, None)
-    if obj is None:
-        raise ConfigError(f"effect plugin {spec!r}: module {module_name!r} has no {attr!r}")
-    if not (isinstance(obj, type) and issubclass(obj, EffectTerm)):
-        raise ConfigError(f"effect plugin {spec!r}: {attr!r} is not an EffectTerm subclass")
-    if not isinstance(getattr(obj, "name", None), str):
-        raise ConfigError(f"effect plugin {spec!r}: the class must set a string 'name'")
-    return obj
-
-
-def available_terms(plugins: Iterable[str] = ()) -> dict[str, type[EffectTerm]]:
-    """All known terms by name: the library, entry points, then ``plugins`` specs.
-
-    A plugin may not reuse a library name (that would silently change the
-    meaning of a configuration).
-    """
-    terms = dict(LIBRARY)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        try:
-            cls = load_term_class(ep.value)
-        except ConfigError as err:
-            _log.warning("ignoring entry point %s in %s: %s", ep.name, ENTRY_POINT_GROUP, err)
-            continue
-        _add(terms, cls, f"entry point {ep.name!r}")
-    for spec in plugins:
-        _add(terms, load_term_class(spec), f"plugin {spec!r}")
-    return terms
-
-
-def _add(terms: dict[str, type[EffectTerm]], cls: type[EffectTerm], where: str) -> None:
-    if cls.name in LIBRARY and LIBRARY[cls.name] is not cls:
-        raise ConfigError(f"{where}: term name {cls.name!r} is taken by the built-in library")
-    terms[cls.name] = cls
-
-
-def make_term(name: str, plugins: Iterable[str] = ()) -> EffectTerm:
-    """Instantiate the term called ``name`` (library, entry points, ``plugins``, or a
-    generic term spec such as ``channel:pressure_hpa``, see ``docs/model.md``)."""
-    # The generic families build on this module; imported here to avoid a cycle.
-    from afmdrift.model._families import term_class
-
-    return term_class(name, available_terms(plugins))()

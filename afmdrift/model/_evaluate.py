@@ -1,7 +1,7 @@
 """Offline evaluation of drift predictors over a replayed run.
 
 ``afmdrift evaluate`` is "replay, then score": the session first goes through
-the daemon's own pipeline (:func:`afmdrift.pipeline.measure_session`, the
+the daemon's own pipeline (:func:`afmdrift.runs.measure_session`, the
 code ``afmdrift replay`` and the daemon run), which gives each frame's
 observation exactly as the daemon fed it to its model (the latest sample of
 the causal drift trajectory) in a :class:`MeasuredSeries`. Then

@@ -47,7 +47,7 @@ from __future__ import annotations
 import abc
 import functools
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from typing import ClassVar
 
 import numpy as np
@@ -59,7 +59,6 @@ from afmdrift.model._effects import (
     EffectTerm,
     LaggedChannel,
     NonlinearParam,
-    available_terms,
 )
 from afmdrift.records import event_kind
 
@@ -70,8 +69,6 @@ __all__ = [
     "GenericTerm",
     "is_term_spec",
     "parse_term_spec",
-    "resolve_terms",
-    "term_class",
 ]
 
 FloatArray = npt.NDArray[np.float64]
@@ -324,55 +321,3 @@ def _event_class(
         "__module__": __name__,
     }
     return type("EventResponseTerm", (EventResponse,), attrs)
-
-
-def term_class(name: str, known: Mapping[str, type[EffectTerm]]) -> type[EffectTerm]:
-    """The class of term ``name``: a generic spec, or a name in ``known``.
-
-    Raises
-    ------
-    ConfigError
-        A malformed spec, or a name neither a spec nor known (the message
-        lists the known names and the spec syntax).
-    """
-    if is_term_spec(name):
-        return parse_term_spec(name.strip())
-    if name not in known:
-        raise ConfigError(
-            f"unknown effect term {name!r} (known: {', '.join(sorted(known))}; or a generic "
-            "term 'channel:<channel>' or 'event:<kind>', see docs/model.md)"
-        )
-    return known[name]
-
-
-def resolve_terms(
-    names: Iterable[str], plugins: Iterable[str] = (), *, key: str = "model.physics.terms"
-) -> list[type[EffectTerm]]:
-    """The term classes of ``names`` (library, entry points, ``plugins`` or specs).
-
-    Raises
-    ------
-    ConfigError
-        Unknown names, malformed specs or duplicates; the message starts with ``key``.
-    """
-    names = list(names)
-    known = available_terms(plugins)
-    out: list[type[EffectTerm]] = []
-    unknown = [n for n in names if not is_term_spec(n) and n not in known]
-    if unknown:
-        raise ConfigError(
-            f"{key}: unknown term(s) {', '.join(map(repr, unknown))} "
-            f"(known: {', '.join(sorted(known))}; or a generic term 'channel:<channel>' "
-            "or 'event:<kind>', see docs/model.md)"
-        )
-    bad: list[str] = []
-    for n in names:
-        try:
-            out.append(term_class(n, known))
-        except ConfigError as err:
-            bad.append(str(err))
-    if bad:
-        raise ConfigError(f"{key}: {'; '.join(bad)}")
-    if len(set(names)) != len(names):
-        raise ConfigError(f"{key}: duplicate names in {names}")
-    return out

@@ -47,7 +47,7 @@ from afmdrift.config import NNConfig, PhysicsConfig
 from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
 from afmdrift.model._effects import EffectTerm, warm_up_effects
-from afmdrift.model._families import resolve_terms
+from afmdrift.model._terms import resolve_terms
 
 __all__ = [
     "FitResult",

@@ -1,13 +1,15 @@
 """The per-frame pipeline: from a frame to a drift position, a prediction and d(t).
 
-Between the model and the service: the daemon, ``afmdrift replay`` and
-``afmdrift diagnose`` run every frame through :class:`FramePipeline` (its
-stages are listed in :meth:`FramePipeline.process`), and the run store keeps
-the :class:`FrameRecord` it produces.
+Between the model and the runs: the daemon calls :meth:`FramePipeline.process`
+for each new frame, and every tool that holds a whole recording (``afmdrift
+replay``, ``diagnose``, ``evaluate``, ``correct``, ``measure``, ``batch``)
+iterates :meth:`FramePipeline.run`, which reads the recording one frame ahead
+(the stages are listed in :meth:`FramePipeline.process`). The run store
+(:mod:`afmdrift.runs`) keeps the :class:`FrameRecord` it produces.
 """
 
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
-from afmdrift.pipeline._frame import FrameOutcome, FramePipeline, with_next
+from afmdrift.pipeline._frame import FrameOutcome, FramePipeline
 from afmdrift.pipeline._positions import DriftPositions, FramePosition, summarise_field
 from afmdrift.pipeline._records import (
     FRAME_COLUMNS,
@@ -17,37 +19,23 @@ from afmdrift.pipeline._records import (
     measurement_row,
     observation_from_record,
     record_from_row,
+    reference_direction_of,
 )
-from afmdrift.pipeline._series import (
-    CorrectionSummary,
-    correct_session,
-    measure_session,
-    series_from_drift_log,
-    series_from_records,
-)
-from afmdrift.pipeline._track import track_session, track_stack
 
 __all__ = [
     "FRAME_COLUMNS",
     "MEASUREMENT_COLUMNS",
-    "CorrectionSummary",
     "DriftPositions",
     "FrameOutcome",
     "FramePipeline",
     "FramePosition",
     "FrameRecord",
     "ResumeState",
-    "correct_session",
     "dewarp_frame",
     "image_positions",
-    "measure_session",
     "measurement_row",
     "observation_from_record",
     "record_from_row",
-    "series_from_drift_log",
-    "series_from_records",
+    "reference_direction_of",
     "summarise_field",
-    "track_session",
-    "track_stack",
-    "with_next",
 ]

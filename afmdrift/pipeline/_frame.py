@@ -6,9 +6,12 @@ history (:class:`~afmdrift.model.HistoryFeed`), predict p for the frame before
 it is seen, measure it against the tracker's reference (block phase
 correlation), turn the measured image position into a drift position p by
 adding back the commanded offset moves, update the predictor and rebuild the
-continuous offset curve d(t), and make the frame's record. The daemon calls it
-in a worker thread, ``afmdrift replay`` (and so ``afmdrift diagnose``) in a
-loop, so all of them run the same code.
+continuous offset curve d(t), and make the frame's record. The daemon calls
+:meth:`FramePipeline.process` in a worker thread for each new frame; a tool
+that holds a whole recording (``afmdrift replay``, and so ``afmdrift
+diagnose``, ``evaluate``, ``correct``, ``measure``) iterates
+:meth:`FramePipeline.run`, which reads the recording one frame ahead itself.
+All of them run the same code.
 
 Positions (see ``afmdrift.model._positions`` for the sign convention)::
 
@@ -259,6 +262,20 @@ class FramePipeline:
 
     # ------------------------------------------------------------------ the frame
 
+    def run(self, frames: Iterable[Frame]) -> Iterator[FrameOutcome]:
+        """Run the pipeline over a recording: one outcome per frame, in order.
+
+        Frame ``k`` gets ``seq=k`` and its curve is used from the end of its
+        scan, as :meth:`process` does for a frame without ``t_now_s``. The
+        recording is read one frame ahead: the next frame's block pass runs
+        on the registration engine's workers while this frame's position and
+        record are made (see :meth:`DriftPositions.locate`), and is complete
+        before the outcome is yielded. Results are those of one
+        :meth:`process` call per frame.
+        """
+        for k, frame, upcoming in with_next(frames):
+            yield self._process(frame, seq=k, t_now_s=frame.t_end_s, ahead=upcoming)
+
     def process(
         self,
         frame: Frame,
@@ -268,7 +285,6 @@ class FramePipeline:
         detected_wall_s: float | None = None,
         t_now_s: float | None = None,
         hold: str | None = None,
-        next_frame: Frame | None = None,
     ) -> FrameOutcome:
         """Run the whole pipeline on one frame. Bad input never raises; it is recorded.
 
@@ -280,12 +296,26 @@ class FramePipeline:
         measured and recorded but must not feed the model (for example: the
         event log could not be read up to it, so commanded moves may be
         missing from its drift position; or ``"paused"`` by the operator).
-        ``next_frame``: the frame the next call will be given, when the
-        caller has it already (a stack, a recording): its block pass then runs
-        on the registration engine's workers while this frame's position and
-        record are made (see :meth:`DriftPositions.locate`), and is complete
-        when this call returns. Results are the same as without it.
+        A recording that is already whole goes through :meth:`run` instead.
         """
+        return self._process(
+            frame, seq=seq, epoch=epoch, detected_wall_s=detected_wall_s, t_now_s=t_now_s,
+            hold=hold, ahead=None,
+        )  # fmt: skip
+
+    def _process(
+        self,
+        frame: Frame,
+        *,
+        seq: int,
+        epoch: int = 0,
+        detected_wall_s: float | None = None,
+        t_now_s: float | None,
+        hold: str | None = None,
+        ahead: Frame | None,
+    ) -> FrameOutcome:
+        """:meth:`process`, with the block pass of ``ahead`` (the frame the
+        next call will be given) started once this frame is registered."""
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
         pred = self._predict(frame.t_mid_s)
@@ -293,7 +323,7 @@ class FramePipeline:
         try:
             pos = self.positions.locate(
                 frame, seq=seq, events=self.history.events, prediction_nm=pred[0],
-                n_fed=self.n_fed, held=held, next_frame=next_frame,
+                n_fed=self.n_fed, held=held, next_frame=ahead,
             )  # fmt: skip
             observed = _observed(frame, pos)
             fed = self._feed_model(frame, pos, observed, seq=seq, held=hold, t_now_s=t_now_s)
@@ -302,7 +332,7 @@ class FramePipeline:
                 reason=fed.reason, started=started,
             )  # fmt: skip
         finally:
-            if next_frame is not None:
+            if ahead is not None:
                 self.positions.finish_ahead()
         return FrameOutcome(
             record=record,
@@ -486,9 +516,7 @@ def _frame_record(
 
 def with_next(frames: Iterable[Frame]) -> Iterator[tuple[int, Frame, Frame | None]]:
     """``(k, frame, the next frame or None)`` over ``frames``, reading one
-    frame ahead: for a caller that holds a whole recording (``afmdrift
-    measure``, ``replay``, ``evaluate``, ``correct``) to pass each frame's
-    successor to :meth:`FramePipeline.process` as ``next_frame``."""
+    frame ahead: how :meth:`FramePipeline.run` goes through a recording."""
     it = iter(frames)
     current = next(it, None)
     k = 0

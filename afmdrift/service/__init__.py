@@ -1,4 +1,4 @@
-"""The drift service: asyncio daemon, ZeroMQ publisher, durable run store.
+"""The drift service: asyncio daemon and ZeroMQ publisher over the durable run store.
 
 Depends only on the driver interface (:mod:`afmdrift.drivers`), never on the
 simulator or the test helpers (enforced by import-linter, see pyproject.toml).
@@ -8,25 +8,34 @@ Public API
 :class:`DriftService`
     The daemon (``afmdrift run``).
 :func:`replay_session`
-    ``afmdrift replay``.
+    ``afmdrift replay`` (defined in :mod:`afmdrift.runs`).
 :class:`RunStore`, :class:`FrameRecord`
-    The SQLite run store.
+    The SQLite run store (defined in :mod:`afmdrift.runs` and
+    :mod:`afmdrift.pipeline`).
 :class:`ServiceConfig`
     The ``[service]`` configuration section (defined in :mod:`afmdrift.config`).
 
 The wire format (``docs/wire.md``) is :mod:`afmdrift.wire`, shared with the
-client; the per-frame pipeline is :mod:`afmdrift.pipeline`.
+client; the per-frame pipeline is :mod:`afmdrift.pipeline`, and a recording
+through it, with the run store, :mod:`afmdrift.runs` (re-exported here for
+code written against this package).
 """
 
 from afmdrift.config import ServiceConfig, endpoint_is_local
 from afmdrift.pipeline import MEASUREMENT_COLUMNS, FrameRecord
+from afmdrift.runs import (
+    DB_NAME,
+    STORE_SCHEMA_VERSION,
+    ReplaySummary,
+    RunStore,
+    StoreError,
+    process_and_record,
+    replay_session,
+)
 from afmdrift.service._check import check_config
 from afmdrift.service._daemon import INSTRUMENT_ERRORS, DriftService
-from afmdrift.service._record import process_and_record
-from afmdrift.service._replay import ReplaySummary, replay_session
 from afmdrift.service._runner import open_instrument, run_until_signalled
 from afmdrift.service._safety import OffsetLimiter
-from afmdrift.service._store import DB_NAME, STORE_SCHEMA_VERSION, RunStore, StoreError
 from afmdrift.service._zmq import ServiceSocketError
 
 __all__ = [

@@ -9,12 +9,14 @@ Parts, each with one job:
     polls frames, channels and events into one batch per frame;
 :class:`~afmdrift.pipeline.FramePipeline`
     measures, predicts and rebuilds d(t) for each frame, in the worker thread
-    (:func:`~afmdrift.service._record.process_and_record` commits it);
+    (:func:`~afmdrift.runs.process_and_record` commits it to the run store);
 :class:`~afmdrift.service._publish.Publishing`
     the wire messages, the offset limiter, the flags and the status;
 :class:`~afmdrift.service._control.Controller`
     answers the control socket (every message one reply; a token for the
-    commands that change state).
+    commands that change state);
+:class:`~afmdrift.service._closed_loop.ClosedLoop`
+    in closed loop, moves the instrument's offset along d(t).
 
 :class:`DriftService` owns the sockets, the run store and the worker thread,
 resumes from the store, and runs the loops (one :class:`asyncio.TaskGroup`;
@@ -33,36 +35,29 @@ import dataclasses
 import functools
 import itertools
 import logging
-import math
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import TypeVar
 
-import numpy as np
-import numpy.typing as npt
 import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.drivers import Instrument, VelocityActuator
 from afmdrift.errors import ConfigError
 from afmdrift.model import (
-    commanded_offset_nm,
-    events_of_kind,
-    offset_through_play,
-    play_gaps,
     warm_up_effects,
 )
 from afmdrift.pipeline import FramePipeline
-from afmdrift.records import EventKind, InstrumentInfo
+from afmdrift.records import InstrumentInfo
 from afmdrift.registration import warm_up
+from afmdrift.runs import RunStore, process_and_record
 from afmdrift.service._acquire import Acquisition, FrameBatch
+from afmdrift.service._closed_loop import ClosedLoop
 from afmdrift.service._control import Controller
 from afmdrift.service._link import INSTRUMENT_ERRORS, InstrumentLink, every
 from afmdrift.service._publish import Publishing
-from afmdrift.service._record import process_and_record
-from afmdrift.service._store import RunStore
 from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
 from afmdrift.wire import OffsetMsg, StatusMsg
 
@@ -146,11 +141,13 @@ class DriftService:
         self.frames_processed = 0
         self.latencies_s: deque[float] = deque(maxlen=1000)
         self._frame_done = asyncio.Event()
-        self._absolute_offset_base: tuple[float, float] | None = None
-        self._last_command: tuple[float, float] | None = None
-        # offset_move steps of the event log (n, 2), and the log length they are of
-        self._play_steps: tuple[int, npt.NDArray[np.float64]] = (-1, np.zeros((0, 2)))
-        self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
+        self.closed_loop = ClosedLoop(
+            self.svc,
+            link=self.link,
+            acquisition=self.acquisition,
+            publishing=self.publishing,
+            pipeline=self.pipeline,
+        )
         self._store: RunStore | None = None
         self._control: ControlSocket | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
@@ -273,7 +270,7 @@ class DriftService:
             "control": self._serve_control,
         }
         if svc.closed_loop:
-            loops["closed"] = lambda: every(svc.closed_loop_interval_s, self._closed_loop_tick)
+            loops["closed"] = lambda: every(svc.closed_loop_interval_s, self.closed_loop.tick)
         return loops
 
     async def _in_worker(self, fn: Callable[[], _T]) -> _T:
@@ -315,8 +312,7 @@ class DriftService:
 
     def _on_connected(self, info: InstrumentInfo, t_s: float, offset: tuple[float, float]) -> None:
         self.publishing.connected(t_s)
-        moved = commanded_offset_nm([t_s], self.acquisition.events)[0]
-        self._absolute_offset_base = (offset[0] - moved[0], offset[1] - moved[1])
+        self.closed_loop.connected(t_s, offset)
         if self._store is not None and self._executor is not None:
             ident = {f"instrument_{k}": str(v) for k, v in dataclasses.asdict(info).items()}
             self._executor.submit(self._store.set_meta, ident)
@@ -384,117 +380,6 @@ class DriftService:
     async def _serve_control(self) -> None:
         assert self._control is not None
         await self.controller.serve(self._control)
-
-    # ------------------------------------------------------------------ closed loop
-
-    def _hold_offset(self) -> tuple[float, float] | None:
-        """The instrument's absolute offset at the reference frame (where d = 0
-        puts it), or ``None`` while there is no valid prediction to follow."""
-        last = self.publishing.last_offset
-        base = self._absolute_offset_base
-        if last is None or not last.valid or base is None or self.publishing.curve is None:
-            return None
-        t_ref = self.pipeline.t_ref_s
-        if t_ref is None:
-            return None
-        moved_ref = commanded_offset_nm([t_ref], self.acquisition.events)[0]
-        return base[0] + moved_ref[0], base[1] + moved_ref[1]
-
-    async def _closed_loop_tick(self) -> None:
-        """Move the instrument's XY offset so the image stays on the same spot."""
-        hold = self._hold_offset()
-        if self.svc.closed_loop_actuator == "velocity":
-            await self._velocity_tick(hold)
-            return
-        last = self.publishing.last_offset
-        if hold is None or last is None:
-            return
-        x = hold[0] + last.x_nm
-        y = hold[1] + last.y_nm
-        x, y = self._through_play(x, y)
-        if (
-            self._last_command is not None
-            and math.hypot(x - self._last_command[0], y - self._last_command[1])
-            < self.svc.closed_loop_min_step_nm
-        ):
-            return
-        await self.link.set_offset(x, y)
-        self._last_command = (x, y)
-
-    def _through_play(self, x: float, y: float) -> tuple[float, float]:
-        """The offset to command so the image lands where ``(x, y)`` would put
-        it without the play hysteresis of the offset actuator (the model's
-        ``hysteresis`` term, when fitted).
-
-        d(t) already holds the play gap after the moves the model has seen;
-        what the moves since then, and this one, change in it is added here
-        (:func:`~afmdrift.model.step_through_play`). Moves sent but not yet
-        back in the event log count as one step.
-        """
-        play = self.pipeline.predictor.offset_play()
-        base = self._absolute_offset_base
-        if play is None or base is None:
-            return x, y
-        events = self.acquisition.events
-        if self._play_steps[0] != len(events):
-            self._play_steps = (len(events), events_of_kind(events, EventKind.OFFSET_MOVE)[1])
-        steps = self._play_steps[1]
-        logged = np.asarray(base) + steps.sum(axis=0)
-        sent = np.asarray(self._last_command) if self._last_command is not None else logged
-        seen = self.pipeline.history.of_kind(EventKind.OFFSET_MOVE)[1]
-        out = []
-        for axis, want in enumerate((x, y)):
-            g_now = play_gaps(np.append(steps[:, axis], sent[axis] - logged[axis]), play.play_nm)
-            g_seen = play_gaps(seen[:, axis], play.play_nm)
-            out.append(
-                offset_through_play(
-                    want,
-                    sent=float(sent[axis]),
-                    gap_nm=float(g_now[-1]),
-                    gap_seen_nm=float(g_seen[-1]) if g_seen.size else 0.0,
-                    play_nm=play.play_nm,
-                    gain=play.gain[axis],
-                )
-            )
-        return out[0], out[1]
-
-    async def _velocity_tick(self, hold: tuple[float, float] | None) -> None:
-        """Drive the instrument's own drift compensation: a piecewise-constant
-        velocity that keeps the offset on ``hold + d(t)``.
-
-        ``v = (hold + d(t + τ) − offset(t))/τ``, with τ three tick intervals
-        (of instrument time, measured): the slope of d is fed forward, so a
-        ramp is followed without lag, and an error (a new d(t) after a frame,
-        a ramp booked late) decays with time constant τ. (With τ one frame
-        period, as before, a correction published at the end of a frame was
-        only a third applied by the middle of the next.) Three ticks keep the
-        loop stable when a command waits one tick behind a frame transfer: a
-        gain of 1/3 per tick, where an integrating loop with one tick of delay
-        oscillates from 1. The velocity is limited to ``max_offset_rate_nm_s``;
-        without a valid prediction it is set to zero once.
-        """
-        actuator = self.instrument
-        assert isinstance(actuator, VelocityActuator)
-        curve = self.publishing.curve
-        if hold is None or curve is None:
-            if self._last_velocity is not None and self._last_velocity[1:] != (0.0, 0.0):
-                await self.link.call(actuator.set_drift_velocity, 0.0, 0.0)
-                self._last_velocity = (self._last_velocity[0], 0.0, 0.0)
-            return
-        t_now = await self.link.now_s()
-        ox, oy = await self.link.call(self.instrument.get_offset)
-        prev = self._last_velocity
-        tick = t_now - prev[0] if prev is not None and t_now > prev[0] else 1.0
-        tau = 3.0 * tick
-        target = curve.at([t_now + tau]).reshape(-1)
-        vx = (hold[0] + float(target[0]) - ox) / tau
-        vy = (hold[1] + float(target[1]) - oy) / tau
-        speed = math.hypot(vx, vy)
-        limit = self.svc.max_offset_rate_nm_s
-        if speed > limit:
-            vx, vy = vx * limit / speed, vy * limit / speed
-        await self.link.call(actuator.set_drift_velocity, vx, vy)
-        self._last_velocity = (t_now, vx, vy)
 
 
 async def _supervised(name: str, fn: Callable[[], Awaitable[None]]) -> None:

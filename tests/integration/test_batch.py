@@ -20,7 +20,7 @@ import pytest
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.io import load_stack
-from afmdrift.pipeline import track_stack
+from afmdrift.runs import track_stack
 from afmdrift.testing import rough_texture, shifted_crop
 
 pytestmark = pytest.mark.slow

@@ -29,7 +29,6 @@ from afmdrift.cli import main
 from afmdrift.cli._measure import measure_pair
 from afmdrift.cli._measure import measurement_config as _config
 from afmdrift.io import AfmImage, load_image, load_stack
-from afmdrift.pipeline import track_stack
 from afmdrift.registration import (
     DriftTracker,
     InvalidFrameError,
@@ -37,6 +36,7 @@ from afmdrift.registration import (
     coarse_shift,
     measure_drift,
 )
+from afmdrift.runs import track_stack
 
 pytestmark = pytest.mark.realdata
 

@@ -199,7 +199,7 @@ async def test_daemon_on_a_replayed_session_matches_afmdrift_replay(tmp_path: Pa
     """The daemon over ``replay:SESSION`` and ``afmdrift replay`` run the same per-frame
     code: the same frames give the same drift positions."""
     from afmdrift.drivers.sim._record import record_session
-    from afmdrift.pipeline import measure_session, series_from_records
+    from afmdrift.runs import measure_session, series_from_records
     from afmdrift.service import open_instrument, replay_session
     from afmdrift.session import read_session
 

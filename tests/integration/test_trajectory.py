@@ -15,8 +15,8 @@ from afmdrift.drivers.sim._record import record_session
 from afmdrift.pipeline import dewarp_frame
 from afmdrift.records import Frame
 from afmdrift.registration import measure_drift
+from afmdrift.runs import TRAJECTORY_COLUMNS
 from afmdrift.service import replay_session
-from afmdrift.service._store import TRAJECTORY_COLUMNS
 from afmdrift.session import read_session
 
 CREEP = Path(__file__).parents[2] / "config" / "scenarios" / "hidden" / "creep.toml"

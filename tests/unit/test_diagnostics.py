@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from afmdrift.diagnostics import RunData, Thresholds, diagnose
-from afmdrift.diagnostics._candidates import cv_folds
+from afmdrift.diagnostics._regression import cv_folds
 from afmdrift.diagnostics._stats import (
     cusum,
     error_summary,
@@ -329,7 +329,7 @@ def test_named_effect_ranks_above_a_generic_term_with_comparable_evidence() -> N
     """Regression guard: channel:humidity_pct (a lag smooths the noisy sensor) must
     not displace humidity when it fits a few AICc units better but predicts no better."""
     from afmdrift.diagnostics._candidates import CandidateResult
-    from afmdrift.diagnostics._diagnose import _rank
+    from afmdrift.diagnostics._ranking import rank_candidates as _rank
 
     def cand(
         name: str, d_aicc: float, rmse: float, driver: dict[str, str], tau_s: float = 1.0

@@ -1,5 +1,5 @@
 """A block pass started ahead of its frame (BlockEngine.measure_ahead,
-DriftTracker.measure_ahead, FramePipeline.process(next_frame=...)) gives
+DriftTracker.measure_ahead, FramePipeline.run) gives
 exactly what measuring the frame then would; the three-point sub-pixel
 methods, now compiled into the pass, keep their formulas."""
 
@@ -168,7 +168,7 @@ def test_track_stack_output_is_the_same_with_and_without_lookahead(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     from afmdrift.io import AfmImage
-    from afmdrift.pipeline import track_stack
+    from afmdrift.runs import track_stack
 
     frames = _frames(8, seed=5)
     images = [

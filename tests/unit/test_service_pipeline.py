@@ -265,7 +265,7 @@ def test_field_summary_is_the_mean_spread_and_median_of_the_valid_blocks(n_valid
 
 
 def test_with_next_reads_one_frame_ahead() -> None:
-    from afmdrift.pipeline import with_next
+    from afmdrift.pipeline._frame import with_next
 
     assert list(with_next([])) == []
     assert list(with_next(["a"])) == [(0, "a", None)]
@@ -274,20 +274,19 @@ def test_with_next_reads_one_frame_ahead() -> None:
 
 def test_passing_the_next_frame_changes_no_record(tmp_path: Path, sim: SimulatedAFM) -> None:
     """What a recording's tools (replay, evaluate, correct, measure) do:
-    each frame's successor given as ``next_frame``, so its block pass runs
-    while the frame is placed. The records, with a bad frame among them,
-    are those of the daemon's frame-by-frame calls."""
-    from afmdrift.pipeline import with_next
-
+    :meth:`FramePipeline.run` reads one frame ahead, so each frame's
+    successor has its block pass run while the frame is placed. The records,
+    with a bad frame among them, are those of the daemon's frame-by-frame
+    calls."""
     frames = _frames(sim, 7)
     bad = frames[4].heights_nm.copy()
     bad[3, 3] = np.nan
     frames[4] = dataclasses.replace(frames[4], heights_nm=bad)
     plain = FramePipeline(config=service_config(tmp_path))
     ahead = FramePipeline(config=service_config(tmp_path))
-    for k, frame, upcoming in with_next(frames):
+    for k, (frame, outcome) in enumerate(zip(frames, ahead.run(frames), strict=True)):
         a = plain.process(frame, seq=k, t_now_s=frame.t_end_s).record
-        b = ahead.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming).record
+        b = outcome.record
         assert (a.x_nm, a.y_nm, a.fed_model, a.reason) == pytest.approx(
             (b.x_nm, b.y_nm, b.fed_model, b.reason), abs=0, nan_ok=True
         )

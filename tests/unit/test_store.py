@@ -155,7 +155,7 @@ def test_sigkill_between_frames_loses_at_most_the_frame_in_flight(tmp_path: Path
         import os, signal, sys
         sys.path.insert(0, {str(Path(__file__).parent)!r})
         from test_store import make_record
-        from afmdrift.service._store import RunStore
+        from afmdrift.runs import RunStore
         import numpy as np
         store = RunStore({str(tmp_path)!r}, archive_frames=True)
         for seq in range(40):

@@ -1,9 +1,10 @@
 """Replay a recorded session through the daemon's pipeline, as fast as possible.
 
-``afmdrift replay SESSION --out RUN_DIR`` feeds every frame of a session
-(format v1) to :func:`process_and_record`, the function the daemon runs for
-each new frame; the session's channels and events are known from the start,
-and each reaches the model with the first frame that ends after it was logged
+``afmdrift replay SESSION --out RUN_DIR`` runs every frame of a session
+(format v1) through :meth:`FramePipeline.run` and commits each with
+:func:`record_outcome`, as the daemon does for each new frame; the session's
+channels and events are known from the start, and each reaches the model
+with the first frame that ends after it was logged
 (:class:`~afmdrift.model.HistoryFeed`). It writes the run store and
 ``RUN_DIR/measurements.csv``, ``RUN_DIR/trajectory.csv`` (the causal drift
 trajectory, as the daemon writes it) and ``RUN_DIR/trajectory_smoothed.csv``
@@ -20,9 +21,10 @@ from pathlib import Path
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
-from afmdrift.pipeline import FramePipeline, with_next
-from afmdrift.service._record import process_and_record
-from afmdrift.service._store import RunStore, trajectory_rows, write_trajectory_csv
+from afmdrift.pipeline import FramePipeline
+from afmdrift.runs._csv import trajectory_rows, write_trajectory_csv
+from afmdrift.runs._record import record_outcome
+from afmdrift.runs._store import RunStore
 from afmdrift.session import Session, read_session
 
 __all__ = ["ReplaySummary", "replay_session"]
@@ -79,10 +81,8 @@ def replay_session(
         pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
         fed = 0
-        for k, frame, upcoming in with_next(s.iter_frames()):
-            outcome = process_and_record(
-                pipeline, store, frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming
-            )
+        for outcome in pipeline.run(s.iter_frames()):
+            record_outcome(store, outcome)
             fed += outcome.record.fed_model
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)

@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.model import make_predictor
-from afmdrift.pipeline._frame import FramePipeline, with_next
-from afmdrift.pipeline._series import correct_session
+from afmdrift.pipeline import FramePipeline
+from afmdrift.runs._correct import correct_session
 from afmdrift.session import Session, SessionError, session_from_images
 
 if TYPE_CHECKING:
@@ -68,9 +68,7 @@ def track_session(
         config=cfg, predictor=make_predictor("last_value", cfg.model), model=False
     )
     px, py = session.meta.pixel_size_nm
-    for k, frame, upcoming in with_next(session.iter_frames()):
-        # The next frame's blocks are measured while this one is placed.
-        outcome = pipeline.process(frame, seq=k, t_now_s=frame.t_end_s, next_frame=upcoming)
+    for k, outcome in enumerate(pipeline.run(session.iter_frames())):
         if k == 0:
             continue
         r, pos = outcome.record, outcome.position

@@ -1,7 +1,8 @@
-"""The run store: SQLite (WAL) record of everything the service did.
+"""The run store: SQLite (WAL) record of everything a run did (the daemon or a replay).
 
 One database ``RUN_DIR/run.sqlite`` per run directory (schema in
-``docs/service.md``). Each frame is written in a single transaction together
+``docs/service.md``; the tables and their version in
+:mod:`afmdrift.runs._schema`). Each frame is written in a single transaction together
 with the channels and events logged since the previous frame, the predictor
 state after the frame and the published curve, so a ``kill -9`` at any moment
 loses at most the frame being processed, and a restarted service resumes
@@ -14,126 +15,32 @@ tracker measures the next frame against the same image. With
 
 from __future__ import annotations
 
-import csv
 import json
 import logging
-import math
-import sqlite3
-import time
-from collections.abc import Iterable
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.errors import AfmdriftError
 from afmdrift.model import FrameTrajectory
-from afmdrift.pipeline import (
-    FRAME_COLUMNS,
-    MEASUREMENT_COLUMNS,
-    FrameRecord,
-    ResumeState,
-    measurement_row,
-    record_from_row,
-)
+from afmdrift.pipeline import FrameRecord, ResumeState, record_from_row
 from afmdrift.records import ChannelSample, Event, LoggedEvent, event_kind
-from afmdrift.service._images import load_reference_image, save_image
+from afmdrift.runs._csv import trajectory_rows, write_measurements_csv, write_trajectory_csv
+from afmdrift.runs._images import load_reference_image, save_image
+from afmdrift.runs._schema import (
+    DB_NAME,
+    FRAME_FIELDS,
+    StoreError,
+    Transaction,
+    meta_set,
+    nan_to_none,
+    open_database,
+)
 
-__all__ = [
-    "DB_NAME",
-    "STORE_SCHEMA_VERSION",
-    "TRAJECTORY_COLUMNS",
-    "RunStore",
-    "StoreError",
-    "trajectory_rows",
-    "write_trajectory_csv",
-]
+__all__ = ["RunStore"]
 
 log = logging.getLogger(__name__)
-
-STORE_SCHEMA_VERSION = 2
-#: File name of the run store inside a run directory.
-DB_NAME = "run.sqlite"
-
-
-class StoreError(AfmdriftError):
-    """The run store cannot be opened or is not a store this version can read."""
-
-
-_FRAME_FIELDS = FRAME_COLUMNS
-_SQL_TYPES = {"int": "INTEGER", "float": "REAL", "str": "TEXT", "bool": "INTEGER"}
-
-
-def _schema() -> list[str]:
-    cols = []
-    for f in fields(FrameRecord):
-        sql_type = _SQL_TYPES[str(f.type)]
-        # REAL columns hold NULL for a value that does not exist (NaN in Python).
-        suffix = " PRIMARY KEY" if f.name == "seq" else "" if sql_type == "REAL" else " NOT NULL"
-        cols.append(f"{f.name} {sql_type}{suffix}")
-    return [
-        "CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)",
-        f"CREATE TABLE IF NOT EXISTS frames ({', '.join(cols)})",
-        "CREATE TABLE IF NOT EXISTS channels (id INTEGER PRIMARY KEY, t_s REAL NOT NULL, "
-        "name TEXT NOT NULL, value REAL)",
-        "CREATE TABLE IF NOT EXISTS events (id INTEGER PRIMARY KEY, epoch INTEGER NOT NULL, "
-        "log_index INTEGER NOT NULL, t_s REAL NOT NULL, kind TEXT NOT NULL, "
-        "x_nm REAL NOT NULL, y_nm REAL NOT NULL, UNIQUE (epoch, log_index))",
-        "CREATE TABLE IF NOT EXISTS model_state (seq INTEGER PRIMARY KEY "
-        "REFERENCES frames(seq), predictor TEXT NOT NULL, state_json TEXT NOT NULL, "
-        "curve_json TEXT)",
-        "CREATE INDEX IF NOT EXISTS channels_t ON channels (t_s)",
-        "CREATE TABLE IF NOT EXISTS trajectory (seq INTEGER NOT NULL REFERENCES frames(seq), "
-        "t_s REAL NOT NULL, x_nm REAL, y_nm REAL, sigma_x_nm REAL, sigma_y_nm REAL)",
-    ]
-
-
-#: Columns of ``trajectory.csv`` (docs/service.md).
-TRAJECTORY_COLUMNS = ("t_s", "x_nm", "y_nm", "sigma_x_nm", "sigma_y_nm", "frame")
-
-
-def trajectory_rows(seq: int, trajectory: FrameTrajectory) -> list[tuple[float, ...]]:
-    """``trajectory.csv`` rows of one frame's samples (columns :data:`TRAJECTORY_COLUMNS`)."""
-    return [
-        (
-            float(trajectory.t_s[k]),
-            float(trajectory.xy_nm[k, 0]),
-            float(trajectory.xy_nm[k, 1]),
-            float(trajectory.sigma_nm[k, 0]),
-            float(trajectory.sigma_nm[k, 1]),
-            seq,
-        )
-        for k in range(trajectory.t_s.size)
-    ]
-
-
-def write_trajectory_csv(
-    path: str | Path, rows: Iterable[tuple[float, ...]], *, append: bool = False
-) -> Path:
-    """Write (or append) ``trajectory.csv`` rows; a new file gets the header."""
-    out = Path(path)
-    new = not append or not out.exists()
-    with out.open("w" if not append else "a", newline="", encoding="utf-8") as fh:
-        w = csv.writer(fh)
-        if new:
-            w.writerow(TRAJECTORY_COLUMNS)
-        for r in rows:
-            w.writerow([repr(v) if isinstance(v, float) else v for v in r])
-    return out
-
-
-def _nan_to_none(v: Any) -> Any:
-    if isinstance(v, float) and not math.isfinite(v):
-        return None
-    return v
-
-
-def _none_to_nan(name: str, v: Any) -> Any:
-    if v is None:
-        return float("nan")
-    return v
 
 
 class RunStore:
@@ -169,35 +76,7 @@ class RunStore:
         self.archive_frames = archive_frames
         self.keep_model_states = keep_model_states
         self.path = self.run_dir / DB_NAME
-        try:
-            self._db = sqlite3.connect(
-                self.path, isolation_level=None, check_same_thread=check_same_thread
-            )
-            self._db.execute("PRAGMA journal_mode=WAL")
-            self._db.execute("PRAGMA synchronous=FULL")
-            self._db.execute("PRAGMA foreign_keys=ON")
-            with self._transaction():
-                for stmt in _schema():
-                    self._db.execute(stmt)
-                version = self._meta_get("schema_version")
-                if version is None:
-                    self._meta_set("schema_version", str(STORE_SCHEMA_VERSION))
-                    self._meta_set("created_unix_s", repr(time.time()))
-                elif int(version) == 1:
-                    # Version 2 added the observation each frame fed the model
-                    # (obs_*) and the trajectory table (created above).
-                    have = {r[1] for r in self._db.execute("PRAGMA table_info(frames)")}
-                    for name in ("obs_t_s", "obs_x_nm", "obs_y_nm", "obs_sigma_nm"):
-                        if name not in have:
-                            self._db.execute(f"ALTER TABLE frames ADD COLUMN {name} REAL")
-                    self._meta_set("schema_version", str(STORE_SCHEMA_VERSION))
-                elif int(version) != STORE_SCHEMA_VERSION:
-                    raise StoreError(
-                        f"{self.path}: store schema version {version} is not supported "
-                        f"(this version writes {STORE_SCHEMA_VERSION})"
-                    )
-        except sqlite3.DatabaseError as err:
-            raise StoreError(f"{self.path}: not a usable run store ({err})") from None
+        self._db = open_database(self.path, check_same_thread=check_same_thread)
         self._pending_channels: list[ChannelSample] = []
         self._pending_events: list[tuple[int, int, Event]] = []
 
@@ -259,10 +138,10 @@ class RunStore:
             save_image(self._reference_path(record.seq), reference)
         with self._transaction():
             self._flush_pending()
-            values = [_nan_to_none(getattr(record, n)) for n in _FRAME_FIELDS]
-            placeholders = ", ".join("?" for _ in _FRAME_FIELDS)
+            values = [nan_to_none(getattr(record, n)) for n in FRAME_FIELDS]
+            placeholders = ", ".join("?" for _ in FRAME_FIELDS)
             self._db.execute(
-                f"INSERT INTO frames ({', '.join(_FRAME_FIELDS)}) VALUES ({placeholders})",
+                f"INSERT INTO frames ({', '.join(FRAME_FIELDS)}) VALUES ({placeholders})",
                 values,
             )
             if predictor_state is not None:
@@ -286,7 +165,7 @@ class RunStore:
             self._db.executemany(
                 "INSERT INTO trajectory (t_s, x_nm, y_nm, sigma_x_nm, sigma_y_nm, seq) "
                 "VALUES (?, ?, ?, ?, ?, ?)",
-                [tuple(_nan_to_none(v) for v in r) for r in samples],
+                [tuple(nan_to_none(v) for v in r) for r in samples],
             )
             if reference is not None:
                 self._meta_set("reference_seq", str(record.seq))
@@ -314,7 +193,7 @@ class RunStore:
     def frames(self, *, since_seq: int = -1) -> list[FrameRecord]:
         """All frame records with ``seq > since_seq``, in order."""
         cur = self._db.execute(
-            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames WHERE seq > ? ORDER BY seq",
+            f"SELECT {', '.join(FRAME_FIELDS)} FROM frames WHERE seq > ? ORDER BY seq",
             (since_seq,),
         )
         return [record_from_row(row) for row in cur]
@@ -322,7 +201,7 @@ class RunStore:
     def last_frames(self, n: int) -> list[FrameRecord]:
         """The last ``n`` frame records, oldest first."""
         cur = self._db.execute(
-            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames ORDER BY seq DESC LIMIT ?", (n,)
+            f"SELECT {', '.join(FRAME_FIELDS)} FROM frames ORDER BY seq DESC LIMIT ?", (n,)
         )
         return [record_from_row(row) for row in cur][::-1]
 
@@ -406,7 +285,7 @@ class RunStore:
         if seq is None:
             return None
         row = self._db.execute(
-            f"SELECT {', '.join(_FRAME_FIELDS)} FROM frames WHERE seq = ?", (seq,)
+            f"SELECT {', '.join(FRAME_FIELDS)} FROM frames WHERE seq = ?", (seq,)
         ).fetchone()
         return None if row is None else record_from_row(row)
 
@@ -456,36 +335,22 @@ class RunStore:
         return problems
 
     def write_measurements_csv(self, path: str | Path | None = None) -> Path:
-        """Write ``measurements.csv`` (columns :data:`MEASUREMENT_COLUMNS`) atomically."""
+        """Write ``measurements.csv`` (columns
+        :data:`~afmdrift.pipeline.MEASUREMENT_COLUMNS`) atomically."""
         out = Path(path) if path is not None else self.run_dir / "measurements.csv"
-        tmp = out.with_name(out.name + ".tmp")
-        with tmp.open("w", newline="", encoding="utf-8") as fh:
-            w = csv.writer(fh)
-            w.writerow(MEASUREMENT_COLUMNS)
-            for r in self.frames():
-                w.writerow(measurement_row(r))
-        tmp.replace(out)
-        return out
+        return write_measurements_csv(out, self.frames())
 
     # ------------------------------------------------------------------ internals
 
-    def _transaction(self) -> _Transaction:
-        return _Transaction(self._db)
-
-    def _meta_get(self, key: str) -> str | None:
-        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
-        return None if row is None else str(row[0])
+    def _transaction(self) -> Transaction:
+        return Transaction(self._db)
 
     def _meta_set(self, key: str, value: str) -> None:
-        self._db.execute(
-            "INSERT INTO meta (key, value) VALUES (?, ?) "
-            "ON CONFLICT(key) DO UPDATE SET value = excluded.value",
-            (key, value),
-        )
+        meta_set(self._db, key, value)
 
     def _flush_pending(self) -> None:
         rows = [
-            (s.t_s, name, _nan_to_none(float(v)))
+            (s.t_s, name, nan_to_none(float(v)))
             for s in self._pending_channels
             for name, v in s.values.items()
         ]
@@ -500,19 +365,6 @@ class RunStore:
         )
         self._pending_channels.clear()
         self._pending_events.clear()
-
-
-class _Transaction:
-    """``BEGIN IMMEDIATE`` ... ``COMMIT`` (``ROLLBACK`` on error) on an autocommit connection."""
-
-    def __init__(self, db: sqlite3.Connection) -> None:
-        self._db = db
-
-    def __enter__(self) -> None:
-        self._db.execute("BEGIN IMMEDIATE")
-
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
 
 
 def _meta_int(meta: dict[str, str], key: str) -> int | None:

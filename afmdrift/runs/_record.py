@@ -6,9 +6,9 @@ from collections.abc import Iterable
 
 from afmdrift.pipeline import FrameOutcome, FramePipeline
 from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
-from afmdrift.service._store import RunStore
+from afmdrift.runs._store import RunStore
 
-__all__ = ["process_and_record"]
+__all__ = ["process_and_record", "record_outcome"]
 
 
 def process_and_record(
@@ -23,17 +23,14 @@ def process_and_record(
     detected_wall_s: float | None = None,
     t_now_s: float | None = None,
     hold: str | None = None,
-    next_frame: Frame | None = None,
 ) -> FrameOutcome:
     """Process ``frame`` and commit it, with what reached the model's history, at once.
 
-    The daemon (in its worker thread) and ``afmdrift replay`` both call this,
-    so a replayed session goes through exactly the daemon's code. ``channels``
-    and ``events`` are entries that became known since the previous call; the
-    ones logged up to the end of the frame reach the model with it and are
-    committed in the frame's transaction, later ones wait for the next frame.
-    ``next_frame``: see :meth:`FramePipeline.process` (replay has it; the
-    daemon does not).
+    The daemon calls this in its worker thread for each new frame.
+    ``channels`` and ``events`` are entries that became known since the
+    previous call; the ones logged up to the end of the frame reach the model
+    with it and are committed in the frame's transaction, later ones wait for
+    the next frame.
     """
     pipeline.push(channels, events)
     outcome = pipeline.process(
@@ -43,8 +40,18 @@ def process_and_record(
         detected_wall_s=detected_wall_s,
         t_now_s=t_now_s,
         hold=hold,
-        next_frame=next_frame,
     )
+    record_outcome(store, outcome)
+    return outcome
+
+
+def record_outcome(store: RunStore, outcome: FrameOutcome) -> None:
+    """Commit a processed frame with what reached the model's history with it.
+
+    :func:`process_and_record` (the daemon) and ``afmdrift replay`` (over
+    :meth:`FramePipeline.run`) both end each frame here, so a replayed
+    session is recorded exactly as the daemon records it.
+    """
     for sample in outcome.history.channels:
         store.add_channels(sample)
     for ep, idx, e in outcome.history.events:
@@ -59,4 +66,3 @@ def process_and_record(
         trajectory=outcome.trajectory,
         corrected=outcome.corrected,
     )
-    return outcome

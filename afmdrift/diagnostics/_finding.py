@@ -1,0 +1,313 @@
+"""A diagnosis in words: the patterns of the errors and the finding.
+
+:func:`error_patterns` names the session-wide regularities of the one-step
+errors (autocorrelation, a period, a channel they follow, up/down frames,
+jumps of the measured drift); :func:`finding_text` states the missing effect
+(or that none was found) with its evidence and the configuration line to
+add; :func:`describe_driver` says what a generic term responds to.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from afmdrift.config import PhysicsConfig
+from afmdrift.diagnostics._candidates import CandidateResult
+from afmdrift.diagnostics._data import RunData
+from afmdrift.diagnostics._diagnosis import DiagnoseOptions
+from afmdrift.diagnostics._model_run import ModelRun
+from afmdrift.diagnostics._stats import cross_correlation, robust_z
+from afmdrift.model import CHANNEL_TAU_RANGE_S, EffectTerm, available_terms, term_class
+from afmdrift.records import EventKind
+
+__all__ = [
+    "JUMP_MOVE_FRACTION",
+    "JUMP_MOVE_SIZE",
+    "JUMP_Z",
+    "describe_driver",
+    "error_patterns",
+    "finding_text",
+    "jumps",
+    "with_jump_caution",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def error_patterns(
+    data: RunData,
+    run: ModelRun,
+    burn: int,
+    lb: dict[str, dict[str, float]],
+    pg: dict[str, dict[str, float]],
+    up_down: dict[str, float] | None,
+) -> list[str]:
+    """Session-wide regularities of the one-step errors, in plain language."""
+    out: list[str] = []
+    e = run.errors_nm[burn:]
+    n = int(np.all(np.isfinite(e), axis=1).sum())
+    for axis in ("x", "y"):
+        p = lb[axis]["p_value"]
+        if math.isfinite(p) and p < 0.01:
+            out.append(
+                f"{axis} errors are autocorrelated (Ljung-Box p = {p:.2g} over "
+                f"{int(lb[axis]['lags'])} lags): something systematic is left in them"
+            )
+        power, period = pg[axis]["peak_power"], pg[axis]["peak_period_s"]
+        if math.isfinite(power) and power > 0.3:
+            out.append(
+                f"{axis} errors have a periodic component of {period / 3600:.2g} h "
+                f"(a sinusoid explains {100 * power:.0f}% of their variance)"
+            )
+    if n >= 10:
+        threshold = max(0.3, 3.0 / math.sqrt(n))
+        for name in data.channel_names():
+            ct, cv = data.channel_series(name)
+            if ct.size < 2:
+                continue
+            x = np.interp(run.t_s, ct, cv)
+            dx = np.concatenate([[np.nan], np.diff(x)])[burn:]
+            for a, axis in enumerate("xy"):
+                lags, r = cross_correlation(e[:, a], dx, max_lag=3)
+                if not np.isfinite(r).any():
+                    continue
+                i = int(np.nanargmax(np.abs(r)))
+                if abs(r[i]) > threshold:
+                    out.append(
+                        f"{axis} errors follow the changes of {name} (correlation "
+                        f"{r[i]:+.2f} at a lag of {int(lags[i])} frame(s))"
+                    )
+    if up_down is not None and up_down["p_value"] < 0.001:
+        out.append(
+            f"up and down frames differ: mean error up minus down is "
+            f"{up_down['diff_x_nm']:+.2f} nm in x, {up_down['diff_y_nm']:+.2f} nm in y "
+            f"(Welch p = {up_down['p_value']:.2g})"
+        )
+    for k, jump in jumps(run):
+        out.append(
+            f"the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
+            f"t = {run.t_s[k]:.0f} s (frame {int(run.frames[k])}), far beyond its other "
+            "frame-to-frame changes: a registration mis-lock or a tip change? Check the "
+            "worst frame's vector field before trusting a finding"
+        )
+    return out
+
+
+#: A frame-to-frame change of p this many robust σ beyond the median is a jump.
+JUMP_Z = 20.0
+
+
+#: After an offset move, a change of p larger than this fraction of the move
+#: is a jump (creep and hysteresis stay well below it).
+JUMP_MOVE_FRACTION = 0.5
+
+
+#: ... for moves this many times the median frame-to-frame change of p; the
+#: smaller moves of a closed loop following the drift are judged like frames
+#: without a move.
+JUMP_MOVE_SIZE = 5.0
+
+
+def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
+    """Frames whose measured position jumps implausibly, as (index into the
+    run, jump (x, y) in nm): a robust z of the Euclidean increment above
+    :data:`JUMP_Z`, or, across an offset move of more than
+    :data:`JUMP_MOVE_SIZE` median increments, an increment larger than
+    :data:`JUMP_MOVE_FRACTION` of the move."""
+
+    inc = np.diff(run.measured_nm, axis=0)
+    if inc.shape[0] < 8:
+        return []
+    size = np.hypot(inc[:, 0], inc[:, 1])
+    z = robust_z(size)
+    typical = float(np.nanmedian(size))
+    mt, steps = run.history.of_kind(EventKind.OFFSET_MOVE)
+    moved_by = np.hypot(steps[:, 0], steps[:, 1])
+    out: list[tuple[int, FloatArray]] = []
+    for i in range(inc.shape[0]):
+        t0, t1 = run.t_s[i], run.t_s[i + 1]
+        moved = float(moved_by[(mt > t0) & (mt <= t1)].sum())
+        if moved > JUMP_MOVE_SIZE * typical:
+            if size[i] > JUMP_MOVE_FRACTION * moved:
+                out.append((i + 1, inc[i]))
+        elif z[i] > JUMP_Z:
+            out.append((i + 1, inc[i]))
+    return out
+
+
+def with_jump_caution(finding: str, run: ModelRun) -> str:
+    """``finding`` prefixed with a caution when the measured drift jumps (see :func:`jumps`)."""
+    found_jumps = jumps(run)
+    if not found_jumps:
+        return finding
+    k, jump = found_jumps[0]
+    return (
+        f"Caution: the measured drift jumps by ({jump[0]:+.0f}, {jump[1]:+.0f}) nm at "
+        f"t = {run.t_s[k]:.0f} s ({len(found_jumps)} such jump(s)); if that is a "
+        f"measurement error, what follows may explain it rather than physics. {finding}"
+    )
+
+
+def _format_params(c: CandidateResult) -> str:
+    """Fitted parameters in words: θ, linear coefficients per axis, refitted model θ."""
+    parts = [f"{k} = {v:.3g}" for k, v in c.params.items() if k in c.nonlinear]
+    lin: dict[str, list[str]] = {}
+    model: list[str] = []
+    for k, v in c.params.items():
+        if k in c.nonlinear:
+            continue
+        if k.startswith("model."):
+            model.append(f"{k.removeprefix('model.')} = {v:.3g}")
+            continue
+        base, _, axis = k.rpartition("_")
+        lin.setdefault(base, []).append(f"{axis} = {v:.3g}")
+    for base, vals in lin.items():
+        parts.append(f"{base}: {', '.join(vals)}")
+    text = "; ".join(parts)
+    if model:
+        text += f" (model terms refitted with it: {', '.join(model)})"
+    return text
+
+
+def finding_text(
+    top: CandidateResult | None,
+    results: list[CandidateResult],
+    physics: PhysicsConfig,
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+    n_tests: int,
+    options: DiagnoseOptions,
+) -> tuple[str, list[str] | None]:
+    th = options.thresholds
+    rule = (
+        f"ΔAICc > {th.min_delta_aicc:g}, HAC Wald p < {th.alpha:g} after Bonferroni over "
+        f"{n_tests} tests, blocked-CV or online re-run error at least "
+        f"{100 * th.min_cv_drop:.0f}% lower ({100 * th.generic_min_drop:.0f}% for a generic "
+        "term), online re-run not worse"
+    )
+    if top is None:
+        testable = [c for c in results if c.testable]
+        n_generic = sum(1 for c in testable if c.driver)
+        best = (
+            f" The closest candidate is {testable[0].effect} ({testable[0].evidence()})."
+            if testable
+            else ""
+        )
+        return (
+            f"No missing effect found: none of the {len(testable) - n_generic} testable "
+            f"library effects not in the model and none of the {n_generic} generic terms "
+            f"(every logged channel and event kind) passes the test ({rule}).{best}",
+            None,
+        )
+    terms = [*physics.terms, top.effect]
+    if top.driver:
+        return _generic_finding(top, results, terms, summary, after_summary), terms
+    doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
+    change = _error_change(summary, after_summary)
+    return (
+        f"Missing effect: {top.effect} ({doc.rstrip('.')}). Fitted: {_format_params(top)}. "
+        f"Evidence: {top.evidence()}.{change} To add it, put in your configuration file: "
+        f"[model.physics] terms = [{', '.join(repr(t).replace(chr(39), chr(34)) for t in terms)}]",
+        terms,
+    )
+
+
+def _duration(t_s: float) -> str:
+    """A time constant in words: s below 2 min, min below 2 h, else h."""
+    if t_s < 120:
+        return f"{t_s:.0f} s"
+    if t_s < 7200:
+        return f"{t_s / 60:.0f} min"
+    return f"{t_s / 3600:.1f} h"
+
+
+#: How the unit suffixes of channel names read in sentences.
+_UNIT_WORDS = {"c": "K", "k": "K", "hpa": "hPa", "pa": "Pa", "pct": "%", "mw": "mW", "v": "V"}
+
+
+def _gains(c: CandidateResult) -> str:
+    """The linear coefficients of ``c`` per axis in words (``+4.1 nm/hPa in x, ...``)."""
+    parts = []
+    for k, v in c.params.items():
+        if k in c.nonlinear or k.startswith("model.") or not math.isfinite(v):
+            continue
+        base, _, axis = k.rpartition("_")
+        if base.startswith("gain_nm_per_"):
+            suffix = base.removeprefix("gain_nm_per_")
+            unit = f"nm/{_UNIT_WORDS.get(suffix, suffix)}"
+        else:
+            unit = base.replace("amplitude_nm", "nm").replace("nm_per_decade", "nm per decade")
+        parts.append(f"{v:+.3g} {unit} in {axis}")
+    return ", ".join(parts)
+
+
+def describe_driver(c: CandidateResult) -> str:
+    """The driver, shape, lag and gain of a generic candidate in plain language."""
+    d = c.driver
+    if "channel" in d:
+        tau = c.nonlinear.get("tau_s", c.params.get("tau_s", math.nan))
+        lag = (
+            "directly (no lag)"
+            if not math.isfinite(tau) or tau <= CHANNEL_TAU_RANGE_S[0]
+            else f"through a first-order lag of about {_duration(tau)} (tau_s = {tau:.3g})"
+        )
+        return f"the residual follows the logged channel {d['channel']} {lag}, {_gains(c)}"
+    kind = d.get("event_kind", "?")
+    each = "each" in c.effect.split("#")[0].split(":")[2:]
+    per = "each event with its own amplitude" if each else "the same amplitude for every event"
+    if d.get("shape") == "log":
+        t0 = c.nonlinear.get("t0_s", math.nan)
+        return (
+            f"the residual creeps logarithmically after each logged {kind} event "
+            f"(t0 = {t0:.3g} s; {per}), {_gains(c)}"
+        )
+    tau = c.nonlinear.get("tau_s", math.nan)
+    return (
+        f"the residual steps after each logged {kind} event and settles exponentially "
+        f"with a time constant of about {_duration(tau)} (tau_s = {tau:.3g}; {per}), {_gains(c)}"
+    )
+
+
+def _generic_finding(
+    top: CandidateResult,
+    results: list[CandidateResult],
+    terms: list[str],
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+) -> str:
+    """The finding for a generic term: no library effect explains it; driver and shape."""
+    named = [c for c in results if c.testable and not c.driver]
+    closest = (
+        f" (the closest, {named[0].effect}, has ΔAICc = {named[0].delta_aicc:.1f}"
+        f"{', significant but far behind' if named[0].significant else ', not significant'})"
+        if named
+        else ""
+    )
+    change = _error_change(summary, after_summary)
+    quoted = ", ".join(f'"{t}"' for t in terms)
+    return (
+        f"Missing effect outside the library: {describe_driver(top)}. No library effect "
+        f"explains it{closest}. Term: {top.effect}. Evidence: {top.evidence()}.{change} "
+        f"To add this term, put in your configuration file: [model.physics] terms = [{quoted}] "
+        f"(or --effects {','.join(terms)})."
+    )
+
+
+def _term_instance(name: str, physics: PhysicsConfig) -> EffectTerm:
+    return term_class(name, available_terms(physics.plugins))()
+
+
+def _error_change(summary: dict[str, float], after_summary: dict[str, float] | None) -> str:
+    """The finding's sentence on how much adding the candidate cuts the
+    one-step error ("" when the model was not re-run with it)."""
+    if after_summary is None or not summary["rmse_nm"] > 0:
+        return ""
+    drop = 1.0 - after_summary["rmse_nm"] / summary["rmse_nm"]
+    return (
+        f" Re-running the model with it cuts the one-step RMS error from "
+        f"{summary['rmse_nm']:.2f} nm to {after_summary['rmse_nm']:.2f} nm "
+        f"({100 * drop:.0f}% lower)."
+    )

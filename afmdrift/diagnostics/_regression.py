@@ -1,0 +1,170 @@
+"""The regression tools of the candidate tests, on AR(1) quasi-differences.
+
+Partialling a basis out of another (Frisch–Waugh–Lovell), the small-sample
+AIC (Hurvich & Tsai 1989), the conservative HAC Wald test with Newey–West
+lags (1987, 1994), the contiguous folds of blocked cross-validation (Bergmeir
+& Benítez 2012) and the AR(1) coefficient φ that maximises a model's
+conditional likelihood. :mod:`afmdrift.diagnostics._candidates` explains
+where each is used.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+from scipy import stats
+
+__all__ = [
+    "PHI_GRID",
+    "WaldTest",
+    "aicc",
+    "cv_folds",
+    "ls_predict",
+    "ml_phi",
+    "newey_west_lags",
+    "nonzero_cols",
+    "partial_out",
+    "residual_basis",
+]
+
+FloatArray = npt.NDArray[np.float64]
+
+
+def newey_west_lags(n: int) -> int:
+    """⌊4(n/100)^{2/9}⌋, Newey & West (1994) rule of thumb for the Bartlett kernel."""
+    return max(1, math.floor(4.0 * (n / 100.0) ** (2.0 / 9.0)))  # type: ignore[no-any-return]
+
+
+def nonzero_cols(z: FloatArray, ref: float) -> npt.NDArray[np.bool_]:
+    out: npt.NDArray[np.bool_] = np.sqrt(np.sum(z * z, axis=0)) > 1e-9 * max(ref, 1e-30)
+    return out
+
+
+def residual_basis(z: FloatArray) -> FloatArray:
+    """Orthonormal basis Q (n, r) of the column space of ``z``."""
+    if z.shape[1] == 0:
+        return np.zeros((z.shape[0], 0))
+    u, s, _ = np.linalg.svd(z, full_matrices=False)
+    tol = s.max() * max(z.shape) * np.finfo(float).eps if s.size else 0.0
+    return np.asarray(u[:, s > tol], dtype=np.float64)
+
+
+def partial_out(q: FloatArray, a: FloatArray) -> FloatArray:
+    return np.asarray(a - q @ (q.T @ a), dtype=np.float64)
+
+
+def aicc(rss: Sequence[float], n: int, k: int) -> float:
+    total_n = n * len(rss)
+    ll = sum(-0.5 * n * (math.log(2 * math.pi * max(r, 1e-300) / n) + 1.0) for r in rss)
+    if total_n - k - 1 <= 0:
+        return math.inf
+    return -2.0 * ll + 2.0 * k + 2.0 * k * (k + 1) / (total_n - k - 1)
+
+
+def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatArray]:
+    """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance)."""
+    from statsmodels.regression.linear_model import OLS
+
+    n, k = z.shape
+    if k == 0 or n <= k + 1:
+        return 0.0, 0, np.zeros(0)
+    fit = OLS(e0, z).fit()
+    gamma = np.asarray(fit.params, dtype=np.float64)
+    v_ols = np.asarray(fit.cov_params(), dtype=np.float64)
+    hac = fit.get_robustcov_results(cov_type="HAC", maxlags=lags, use_correction=True)
+    v_hac = np.asarray(hac.cov_params(), dtype=np.float64)
+    w_ols = float(gamma @ np.linalg.pinv(v_ols) @ gamma)
+    w_hac = float(gamma @ np.linalg.pinv(v_hac) @ gamma)
+    return min(w_ols, w_hac), k, gamma
+
+
+def cv_folds(m: int, folds: int) -> npt.NDArray[np.int64]:
+    """Fold label of each of ``m`` rows: contiguous blocks dealt out in turn.
+
+    Blocks are ``max(3, m // (4·folds))`` rows long and block j goes to fold
+    j mod ``folds``, so every training set spans the whole record (no
+    extrapolation to an unseen start or end, which would fail transient
+    effects such as warm-up for the wrong reason) while each held-out block
+    is contiguous.
+    """
+    length = max(3, m // (4 * folds))
+    return np.asarray((np.arange(m) // length) % folds, dtype=np.int64)
+
+
+def ls_predict(z_train: FloatArray, y_train: FloatArray, z_test: FloatArray) -> FloatArray:
+    if z_train.shape[1] == 0:
+        return np.zeros(z_test.shape[0])
+    coef, *_ = np.linalg.lstsq(z_train, y_train, rcond=1e-10)
+    return np.asarray(z_test @ coef, dtype=np.float64)
+
+
+@dataclass(frozen=True, slots=True)
+class WaldTest:
+    """Conservative HAC Wald test of γ = 0 over both axes, with its Bonferroni p-value."""
+
+    chi2: float
+    df: int
+    p_value: float
+    p_bonferroni: float
+
+    @classmethod
+    def of(
+        cls, zc: Sequence[FloatArray], e0: Sequence[FloatArray], *, n: int, n_tests: int
+    ) -> WaldTest:
+        """The test of candidate columns ``zc`` against model residuals ``e0``.
+
+        Parameters
+        ----------
+        zc : sequence of two ndarrays, shapes (n, K_a)
+            Partialled candidate columns per axis.
+        e0 : sequence of two ndarrays, shape (n,)
+            Partialled model residuals per axis, nm.
+        n : int
+            Quasi-differenced rows (sets the Newey–West lags).
+        n_tests : int
+            (candidate, θ) pairs tried in the diagnosis (Bonferroni factor).
+        """
+        lags = newey_west_lags(n)
+        wald = 0.0
+        df = 0
+        for a in (0, 1):
+            w, k, _ = _wald(zc[a], e0[a], lags)
+            wald += w
+            df += k
+        p = float(stats.chi2.sf(wald, df)) if df else 1.0
+        return cls(wald, df, p, min(1.0, p * max(n_tests, 1)))
+
+
+#: AR(1) coefficients searched for each model's conditional likelihood.
+PHI_GRID = np.array([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.85, 0.9, 0.95, 1.0])
+
+
+def ml_phi(y: FloatArray, x: Sequence[FloatArray]) -> FloatArray:
+    """Per axis, the φ of :data:`PHI_GRID` that maximises the conditional
+    Gaussian likelihood of y_k | y_{k−1} (minimum quasi-differenced RSS).
+
+    Parameters
+    ----------
+    y : ndarray, shape (n, 2)
+    x : sequence of two ndarrays, shapes (n, K_a)
+        Level basis per axis.
+    """
+    phi = np.zeros(2)
+    for a in (0, 1):
+        best = math.inf
+        for f in PHI_GRID:
+            z = x[a][1:] - f * x[a][:-1]
+            yt = y[1:, a] - f * y[:-1, a]
+            keep = nonzero_cols(z, float(np.abs(z).max()) if z.size else 0.0)
+            r = yt
+            if keep.any():
+                coef, *_ = np.linalg.lstsq(z[:, keep], yt, rcond=1e-10)
+                r = yt - z[:, keep] @ coef
+            rss = float(r @ r)
+            if rss < best:
+                best, phi[a] = rss, float(f)
+    return phi

@@ -1,0 +1,47 @@
+"""Runs: a recording through the per-frame pipeline, and the run store.
+
+Everything that turns a whole recording into numbers, without the ZeroMQ
+daemon: ``afmdrift replay`` (:func:`replay_session`), what the frames of a
+session gave the model for ``afmdrift evaluate`` (:func:`measure_session`),
+the de-warped frames of ``afmdrift correct`` (:func:`correct_session`), the
+drift track of ``afmdrift measure`` and ``afmdrift batch``
+(:func:`track_stack`, :func:`track_session`), and the SQLite run store that
+the daemon, replay, the dashboard and the diagnostics read and write
+(:class:`RunStore`). The daemon (:mod:`afmdrift.service`) commits each new
+frame with :func:`process_and_record`; a replayed recording goes through
+:meth:`~afmdrift.pipeline.FramePipeline.run` and :func:`record_outcome`, so
+both record exactly the same rows.
+
+Nothing here imports :mod:`afmdrift.service` or ZeroMQ (import-linter keeps
+it so), so a Dask worker of ``afmdrift batch`` never loads the daemon.
+"""
+
+from afmdrift.runs._correct import CorrectionSummary, correct_session
+from afmdrift.runs._csv import TRAJECTORY_COLUMNS, trajectory_rows, write_trajectory_csv
+from afmdrift.runs._record import process_and_record, record_outcome
+from afmdrift.runs._replay import ReplaySummary, replay_session
+from afmdrift.runs._schema import DB_NAME, STORE_SCHEMA_VERSION, StoreError
+from afmdrift.runs._series import measure_session, series_from_drift_log, series_from_records
+from afmdrift.runs._store import RunStore
+from afmdrift.runs._track import track_session, track_stack
+
+__all__ = [
+    "DB_NAME",
+    "STORE_SCHEMA_VERSION",
+    "TRAJECTORY_COLUMNS",
+    "CorrectionSummary",
+    "ReplaySummary",
+    "RunStore",
+    "StoreError",
+    "correct_session",
+    "measure_session",
+    "process_and_record",
+    "record_outcome",
+    "replay_session",
+    "series_from_drift_log",
+    "series_from_records",
+    "track_session",
+    "track_stack",
+    "trajectory_rows",
+    "write_trajectory_csv",
+]
