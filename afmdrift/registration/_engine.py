@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.errors import InputError
-from afmdrift.registration import _kernels
+from afmdrift.registration import _intrinsics, _passes, _spectra, _subpixel
 from afmdrift.registration._blocks import (
     BlockLayout,
     FrameStats,
@@ -146,7 +146,7 @@ class ReferenceSpectra:
     """Cached reference: its gradient image, window positions, the
     conjugated, magnitude-normalised block spectra times the phase ramp
     (interleaved complex in int16 fixed point, see
-    :func:`afmdrift.registration._kernels.normalise_reference`) and their
+    :func:`afmdrift.registration._spectra.normalise_reference`) and their
     magnitudes in the sub-pixel band. ``derived`` keeps what is computed
     from the reference once and reused for every frame measured against it
     (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`)."""
@@ -161,7 +161,7 @@ class ReferenceSpectra:
     #: :meth:`BlockEngine.calibrate`); identity where not calibrated.
     unbias: F64
     #: Per block, the centre of its correlation weight ``(x, y)``, reference
-    #: px (:func:`afmdrift.registration._kernels.weight_centroids`).
+    #: px (:func:`afmdrift.registration._spectra.weight_centroids`).
     weight_centres_px: F64
     derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
 
@@ -240,11 +240,11 @@ class BlockEngine:
     The blocks are processed in batches of :func:`batch_blocks` (:data:`BATCH_BLOCKS`
     of 128² windows); a measuring pass takes them column by column, so that
     a batch's windows share their row transforms
-    (:func:`_kernels.forward_strips`). With
+    (:func:`_spectra.forward_strips`). With
     ``config.threads > 1`` the calling thread and pool workers take the
     batches in turn, each with its own single-threaded FFTW plans and work
     arrays: a thread's share of a measuring pass is one compiled call that
-    runs the FFTs itself and holds no GIL (:func:`_kernels.measure_batches`);
+    runs the FFTs itself and holds no GIL (:func:`_passes.measure_batches`);
     :meth:`measure_ahead` starts a frame's pass before it is asked for. Every batch is
     computed on its own (its blocks and order depend only on the layout), with plans
     of the same size (which FFTW's wisdom
@@ -294,7 +294,7 @@ class BlockEngine:
         self._batches = batch_split(n, batch_blocks(lay.ext))
         # Batches take the blocks column by column, so that the blocks of a
         # batch share their windows' columns and rows
-        # (_kernels.forward_strips).
+        # (_spectra.forward_strips).
         self._order: IArr = np.lexsort((lay.top, lay.left)).astype(np.intp)
         self._threads = min(config.threads, len(self._batches))
         #: Whether a worker waits for a pass's gate spinning (each thread has
@@ -354,7 +354,7 @@ class BlockEngine:
             )
             for work in self._work
         )
-        self._subpixel_code = _kernels.SUBPIXEL_CODES[config.subpixel]
+        self._subpixel_code = _subpixel.SUBPIXEL_CODES[config.subpixel]
         #: A pass started ahead of its frame's measure call (see measure_ahead).
         self._ahead: _Pass | None = None
         # The periodic raised cosine has a DFT with only a few non-zero terms;
@@ -491,8 +491,8 @@ class BlockEngine:
     def _forward(self, blocks: IArr, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
         """Spectra of the windows at ``(top, left)`` (full-layout arrays) of
         ``blocks`` into ``fft.spectrum``, as a measuring pass computes them
-        (:func:`_kernels.forward_strips`)."""
-        _kernels.forward_strips(
+        (:func:`_spectra.forward_strips`)."""
+        _spectra.forward_strips(
             grad, top, left, blocks, self._wy, self._wx, self._execute, fft.plans, fft.pointers,
             fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
             np.empty(blocks.size, dtype=np.intp),
@@ -527,7 +527,7 @@ class BlockEngine:
         def work(sl: slice, arrays: _Work) -> None:
             blocks = self._order[sl]
             self._forward(blocks, arrays.fft, grad, top, left)
-            _kernels.normalise_reference(
+            _spectra.normalise_reference(
                 blocks,
                 arrays.fft.spectrum.view(np.float32)[: blocks.size],
                 *self._spectrum_args,
@@ -558,10 +558,10 @@ class BlockEngine:
         self, grad: F32, top: IArr, left: IArr, spectra: npt.NDArray[np.int16], band_mag: F32
     ) -> ReferenceSpectra:
         """A reference from its spectra: each block's weight centre
-        (:func:`afmdrift.registration._kernels.weight_centroids`) and window
+        (:func:`afmdrift.registration._spectra.weight_centroids`) and window
         response (:meth:`calibrate`) added."""
         offsets = np.empty((self.layout.n_blocks, 2))
-        _kernels.weight_centroids(grad, top, left, self.window, offsets)
+        _spectra.weight_centroids(grad, top, left, self.window, offsets)
         centres = self._centres + offsets
         centres.setflags(write=False)
         ref = ReferenceSpectra(
@@ -587,7 +587,7 @@ class BlockEngine:
         the texture is not spread evenly over the window (a particle near
         its centre on flat mica: a fifth of the offset, 0.1 px at half a
         pixel). The window's average pull is divided out in the sub-pixel
-        step (:func:`afmdrift.registration._kernels.dft_subpixel`); what is
+        step (:func:`afmdrift.registration._subpixel.dft_subpixel`); what is
         left depends on the block's own content, so it is measured: the
         reference is registered against itself twice, with every window
         moved by 1 px towards the image's centre along x, then along y (its
@@ -685,7 +685,7 @@ class BlockEngine:
         lay = self.layout
         ey, ex = lay.ext
         rows, cols = lay.grad_shape
-        count: int = _kernels.place_windows(
+        count: int = _passes.place_windows(
             ref.top, ref.left, round(prior_px[1]), round(prior_px[0]), rows - ey, cols - ex,
             lay.max_shift[0] // 2, lay.max_shift[1] // 2, top, left, placed, near,
         )  # fmt: skip
@@ -791,7 +791,7 @@ class BlockEngine:
     ) -> _Pass:
         """Start a block pass with the current frame's windows at ``(top,
         left)`` (``placed``, ``near``: see :meth:`positions_for`): the pool
-        workers start on the batches (:func:`_kernels.measure_batches`, one
+        workers start on the batches (:func:`_passes.measure_batches`, one
         call each, without the GIL); the calling thread joins in
         :meth:`_finish`. With ``heights``, the gradient image is made and
         checked here first (see :meth:`measure`)."""
@@ -843,9 +843,9 @@ class BlockEngine:
 
     def _batches_of(self, p: _Pass, t: int, spins: int = 0) -> bool:
         """Thread ``t``'s share of pass ``p`` (see
-        :func:`_kernels.measure_batches`): False if its gate stayed closed
+        :func:`_passes.measure_batches`): False if its gate stayed closed
         for ``spins`` reads."""
-        done = _kernels.measure_batches(
+        done = _passes.measure_batches(
             p.counter, p.gate, spins, *self._batch_table, self._execute, self._thread_args[t],
             p.common,
         )  # fmt: skip
@@ -883,7 +883,7 @@ class BlockEngine:
         measured = np.empty(n, dtype=bool)
         confidence = np.empty(n, dtype=np.float64)
         median = np.empty(2)
-        n_measured = _kernels.assemble(
+        n_measured = _passes.assemble(
             top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
             peaks.mse, peaks.peak, self._area, p.near, my, mx, ref.unbias, vec, measured,
             confidence, median,
@@ -1008,7 +1008,7 @@ class _Pass:
     #: BlockEngine._split_gradient).
     tail: _GradientTail | None = None
     #: Set to 1 once the gradient image is complete and checked: workers may
-    #: then take batches (see _kernels.measure_batches); ``opened`` is set
+    #: then take batches (see _passes.measure_batches); ``opened`` is set
     #: with it, for workers that wait in Python.
     gate: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
     opened: threading.Event = field(default_factory=threading.Event)
@@ -1018,12 +1018,12 @@ class _Pass:
     def open(self) -> None:
         """Let the workers take batches (see :attr:`gate`), once everything
         this thread wrote before is visible to them."""
-        _kernels.publish(self.gate, 0, 1)
+        _intrinsics.publish(self.gate, 0, 1)
         self.opened.set()
 
     def close_batches(self, n_batches: int) -> None:
         """Let no thread take a further batch, and open the gate."""
-        _kernels.publish(self.counter, 0, n_batches)
+        _intrinsics.publish(self.counter, 0, n_batches)
         self.open()
 
     def matches(

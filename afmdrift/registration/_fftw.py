@@ -6,7 +6,7 @@ through FFTW's C interface (``fftwf_plan_many_dft_r2c``, ``fftwf_plan_guru_*``
 and the new-array execute functions ``fftwf_execute_dft_*``; FFTW manual,
 "New-array Execute Functions") of the single-precision library pyFFTW uses
 (see :func:`fftwf`), so that compiled code can run them without the GIL (see
-:func:`afmdrift.registration._kernels.measure_batches`); pyFFTW provides the
+:func:`afmdrift.registration._passes.measure_batches`); pyFFTW provides the
 library, aligned arrays and the wisdom in memory. FFTW *wisdom* (the planner's
 measurements) is loaded once per process from a file and written back after
 new plans were made, so the second run of afmdrift plans in milliseconds.
@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 import pyfftw
 
-from afmdrift.registration._kernels import STRIP_CHUNK
+from afmdrift.registration._spectra import STRIP_CHUNK
 
 __all__ = ["BatchedRealFFT", "Fftwf", "default_wisdom_path", "fftwf", "resolve_wisdom_path"]
 
@@ -234,7 +234,7 @@ class BatchedRealFFT:
         full 2-D inverse).
     strip_rows : int, optional
         Also make the arrays and plans of a forward transform in two steps
-        (:func:`afmdrift.registration._kernels.forward_strips`): row
+        (:func:`afmdrift.registration._spectra.forward_strips`): row
         transforms of up to ``strip_rows`` windowed image rows,
         :data:`STRIP_CHUNK` rows per call, and the column transforms of
         ``spectrum`` in place.

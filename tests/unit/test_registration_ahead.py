@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.registration import DriftTracker, RegistrationConfig, _kernels
+from afmdrift.registration import DriftTracker, RegistrationConfig, _subpixel
 from afmdrift.registration._blocks import config_for_image
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement
 from afmdrift.registration._errors import InvalidFrameError
@@ -210,9 +210,9 @@ def test_three_point_subpixel_kernel_follows_its_formula(method: str) -> None:
     scale = 3.0
     fy, fx = np.empty(40), np.empty(40)
     ok = np.empty(40, dtype=bool)
-    code = _kernels.SUBPIXEL_CODES[method]
+    code = _subpixel.SUBPIXEL_CODES[method]
     order = rng.permutation(40).astype(np.intp)  # the batch's order of the blocks
-    _kernels.subpixel_3pt(order, corr[order], code, scale, m, m, sy, sx, fy, fx, ok)
+    _subpixel.subpixel_3pt(order, corr[order], code, scale, m, m, sy, sx, fy, fx, ok)
     for i in range(40):
         cy, cx = sy[i] + m, sx[i] + m
         c = corr[i].astype(np.float64) / scale

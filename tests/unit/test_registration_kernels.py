@@ -1,5 +1,5 @@
 """The compiled per-block kernels against plain NumPy statements of the same
-arithmetic (afmdrift.registration._kernels)."""
+arithmetic (afmdrift.registration._spectra, _peaks, _subpixel, _kernels)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.registration import _kernels
+from afmdrift.registration import _kernels, _peaks, _spectra, _subpixel
 
 RNG = np.random.default_rng(11)
 
@@ -27,7 +27,7 @@ def test_gradient_x_and_its_figures_match_numpy(dtype: type) -> None:
     against NumPy, on heights with repeated values (zero differences)."""
     h = (np.round(RNG.standard_normal((70, 90)) * 2.0) / 2.0 + 1e3).astype(dtype)
     out = np.empty((70, 89), np.float32)
-    finite, nonzero, uniform = _kernels.gradient_x(h, out)
+    finite, nonzero, uniform = _spectra.gradient_x(h, out)
     expect = (h[:, 1:] - h[:, :-1]).astype(np.float32)
     np.testing.assert_array_equal(out, expect)
     assert (finite, nonzero, uniform) == (True, np.count_nonzero(expect), False)
@@ -35,13 +35,13 @@ def test_gradient_x_and_its_figures_match_numpy(dtype: type) -> None:
     for r, c, bad in [(0, 0, np.nan), (69, 89, np.inf), (33, 44, -np.inf), (5, 89, np.nan)]:
         g = h.copy()
         g[r, c] = bad
-        assert not _kernels.gradient_x(g, out)[0], (r, c, bad)
+        assert not _spectra.gradient_x(g, out)[0], (r, c, bad)
     plane = (np.arange(90)[None, :] * 3.0 + np.arange(70)[:, None] * 2.0).astype(dtype)
-    assert _kernels.gradient_x(plane, out) == (True, out.size, True)
-    assert _kernels.gradient_x(np.full((70, 90), 7.0, dtype), out) == (True, 0, True)
+    assert _spectra.gradient_x(plane, out) == (True, out.size, True)
+    assert _spectra.gradient_x(np.full((70, 90), 7.0, dtype), out) == (True, 0, True)
     if dtype is np.float64:  # finite heights whose differences overflow float32
         huge = np.where(np.arange(90) % 2 == 0, 3e38, -3e38)[None, :].repeat(70, axis=0)
-        assert not _kernels.gradient_x(huge, out)[0]
+        assert not _spectra.gradient_x(huge, out)[0]
 
 
 def _normalise_numpy(spec: np.ndarray, eps_rel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -70,13 +70,13 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     ramp = np.exp(-2j * np.pi * RNG.random((rows, half))).astype(np.complex64)
     ref_out = np.empty((n, rows, 2 * half), dtype=np.int16)
     ref_band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.float32)
-    _kernels.normalise_reference(
+    _spectra.normalise_reference(
         np.arange(n, dtype=np.intp), _interleaved(ref), none, none, no_vals, 1.0, 1e-6, 1e-30,
         ky, kx, _interleaved(ramp), ref_out, ref_band,
     )  # fmt: skip
     want_ref, ref_mag = _normalise_numpy(ref, 1e-6)
     # Stored in fixed point: int16 multiples of 1 / 32767, rounded.
-    fixed = ref_out.astype(np.float64) / _kernels.REF_SCALE
+    fixed = ref_out.astype(np.float64) / _spectra.REF_SCALE
     ref_value = fixed[..., 0::2] + 1j * fixed[..., 1::2]
     np.testing.assert_allclose(ref_value, np.conj(want_ref) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(ref_band, ref_mag[:, _band_rows(rows, ky), : kx + 1], rtol=1e-6)
@@ -89,7 +89,7 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     keep = np.empty((n, rows, 2 * half), dtype=np.int16)
     cur_band = np.empty_like(ref_band)
     band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
-    _kernels.normalise_cross(
+    _spectra.normalise_cross(
         order, spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
         ref_band, _interleaved(ramp), keep, cur_band, band.view(np.float32),
     )  # fmt: skip
@@ -97,7 +97,7 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     spec = np.ascontiguousarray(spec.view(np.complex64)[back]).view(np.float32)
     band = band[back]
     # The kept spectra are ready to serve as the next reference.
-    kept = keep.astype(np.float64) / _kernels.REF_SCALE
+    kept = keep.astype(np.float64) / _spectra.REF_SCALE
     kept_value = kept[..., 0::2] + 1j * kept[..., 1::2]
     np.testing.assert_allclose(kept_value, np.conj(want_norm) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(spec.view(np.complex64), want_cross, rtol=5e-6, atol=1e-6)
@@ -151,7 +151,7 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
     lat_x = np.arange(0, 20, 3, dtype=np.intp)
     out = (np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, np.float32), np.empty(n))
     order = RNG.permutation(n).astype(np.intp)  # the batch's order of the blocks
-    _kernels.pick_peaks(
+    _peaks.pick_peaks(
         order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
         ref_top, ref_left, top, left, inner, lat_y, lat_x, *out,
     )  # fmt: skip
@@ -180,7 +180,7 @@ def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
     grad = np.zeros((40, 40), dtype=np.float32)
     zero = np.zeros(1, dtype=np.intp)
     out = (np.empty(1, np.intp), np.empty(1, np.intp), np.empty(1, np.float32), np.empty(1))
-    _kernels.pick_peaks(
+    _peaks.pick_peaks(
         zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
         zero + 4, zero + 4, np.array([4, 4], dtype=np.intp), np.arange(0, 8, dtype=np.intp),
         np.arange(0, 8, dtype=np.intp), *out,
@@ -208,7 +208,7 @@ def test_dft_subpixel_finds_the_shift_of_a_pure_translation_band(
     sx = np.array([round(dx)], dtype=np.intp)
     off_x, off_y, ok = np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool)
     shift = np.array(ramp, dtype=np.intp)
-    _kernels.dft_subpixel(
+    _subpixel.dft_subpixel(
         np.zeros(1, np.intp),
         _interleaved(band),
         fy,
@@ -245,14 +245,14 @@ def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
     out = np.empty((2, rows, 2 * half), dtype=np.int16)
     band_mag = np.empty((2, 5, 3), dtype=np.float32)
     ramp = np.ones((rows, half), dtype=np.complex64)
-    _kernels.normalise_reference(
+    _spectra.normalise_reference(
         np.arange(2, dtype=np.intp), _interleaved(spec), w_rows, w_cols, w_vals,
         float(wspec[0, 0].real), 1e-6, 1e-30, 2, 2, _interleaved(ramp), out, band_mag,
     )  # fmt: skip
     assert np.all(out[:, 0, 0:2] == 0)
     assert np.all(band_mag[:, 2, 0] == 0)  # band row ky = 0
     # The other frequencies keep unit magnitude (the texture is still there).
-    value = out.astype(np.float64) / _kernels.REF_SCALE
+    value = out.astype(np.float64) / _spectra.REF_SCALE
     assert np.abs(value[:, 1:, 0::2] + 1j * value[:, 1:, 1::2]).min() > 0.99
 
 
@@ -426,3 +426,28 @@ def test_smaller_windows_go_in_larger_batches() -> None:
     assert batch_blocks((128, 128)) == BATCH_BLOCKS
     assert batch_blocks((64, 64)) == 4 * BATCH_BLOCKS
     assert batch_blocks((256, 256)) == BATCH_BLOCKS
+
+
+def test_every_kernel_cache_is_stamped_with_all_kernel_modules() -> None:
+    """Regression guard: Numba stamps a cached kernel with its own module's
+    source only (numba#1833), so a kernel inlining one of another module kept
+    the old code after that module changed. Every compiled kernel of the
+    package lives in a module of ``KERNEL_MODULES`` and its cache carries the
+    digest of all of them."""
+    import importlib
+    import pkgutil
+
+    from numba.core.dispatcher import Dispatcher
+
+    import afmdrift.registration as registration
+    from afmdrift.registration import _jit
+
+    found = set()
+    for info in pkgutil.iter_modules(registration.__path__):
+        module = importlib.import_module(f"afmdrift.registration.{info.name}")
+        for obj in vars(module).values():
+            if isinstance(obj, Dispatcher) and obj.py_func.__module__ == module.__name__:
+                found.add(info.name)
+                stamp = obj._cache._cache_file._source_stamp
+                assert stamp[1] == _jit._SOURCES, obj
+    assert found == set(_jit.KERNEL_MODULES) - {"_jit"}  # _jit only compiles them
