@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.errors import InputError
-from afmdrift.registration import _intrinsics, _passes, _spectra, _subpixel
+from afmdrift.registration import _intrinsics, _passes, _spectra
 from afmdrift.registration._blocks import (
     BlockLayout,
     FrameStats,
@@ -41,12 +41,18 @@ from afmdrift.registration._blocks import (
     gradient_offset_px,
     gradient_shape,
     raised_cosine,
-    raised_cosine_axis,
 )
-from afmdrift.registration._fftw import (
-    BatchedRealFFT,
-    fftwf,
-    resolve_wisdom_path,
+from afmdrift.registration._constants import KernelConstants, kernel_constants
+from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
+from afmdrift.registration._passes import (
+    BatchTable,
+    BlockVectors,
+    PassArrays,
+    Peaks,
+    Placement,
+    ThreadWork,
+    Windows,
+    thread_work,
 )
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
@@ -58,13 +64,6 @@ F64 = npt.NDArray[np.float64]
 IArr = npt.NDArray[np.intp]
 BArr = npt.NDArray[np.bool_]
 
-#: Candidate peaks lower than this fraction of a block's highest peak are
-#: not verified: at low SNR their MSE is as noisy as the right one's and would
-#: only add wrong picks.
-CANDIDATE_RATIO = 0.7
-#: Absolute floor of the spectrum magnitude (its reciprocal, 1e30, is finite
-#: in float32; any textured block's spectrum is many orders above it).
-_MAG_FLOOR = 1e-30
 #: Largest window response (see BlockEngine.calibrate) that is still
 #: corrected: a block is corrected only if no direction of true shift reads
 #: as less than ``1 − MAX_RESPONSE`` of itself (the smallest singular value of
@@ -72,8 +71,6 @@ _MAG_FLOOR = 1e-30
 #: edge reads nothing along itself (the aperture problem): such a block is
 #: left as it is.
 MAX_RESPONSE = 0.5
-#: Half-size of the neighbourhood suppressed around each accepted peak (px).
-NMS_RADIUS = 2
 #: Blocks per batch, the engine's unit of work: a batch goes through every
 #: pass (window, forward FFT, normalisation, inverse FFT, peaks, sub-pixel)
 #: before the next starts, so its work arrays (about 1 MB for 8 blocks of
@@ -204,36 +201,6 @@ class _Work:
     band: F32
 
 
-@dataclass
-class _Peaks:
-    """Per-block integer peak, sub-pixel offset and checks (all blocks; each
-    batch writes its slice)."""
-
-    sy: IArr
-    sx: IArr
-    fy: F64
-    fx: F64
-    ok: BArr
-    peak: F32
-    mse: F64
-
-    @classmethod
-    def empty(cls, n: int) -> _Peaks:
-        """Uninitialised arrays (every block's entries are written by the
-        peak search and the sub-pixel step), in four allocations."""
-        sy, sx = np.empty((2, n), dtype=np.intp)
-        fy, fx, mse = np.empty((3, n))
-        return cls(
-            sy=sy,
-            sx=sx,
-            fy=fy,
-            fx=fx,
-            ok=np.empty(n, dtype=bool),
-            peak=np.empty(n, dtype=np.float32),
-            mse=mse,
-        )
-
-
 class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
@@ -280,16 +247,10 @@ class BlockEngine:
         n = lay.n_blocks
         ey, ex = lay.ext
         self.window = raised_cosine(ey, ex)
-        # Its two factors, for the measuring pass's forward transform.
-        self._wy: F32 = raised_cosine_axis(ey).astype(np.float32)
-        self._wx: F32 = raised_cosine_axis(ex).astype(np.float32)
-        # Low-frequency band of the cross-power spectrum used by the "dft"
-        # sub-pixel method (rfft layout: all ky in the band, kx >= 0).
-        ky_max = max(1, int(config.subpixel_band * ey / 2))
-        kx_max = max(1, int(config.subpixel_band * ex / 2))
-        band_shape = (2 * ky_max + 1, kx_max + 1)
-        self._fy = np.arange(-ky_max, ky_max + 1) / ey
-        self._fx = np.arange(0, kx_max + 1) / ex
+        #: The compiled kernels' constants.
+        self.constants: KernelConstants = kernel_constants(lay, self.window, config)
+        spectrum = self.constants.spectrum
+        band_shape = (2 * spectrum.ky + 1, spectrum.kx + 1)
         wisdom = resolve_wisdom_path(config.fftw_wisdom)
         self._batches = batch_split(n, batch_blocks(lay.ext))
         # Batches take the blocks column by column, so that the blocks of a
@@ -305,7 +266,7 @@ class BlockEngine:
         # smaller batches are made on their first blocks.
         sizes = sorted({b.stop - b.start for b in self._batches}, reverse=True)
 
-        def thread_work() -> dict[int, _Work]:
+        def make_work() -> dict[int, _Work]:
             # 64-byte aligned on every thread, so that the compiled sums over
             # it take the same order whichever thread measures a batch (their
             # vectorised loops depend on the address's alignment).
@@ -327,59 +288,20 @@ class BlockEngine:
                 )
             return works
 
-        self._work: tuple[dict[int, _Work], ...] = tuple(
-            thread_work() for _ in range(self._threads)
-        )
+        self._work: tuple[dict[int, _Work], ...] = tuple(make_work() for _ in range(self._threads))
         # What each thread passes to the compiled pass (measure_batches): the
         # batches, their sizes' plans, its work arrays.
-        self._batch_table = (
-            np.array([b.start for b in self._batches], dtype=np.intp),
-            np.array([b.stop for b in self._batches], dtype=np.intp),
-            np.array([sizes.index(b.stop - b.start) for b in self._batches], dtype=np.intp),
+        self._batch_table = BatchTable(
+            starts=np.array([b.start for b in self._batches], dtype=np.intp),
+            stops=np.array([b.stop for b in self._batches], dtype=np.intp),
+            kinds=np.array([sizes.index(b.stop - b.start) for b in self._batches], dtype=np.intp),
         )
-        fftw = fftwf()
-        self._execute = np.array(
-            [fftw.execute_r2c, fftw.execute_c2c, fftw.execute_c2r], dtype=np.uint64
-        )
-        self._thread_args: tuple[tuple[object, ...], ...] = tuple(
-            (
-                np.stack([work[size].fft.plans for size in sizes]),
-                work[sizes[0]].fft.pointers,
-                work[sizes[0]].fft.spectrum.view(np.float32),
-                work[sizes[0]].fft.out,
-                work[sizes[0]].band,
-                work[sizes[0]].fft.strip,
-                work[sizes[0]].fft.strip_spectrum.view(np.float32),
-                np.empty(sizes[0], dtype=np.intp),
-            )
+        self._thread_args: tuple[ThreadWork, ...] = tuple(
+            thread_work([work[size].fft for size in sizes], work[sizes[0]].band)
             for work in self._work
         )
-        self._subpixel_code = _subpixel.SUBPIXEL_CODES[config.subpixel]
         #: A pass started ahead of its frame's measure call (see measure_ahead).
         self._ahead: _Pass | None = None
-        # The periodic raised cosine has a DFT with only a few non-zero terms;
-        # removing the window-weighted block mean is a subtraction on them.
-        wspec = np.fft.rfft2(self.window.astype(np.float64))
-        nz = np.abs(wspec) > 1e-9 * abs(wspec[0, 0])
-        w_rows, w_cols = (a.astype(np.intp) for a in np.nonzero(nz))
-        # The arguments both normalisation kernels start with: the window's
-        # non-zero DFT terms (rows, columns, values as (re, im)) and their sum
-        # for the mean removal, the magnitude floor, the sub-pixel band.
-        self._spectrum_args: tuple[IArr, IArr, F32, float, float, float, int, int] = (
-            w_rows,
-            w_cols,
-            np.column_stack([wspec[nz].real, wspec[nz].imag]).astype(np.float32),
-            float(wspec[0, 0].real),
-            config.eps_rel,
-            _MAG_FLOOR,
-            ky_max,
-            kx_max,
-        )
-        stride = config.mse_stride_px
-        by, bx = lay.block
-        self._mse_rows = np.arange(0, by, stride, dtype=np.intp)
-        self._mse_cols = np.arange(0, bx, stride, dtype=np.intp)
-        self._inner = np.array([(ey - by) // 2, (ex - bx) // 2], dtype=np.intp)
         # Block centres (x, y) in image pixels: references always have their
         # windows at the grid positions (see reference, current_as_reference).
         off_x, off_y = gradient_offset_px(self.prefilter)
@@ -387,11 +309,13 @@ class BlockEngine:
             [lay.left + off_x + (ex - 1) / 2.0, lay.top + off_y + (ey - 1) / 2.0]
         ).astype(np.float64)
         self._centres.flags.writeable = False
-        # The inverse FFT's scale: correlation peak of identical blocks.
-        self._area = float(ey * ex)
+        rows, cols = lay.grad_shape
+        # Where windows may go: corners within these, clamped by at most
+        # half the search to be measured (_passes.place_windows).
+        self._bounds = (rows - ey, cols - ex, lay.max_shift[0] // 2, lay.max_shift[1] // 2)
         scratch_top, scratch_left = np.empty((2, n), dtype=np.intp)
         scratch_placed, scratch_near = np.empty((2, n), dtype=bool)
-        self._place_scratch = (scratch_top, scratch_left, scratch_placed, scratch_near)
+        self._place_scratch = Placement(scratch_top, scratch_left, scratch_placed, scratch_near)
         # Reference spectra: interleaved complex in int16 fixed point.
         self._fixed_shape = (n, ey, 2 * (ex // 2 + 1))
         # Normalised spectra of the last measured frame, kept only when every
@@ -401,50 +325,29 @@ class BlockEngine:
             np.empty(self._fixed_shape, np.int16) if config.reference == "consecutive" else None
         )
         self._no_spectra: npt.NDArray[np.int16] = np.empty((0, 1, 2), np.int16)
-        # Phase ramp exp(-2πi k·m) folded into the reference spectra: every
-        # correlation comes out shifted by the search radius m, so shifts
-        # -m..m are rows and columns 0..2m of the (pruned) inverse FFT.
-        my, mx = lay.max_shift
-        ky_idx = np.arange(ey)[:, None]
-        kx_idx = np.arange(ex // 2 + 1)[None, :]
-        ramp = np.exp(-2j * np.pi * (ky_idx * my / ey + kx_idx * mx / ex))
-        self._ramp: F32 = ramp.astype(np.complex64).view(np.float32)
-        self._ramp_shift = np.array([my, mx], dtype=np.intp)
         self._cur_band_mag: F32 = np.zeros((n, *band_shape), dtype=np.float32)
         self._identity: F64 = np.tile(np.eye(2), (n, 1, 1))
         self._identity.setflags(write=False)
-        # Curvature κ of the window autocorrelation A(s) = Σ w(x) w(x+s) / Σ w²
-        # near s = 0 (per axis): the correlation of windowed blocks is about
-        # A(p)·C(p - d), so its maximum is pulled towards p = 0 unless A is
-        # divided out.
-        wy = self.window.sum(axis=1).astype(np.float64)
-        wx = self.window.sum(axis=0).astype(np.float64)
-        self._envelope = np.array(
-            [
-                np.sum(np.diff(wy) ** 2) / np.sum(wy**2),
-                np.sum(np.diff(wx) ** 2) / np.sum(wx**2),
-            ]
-        )
 
     @property
     def n_batches(self) -> int:
         """Number of block batches (the unit of work of the engine's threads)."""
         return len(self._batches)
 
-    def _each_batch(self, work: Callable[[slice, _Work], None]) -> None:
-        """``work(blocks, arrays)`` for every batch of blocks, from Python; on
-        ``threads`` threads (the caller's among them) that take the batches in
-        turn, each with its own work arrays (the reference spectra; a
+    def _each_batch(self, work: Callable[[slice, ThreadWork, int], None]) -> None:
+        """``work(blocks, arrays, kind)`` for every batch of blocks, from
+        Python; on ``threads`` threads (the caller's among them) that take the
+        batches in turn, each with its own work arrays and the plans of the
+        batch's size ``arrays.plans[kind]`` (the reference spectra; a
         measuring pass is one compiled call per thread, see :meth:`_start`)."""
         self._drop_ahead()
         batches = self._batches
         order = itertools.count()  # next() is atomic: it holds the GIL
 
         def run(t: int) -> None:
-            arrays = self._work[t]
+            arrays = self._thread_args[t]
             while (i := next(order)) < len(batches):
-                sl = batches[i]
-                work(sl, arrays[sl.stop - sl.start])
+                work(batches[i], arrays, int(self._batch_table.kinds[i]))
 
         futures: list[Future[None]] = []
         if self._threads > 1:
@@ -488,16 +391,6 @@ class BlockEngine:
         written into ``out`` if given."""
         return gradient_image(heights, self.prefilter, out=out)
 
-    def _forward(self, blocks: IArr, fft: BatchedRealFFT, grad: F32, top: IArr, left: IArr) -> None:
-        """Spectra of the windows at ``(top, left)`` (full-layout arrays) of
-        ``blocks`` into ``fft.spectrum``, as a measuring pass computes them
-        (:func:`_spectra.forward_strips`)."""
-        _spectra.forward_strips(
-            grad, top, left, blocks, self._wy, self._wx, self._execute, fft.plans, fft.pointers,
-            fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
-            np.empty(blocks.size, dtype=np.intp),
-        )  # fmt: skip
-
     @functools.cached_property
     def block_rows_px(self) -> F64:
         """Distinct rows of the block centres of the reference grid, px (sorted)."""
@@ -524,16 +417,15 @@ class BlockEngine:
         spectra = np.empty(self._fixed_shape, np.int16)
         band_mag = np.empty_like(self._cur_band_mag)
 
-        def work(sl: slice, arrays: _Work) -> None:
+        windows = Windows(grad, top, left)
+        c = self.constants
+
+        def work(sl: slice, arrays: ThreadWork, kind: int) -> None:
+            # the forward transform as a measuring pass computes it
             blocks = self._order[sl]
-            self._forward(blocks, arrays.fft, grad, top, left)
+            _spectra.forward_strips(c.transform, windows, blocks, arrays.plans[kind], arrays)
             _spectra.normalise_reference(
-                blocks,
-                arrays.fft.spectrum.view(np.float32)[: blocks.size],
-                *self._spectrum_args,
-                self._ramp,
-                spectra,
-                band_mag,
+                c.spectrum, blocks, arrays.spec[: blocks.size], spectra, band_mag
             )
 
         self._each_batch(work)
@@ -664,31 +556,19 @@ class BlockEngine:
         n = self.layout.n_blocks
         top, left = np.empty((2, n), dtype=np.intp)
         placed, near = np.empty((2, n), dtype=bool)
-        self._place(ref, prior_px, top, left, placed, near)
+        self._place(ref, prior_px, Placement(top, left, placed, near))
         return top, left, placed, near
 
     def placed_fraction(self, ref: ReferenceSpectra, prior_px: tuple[float, float]) -> float:
         """Share of the blocks whose windows :meth:`positions_for` would place
         without clamping (in the engine's scratch arrays)."""
-        return self._place(ref, prior_px, *self._place_scratch) / self.layout.n_blocks
+        return self._place(ref, prior_px, self._place_scratch) / self.layout.n_blocks
 
-    def _place(
-        self,
-        ref: ReferenceSpectra,
-        prior_px: tuple[float, float],
-        top: IArr,
-        left: IArr,
-        placed: BArr,
-        near: BArr,
-    ) -> int:
-        """:meth:`positions_for` into the given arrays; returns the placed count."""
-        lay = self.layout
-        ey, ex = lay.ext
-        rows, cols = lay.grad_shape
+    def _place(self, ref: ReferenceSpectra, prior_px: tuple[float, float], out: Placement) -> int:
+        """:meth:`positions_for` into ``out``; returns the placed count."""
         count: int = _passes.place_windows(
-            ref.top, ref.left, round(prior_px[1]), round(prior_px[0]), rows - ey, cols - ex,
-            lay.max_shift[0] // 2, lay.max_shift[1] // 2, top, left, placed, near,
-        )  # fmt: skip
+            ref.top, ref.left, round(prior_px[1]), round(prior_px[0]), self._bounds, out
+        )
         return count
 
     def measure(
@@ -799,20 +679,20 @@ class BlockEngine:
         my, mx = self.layout.max_shift
         if search_px is not None:
             my, mx = min(my, int(search_px)), min(mx, int(search_px))
-        peaks = _Peaks.empty(self.layout.n_blocks)
-        search = np.array([my, mx, *self.layout.max_shift], dtype=np.intp)
-        common = (
-            self._order, grad, top, left, self._wy, self._wx, *self._spectrum_args,
-            ref.conj_spectra, ref.band_mag,
-            self._ramp, self._no_spectra if self._current is None else self._current,
-            self._cur_band_mag, search, self.config.peaks, CANDIDATE_RATIO, NMS_RADIUS, ref.grad,
-            ref.top, ref.left, self._inner, self._mse_rows, self._mse_cols, self._fy, self._fx,
-            self._ramp_shift, self._envelope, self._subpixel_code, self._area,
-            peaks.sy, peaks.sx, peaks.peak, peaks.mse, peaks.fx, peaks.fy, peaks.ok,
-        )  # fmt: skip
+        frame = PassArrays(
+            order=self._order,
+            cur=Windows(grad, top, left),
+            ref=Windows(ref.grad, ref.top, ref.left),
+            ref_conj=ref.conj_spectra,
+            ref_band_mag=ref.band_mag,
+            keep=self._no_spectra if self._current is None else self._current,
+            band_mag=self._cur_band_mag,
+            search=np.array([my, mx, *self.layout.max_shift], dtype=np.intp),
+            peaks=Peaks.empty(self.layout.n_blocks),
+        )
         p = _Pass(
             ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
-            near=near, my=my, mx=mx, peaks=peaks, common=common,
+            near=near, frame=frame,
         )  # fmt: skip
         if heights is not None:
             if check is None:
@@ -846,8 +726,8 @@ class BlockEngine:
         :func:`_passes.measure_batches`): False if its gate stayed closed
         for ``spins`` reads."""
         done = _passes.measure_batches(
-            p.counter, p.gate, spins, *self._batch_table, self._execute, self._thread_args[t],
-            p.common,
+            p.counter, p.gate, spins, self._batch_table, self._thread_args[t], p.frame,
+            self.constants,
         )  # fmt: skip
         return bool(done)
 
@@ -878,25 +758,25 @@ class BlockEngine:
             # while one is still running.
             _join(p.workers)
         n = self.layout.n_blocks
-        peaks, my, mx, top, left, ref = p.peaks, p.my, p.mx, p.top, p.left, p.ref
-        vec = np.empty((n, 2), dtype=np.float64)
-        measured = np.empty(n, dtype=bool)
-        confidence = np.empty(n, dtype=np.float64)
-        median = np.empty(2)
+        out = BlockVectors(
+            vectors=np.empty((n, 2), dtype=np.float64),
+            measured=np.empty(n, dtype=bool),
+            confidence=np.empty(n, dtype=np.float64),
+            median=np.empty(2),
+        )
         n_measured = _passes.assemble(
-            top, left, ref.top, ref.left, peaks.sy, peaks.sx, peaks.fy, peaks.fx, peaks.ok,
-            peaks.mse, peaks.peak, self._area, p.near, my, mx, ref.unbias, vec, measured,
-            confidence, median,
-        )  # fmt: skip
+            p.frame, p.near, p.ref.unbias, self.constants.subpixel.scale, out
+        )
+        median = out.median
         return BlockMeasurement(
             centres_px=self._centres,
-            vectors_px=vec,
-            confidence=confidence,
-            mse=peaks.mse,
-            measured=measured,
+            vectors_px=out.vectors,
+            confidence=out.confidence,
+            mse=p.frame.peaks.mse,
+            measured=out.measured,
             placed=p.placed,
             in_overlap=p.near,
-            weight_centres_px=ref.weight_centres_px,
+            weight_centres_px=p.ref.weight_centres_px,
             n_measured=int(n_measured),
             median_px=(float(median[0]), float(median[1])),
         )
@@ -995,11 +875,8 @@ class _Pass:
     left: IArr
     placed: BArr
     near: BArr
-    my: int
-    mx: int
-    peaks: _Peaks
-    #: The arguments of measure_batches after the thread's own.
-    common: tuple[object, ...]
+    #: What the compiled pass reads and writes (measure_batches).
+    frame: PassArrays
     heights: npt.NDArray[np.floating] | None = None
     prior_px: tuple[float, float] | None = None
     #: The next batch to take.

@@ -105,110 +105,98 @@ def _block_mse(  # type: ignore[no-untyped-def]
 
 
 @jit
-def pick_peaks(  # type: ignore[no-untyped-def]
-    blocks,
-    corr,
-    search,
-    peaks,
-    ratio,
-    nms,
-    grad,
-    ref_grad,
-    ref_top,
-    ref_left,
-    top,
-    left,
-    inner,
-    mse_rows,
-    mse_cols,
-    out_sy,
-    out_sx,
-    out_peak,
-    out_mse,
-):
+def pick_peaks(c, blocks, corr, search, cur, ref, out):  # type: ignore[no-untyped-def]
     """Top-K correlation peaks per block, verified by MSE.
 
-    ``corr[i, iy, ix]`` is block ``i``'s correlation at the shift ``(iy - my,
-    ix - mx)`` (rows and columns ``0..2m``; ``search = (ry, rx, my, mx)``).
-    Searches shifts within ``±(ry, rx)`` (``ry ≤ my``, ``rx ≤ mx``) for up
-    to ``peaks`` maxima, greedily, each at least ``nms`` px (per axis)
-    from the previous ones; a peak is a candidate while it is positive and
-    at least ``ratio`` of the block's highest. Each candidate is verified by
-    :func:`_block_mse` of the inner blocks (``inner = (iy0, ix0)`` offset in
-    the window) at the total shift ``window move + peak``; the lowest MSE
-    wins (the first on ties; with no candidate, the highest peak and
-    ``inf``). Ties between equal correlation values go to the first in
-    row-major order of the region.
+    ``corr[k, iy, ix]`` is block ``blocks[k]``'s correlation at the shift
+    ``(iy - my, ix - mx)`` (rows and columns ``0..2m``; ``search = (ry, rx,
+    my, mx)``). Searches shifts within ``±(ry, rx)`` (``ry ≤ my``, ``rx ≤
+    mx``) for up to ``c.peaks`` maxima, greedily, each at least ``c.nms`` px
+    (per axis) from the previous ones; a peak is a candidate while it is
+    positive and at least ``c.ratio`` of the block's highest. Each candidate
+    is verified by :func:`_block_mse` of the inner blocks (``c.inner = (iy0,
+    ix0)`` offset in the window) at the total shift ``window move + peak``;
+    the lowest MSE wins (the first on ties; with no candidate, the highest
+    peak and ``inf``). Ties between equal correlation values go to the first
+    in row-major order of the region.
 
-    ``corr[k]`` belongs to block ``blocks[k]``, the index of the per-block
-    arrays (window corners and outputs). Writes, per block: the integer
-    shift ``out_sy``, ``out_sx``, the
-    unnormalised correlation value ``out_peak`` and ``out_mse``. The search
-    rows' maxima are found once; after each accepted peak only
-    the rows its suppressed square covers are scanned again, and the column
-    of a peak is looked up only in the row that wins.
+    ``c``: :class:`~afmdrift.registration._constants.PeakConstants`; ``cur``
+    and ``ref``: the current and reference gradient images with their
+    window corners (:class:`~afmdrift.registration._passes.Windows`), indexed
+    by ``blocks[k]`` as the outputs are. Writes, per block, into ``out`` (a
+    :class:`~afmdrift.registration._passes.Peaks`): the integer shift ``sy``,
+    ``sx``, the unnormalised correlation value ``peak`` and ``mse``. The
+    search rows' maxima are found once; after each accepted peak only the
+    rows its suppressed square covers are scanned again, and the column of a
+    peak is looked up only in the row that wins.
     """
-    n = blocks.size
     ry, rx, my, mx = search[0], search[1], search[2], search[3]
-    y0r, y1r = my - ry, my + ry
-    x0r, x1r = mx - rx, mx + rx
-    height = y1r - y0r + 1
-    row_best = np.empty(height, dtype=np.float32)
-    acc_y = np.empty(peaks, dtype=np.intp)
-    acc_x = np.empty(peaks, dtype=np.intp)
-    for k in range(n):
+    y0r, x0r, x1r = my - ry, mx - rx, mx + rx
+    row_best = np.empty(2 * ry + 1, dtype=np.float32)
+    accepted = (np.empty(c.peaks, dtype=np.intp), np.empty(c.peaks, dtype=np.intp))
+    for k in range(blocks.size):
         i = blocks[k]
-        for h in range(height):
+        for h in range(row_best.size):
             row_best[h] = _row_max(corr[k, y0r + h], x0r, x1r)
-        first = -np.inf
-        best_mse = np.inf
-        best_y = 0
-        best_x = 0
-        best_v = -np.inf
-        for j in range(peaks):
-            v = -np.inf
-            hy = -1
-            for h in range(height):
-                if row_best[h] > v:
-                    v = row_best[h]
-                    hy = h
-            if hy < 0:
-                break
-            py = y0r + hy
-            px = _first_column(corr[k, py], py, x0r, x1r, v, acc_y, acc_x, j, nms)
-            if j == 0:
-                first = v
-                best_y, best_x, best_v = py, px, v
-            if not (v > 0 and v >= ratio * first):
-                break  # later peaks are lower: no candidates either
-            mse = _block_mse(
-                grad,
-                ref_grad,
-                ref_top[i] + inner[0],
-                ref_left[i] + inner[1],
-                (top[i] - ref_top[i]) + (py - my),
-                (left[i] - ref_left[i]) + (px - mx),
-                mse_rows,
-                mse_cols,
-            )
-            if mse < best_mse:
-                best_mse = mse
-                best_y, best_x, best_v = py, px, v
-            acc_y[j] = py
-            acc_x[j] = px
-            if j + 1 < peaks:
-                for h in range(max(0, hy - nms), min(height, hy + nms + 1)):
-                    row_best[h] = _row_max_masked(
-                        corr[k, y0r + h],
-                        y0r + h,
-                        x0r,
-                        x1r,
-                        acc_y,
-                        acc_x,
-                        j + 1,
-                        nms,
-                    )
-        out_sy[i] = best_y - my
-        out_sx[i] = best_x - mx
-        out_peak[i] = best_v
-        out_mse[i] = best_mse
+        best_y, best_x, best_v, best_mse = _best_candidate(
+            c, corr[k], search, row_best, accepted, cur, ref, i
+        )
+        out.sy[i] = best_y - my
+        out.sx[i] = best_x - mx
+        out.peak[i] = best_v
+        out.mse[i] = best_mse
+
+
+@jit
+def _best_candidate(c, corr, search, row_best, accepted, cur, ref, i):  # type: ignore[no-untyped-def]
+    """Block ``i``'s verified peak in its correlation ``corr`` (see
+    :func:`pick_peaks`), given the search rows' maxima ``row_best`` (updated
+    as peaks are suppressed; ``accepted``: scratch for the accepted peaks'
+    rows and columns): its row and column in ``corr``, value and MSE."""
+    ry, rx, my, mx = search[0], search[1], search[2], search[3]
+    y0r, x0r, x1r = my - ry, mx - rx, mx + rx
+    height = row_best.size
+    acc_y, acc_x = accepted
+    nms = c.nms
+    first = -np.inf
+    best_mse = np.inf
+    best_y = 0
+    best_x = 0
+    best_v = -np.inf
+    for j in range(c.peaks):
+        v = -np.inf
+        hy = -1
+        for h in range(height):
+            if row_best[h] > v:
+                v = row_best[h]
+                hy = h
+        if hy < 0:
+            break
+        py = y0r + hy
+        px = _first_column(corr[py], py, x0r, x1r, v, acc_y, acc_x, j, nms)
+        if j == 0:
+            first = v
+            best_y, best_x, best_v = py, px, v
+        if not (v > 0 and v >= c.ratio * first):
+            break  # later peaks are lower: no candidates either
+        mse = _block_mse(
+            cur.grad,
+            ref.grad,
+            ref.top[i] + c.inner[0],
+            ref.left[i] + c.inner[1],
+            (cur.top[i] - ref.top[i]) + (py - my),
+            (cur.left[i] - ref.left[i]) + (px - mx),
+            c.mse_rows,
+            c.mse_cols,
+        )
+        if mse < best_mse:
+            best_mse = mse
+            best_y, best_x, best_v = py, px, v
+        acc_y[j] = py
+        acc_x[j] = px
+        if j + 1 < c.peaks:
+            for h in range(max(0, hy - nms), min(height, hy + nms + 1)):
+                row_best[h] = _row_max_masked(
+                    corr[y0r + h], y0r + h, x0r, x1r, acc_y, acc_x, j + 1, nms
+                )
+    return best_y, best_x, best_v, best_mse

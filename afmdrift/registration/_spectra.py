@@ -114,27 +114,27 @@ def weight_centroids(grad, top, left, window, out):  # type: ignore[no-untyped-d
 
 
 @jit
-def _remove_mean(spec, i, w_rows, w_cols, w_vals, w_sum):  # type: ignore[no-untyped-def]
+def _remove_mean(c, spec, i):  # type: ignore[no-untyped-def]
     """Subtract block ``i``'s window-weighted mean: the window's DFT (a few
-    non-zero terms ``w_vals`` at ``(w_rows, w_cols)``) times the mean.
+    non-zero terms ``c.w_vals`` at ``(c.w_rows, c.w_cols)``) times the mean.
 
     The zero frequency is then exactly zero by construction; it is set so,
     because the rounding left by the subtraction (large on height images
     with a big mean) would otherwise be normalised to unit magnitude and
     enter the correlation as one term of pure noise."""
-    mean = spec[i, 0, 0] / w_sum
-    for j in range(w_rows.size):
-        r = w_rows[j]
-        c = 2 * w_cols[j]
-        spec[i, r, c] -= mean * w_vals[j, 0]
-        spec[i, r, c + 1] -= mean * w_vals[j, 1]
+    mean = spec[i, 0, 0] / c.w_sum
+    for j in range(c.w_rows.size):
+        r = c.w_rows[j]
+        col = 2 * c.w_cols[j]
+        spec[i, r, col] -= mean * c.w_vals[j, 0]
+        spec[i, r, col + 1] -= mean * c.w_vals[j, 1]
     spec[i, 0, 0] = 0.0
     spec[i, 0, 1] = 0.0
 
 
 @jit
-def _floor(spec, i, eps_rel, floor, abs2):  # type: ignore[no-untyped-def]
-    """Magnitude floor of block ``i``: ``max(eps_rel · max|S|, floor)``;
+def _floor(c, spec, i, abs2):  # type: ignore[no-untyped-def]
+    """Magnitude floor of block ``i``: ``max(c.eps_rel · max|S|, c.floor)``;
     fills ``abs2`` (rows, half) with ``|S|² = re² + im²`` on the way.
 
     The largest ``|S|²`` is taken as the largest int32 bit pattern of the
@@ -153,7 +153,7 @@ def _floor(spec, i, eps_rel, floor, abs2):  # type: ignore[no-untyped-def]
             v = row_bits[k]
             peak[0] = v if v > peak[0] else peak[0]
     peak2 = peak.view(np.float32)[0]
-    return np.float32(max(eps_rel * math.sqrt(peak2), floor))
+    return np.float32(max(c.eps_rel * math.sqrt(peak2), c.floor))
 
 
 @jit
@@ -203,34 +203,32 @@ def _reference_row(s, abs2, ramp, o, a):  # type: ignore[no-untyped-def]
 
 
 @jit
-def normalise_reference(  # type: ignore[no-untyped-def]
-    blocks, spec, w_rows, w_cols, w_vals, w_sum, eps_rel, floor, ky, kx, ramp, out, band_mag
-):
+def normalise_reference(c, blocks, spec, out, band_mag):  # type: ignore[no-untyped-def]
     """Reference spectra: remove each block's weighted mean from ``spec`` (in
     place), write ``out = conj(S / (|S| + a)) · ramp`` and ``band_mag = |S|``
     in the sub-pixel band (rows ``-ky..ky``, columns ``0..kx``).
 
-    The phase ramp ``exp(-2πi k·m)`` (``ramp``: one block's spectrum shape)
+    The phase ramp ``exp(-2πi k·m)`` (``c.ramp``: one block's spectrum shape)
     shifts every correlation by ``m``, the search radius, so that shifts
     ``-m..m`` come out of the inverse FFT as rows and columns ``0..2m``.
 
+    ``c``: :class:`~afmdrift.registration._constants.SpectrumConstants`.
     ``spec[k]`` belongs to block ``blocks[k]``, the index of ``out`` and
-    ``band_mag``. spec, ramp : (len(blocks), rows, 2·half) and (rows,
-    2·half) float32 (interleaved complex); out : (n, rows, 2·half) int16
-    (interleaved); w_vals : (m, 2) float32; band_mag : (n, 2·ky + 1, kx +
-    1) float32.
+    ``band_mag``. spec : (len(blocks), rows, 2·half) float32 (interleaved
+    complex); out : (n, rows, 2·half) int16 (interleaved); band_mag : (n,
+    2·ky + 1, kx + 1) float32.
     """
     rows = spec.shape[1]
     abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
     for k in range(blocks.size):
         i = blocks[k]
-        _remove_mean(spec, k, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, k, eps_rel, floor, abs2)
+        _remove_mean(c, spec, k)
+        a = _floor(c, spec, k, abs2)
         for r in range(rows):
-            b = _band_row(r, rows, ky)
+            b = _band_row(r, rows, c.ky)
             if b >= 0:
                 _magnitudes(abs2[r], band_mag[i, b])
-            _reference_row(spec[k, r], abs2[r], ramp[r], out[i, r], a)
+            _reference_row(spec[k, r], abs2[r], c.ramp[r], out[i, r], a)
 
 
 @jit
@@ -251,24 +249,7 @@ def _cross_row(s, abs2, q, a):  # type: ignore[no-untyped-def]
 
 
 @jit
-def normalise_cross(  # type: ignore[no-untyped-def]
-    blocks,
-    spec,
-    w_rows,
-    w_cols,
-    w_vals,
-    w_sum,
-    eps_rel,
-    floor,
-    ky,
-    kx,
-    ref,
-    ref_band_mag,
-    ramp,
-    keep,
-    band_mag,
-    band,
-):
+def normalise_cross(c, blocks, spec, ref, ref_band_mag, keep, band_mag, band):  # type: ignore[no-untyped-def]
     """Current spectra against a reference, in one pass per block.
 
     Removes each block's window-weighted mean from ``spec`` and turns it in
@@ -279,33 +260,35 @@ def normalise_cross(  # type: ignore[no-untyped-def]
     blocks, ``keep = conj(Ŝ) · ramp`` in the reference's int16 form (the
     frame is to become the next reference);
     and, if ``band`` has blocks, the weighted band ``band = Ŝ · ref · |S| ·
-    |R|`` of the ``dft`` sub-pixel method. ``spec``, ``ref``, ``ramp``,
-    ``keep`` and ``band`` are interleaved complex (``ref`` and ``keep``
-    int16, the others float32). ``spec[k]`` and ``band[k]`` belong to block
-    ``blocks[k]``, the index of ``ref``, ``ref_band_mag``, ``keep`` and
-    ``band_mag``.
+    |R|`` of the ``dft`` sub-pixel method. ``spec``, ``ref``, ``keep`` and
+    ``band`` are interleaved complex (``ref`` and ``keep`` int16, the others
+    float32). ``c``:
+    :class:`~afmdrift.registration._constants.SpectrumConstants`.
+    ``spec[k]`` and ``band[k]`` belong to block ``blocks[k]``, the index of
+    ``ref``, ``ref_band_mag``, ``keep`` and ``band_mag``.
     """
     n, rows = blocks.size, spec.shape[1]
+    ky, kx = c.ky, c.kx
     keeping = keep.shape[0] > 0
     with_band = band.shape[0] > 0
     abs2 = np.empty((rows, spec.shape[2] // 2), dtype=np.float32)
     for k in range(n):
         i = blocks[k]
-        _remove_mean(spec, k, w_rows, w_cols, w_vals, w_sum)
-        a = _floor(spec, k, eps_rel, floor, abs2)
+        _remove_mean(c, spec, k)
+        a = _floor(c, spec, k, abs2)
         for r in range(rows):
             s = spec[k, r]
             b = _band_row(r, rows, ky)
             if b >= 0:
                 _magnitudes(abs2[r], band_mag[i, b])
             if keeping:
-                _reference_row(s, abs2[r], ramp[r], keep[i, r], a)
+                _reference_row(s, abs2[r], c.ramp[r], keep[i, r], a)
             _cross_row(s, abs2[r], ref[i, r], a)
             if b >= 0 and with_band:
-                for c in range(kx + 1):
-                    w = band_mag[i, b, c] * ref_band_mag[i, b, c]
-                    band[k, b, 2 * c] = s[2 * c] * w
-                    band[k, b, 2 * c + 1] = s[2 * c + 1] * w
+                for col in range(kx + 1):
+                    w = band_mag[i, b, col] * ref_band_mag[i, b, col]
+                    band[k, b, 2 * col] = s[2 * col] * w
+                    band[k, b, 2 * col + 1] = s[2 * col + 1] * w
 
 
 #: Rows per FFTW call of :func:`forward_strips`' row transform (the plan
@@ -318,34 +301,39 @@ STRIP_CHUNK = 8
 
 
 @jit
-def forward_strips(  # type: ignore[no-untyped-def]
-    grad, top, left, blocks, wy, wx, execute, plans, pointers, strip, strip_spec, spec, base
-):
-    """Spectra ``spec[k]`` (interleaved complex) of the windowed blocks
-    ``grad[top[i]:top[i]+Ey, left[i]:left[i]+Ex] · wy ⊗ wx``, ``i =
-    blocks[k]``, with the row transforms of overlapping windows done once.
+def forward_strips(t, cur, blocks, plans, work):  # type: ignore[no-untyped-def]
+    """Spectra ``work.spec[k]`` (interleaved complex) of the windowed blocks
+    ``cur.grad[top:top+Ey, left:left+Ex] · wy ⊗ wx`` at the corners
+    ``cur.top[i]``, ``cur.left[i]``, ``i = blocks[k]``, with the row
+    transforms of overlapping windows done once.
 
     A 2-D real FFT is a real FFT of every row followed by a complex FFT of
     every column, and the window is a product ``wy(y) · wx(x)``: the
     transform of a row windowed by ``wx`` is the same in every window of the
     same columns, which only scales it by its ``wy``. Consecutive blocks
     with the same ``left`` whose rows meet form a run; each row of a run is
-    windowed by ``wx`` into ``strip`` once and transformed,
+    windowed by ``wx`` into ``work.strip`` once and transformed,
     :data:`STRIP_CHUNK` rows per call
-    (``plans[4]``), into ``strip_spec``; each block then takes its
-    rows times ``wy`` into ``spec``, and one call (``plans[3]``) transforms
-    the columns of all of them. With the engine's column-major batches and
-    128² windows a block pitch of 50 px apart, this halves the row
-    transforms (the larger part of a 2-D real FFT).
+    (``plans[4]``), into ``work.strip_spec``; each block then takes its
+    rows times ``wy`` into ``work.spec``, and one call (``plans[3]``)
+    transforms the columns of all of them. With the engine's column-major
+    batches and 128² windows a block pitch of 50 px apart, this halves the
+    row transforms (the larger part of a 2-D real FFT).
 
-    ``execute``: FFTW's r2c and c2c execute functions; ``pointers[1]``,
-    ``[3]``, ``[4]``: the addresses of ``spec``, ``strip`` and
-    ``strip_spec`` (``strip`` holds at least ``len(blocks) · Ey +
-    STRIP_CHUNK`` rows); ``base`` (scratch, ``len(blocks)``) receives each block's first
-    row in the strip.
+    ``t``: :class:`~afmdrift.registration._constants.TransformConstants`
+    (``wy``, ``wx`` and FFTW's r2c and c2c execute functions); ``cur``: a
+    :class:`~afmdrift.registration._passes.Windows`; ``plans``: the FFTW
+    plans of :class:`~afmdrift.registration._fftw.BatchedRealFFT` for
+    ``len(blocks)`` blocks on ``work``, a
+    :class:`~afmdrift.registration._passes.ThreadWork` (its ``strip`` holds
+    at least ``len(blocks) · Ey + STRIP_CHUNK`` rows; its ``base``, scratch,
+    receives each block's first row in the strip).
     """
     nb = blocks.size
+    wy, wx = t.wy, t.wx
     ey, ex = wy.size, wx.size
+    grad, top, left = cur.grad, cur.top, cur.left
+    strip, strip_spec, spec, base = work.strip, work.strip_spec, work.spec, work.base
     half = strip_spec.shape[1] // 2
     filled = 0
     run_left = -1
@@ -354,24 +342,25 @@ def forward_strips(  # type: ignore[no-untyped-def]
     run_base = 0
     for k in range(nb):
         i = blocks[k]
-        t = top[i]
+        t0 = top[i]
         le = left[i]
-        if k == 0 or le != run_left or t < run_top or t > run_end:
-            run_left, run_top, run_end, run_base = le, t, t, filled
-        for r in range(run_end, t + ey):
+        if k == 0 or le != run_left or t0 < run_top or t0 > run_end:
+            run_left, run_top, run_end, run_base = le, t0, t0, filled
+        for r in range(run_end, t0 + ey):
             src = grad[r, le : le + ex]
             dst = strip[run_base + r - run_top]
             for c in range(ex):
                 dst[c] = src[c] * wx[c]
-        run_end = max(run_end, t + ey)
+        run_end = max(run_end, t0 + ey)
         filled = run_base + run_end - run_top
-        base[k] = run_base + t - run_top
+        base[k] = run_base + t0 - run_top
     row_bytes = np.uint64(ex * 4)
     spec_row_bytes = np.uint64(half * 8)
+    pointers = work.pointers
     for c0 in range(0, filled, STRIP_CHUNK):
         r0 = np.uint64(c0)
         fftw_execute(
-            execute[0], plans[4], pointers[3] + r0 * row_bytes, pointers[4] + r0 * spec_row_bytes
+            t.execute[0], plans[4], pointers[3] + r0 * row_bytes, pointers[4] + r0 * spec_row_bytes
         )
     for k in range(nb):
         for r in range(ey):
@@ -380,4 +369,4 @@ def forward_strips(  # type: ignore[no-untyped-def]
             w = wy[r]
             for c in range(2 * half):
                 dst[c] = src[c] * w
-    fftw_execute(execute[1], plans[3], pointers[1], pointers[1])
+    fftw_execute(t.execute[1], plans[3], pointers[1], pointers[1])

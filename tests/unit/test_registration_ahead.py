@@ -14,9 +14,11 @@ import pytest
 from afmdrift.config import AfmdriftConfig
 from afmdrift.registration import DriftTracker, RegistrationConfig, _subpixel
 from afmdrift.registration._blocks import config_for_image
+from afmdrift.registration._constants import SubpixelConstants
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement
 from afmdrift.registration._errors import InvalidFrameError
 from afmdrift.registration._fftw import BatchedRealFFT
+from afmdrift.registration._passes import Peaks
 from afmdrift.testing import TextureShifter, add_noise, particle_texture
 
 
@@ -208,11 +210,15 @@ def test_three_point_subpixel_kernel_follows_its_formula(method: str) -> None:
     sx = rng.integers(-m, m + 1, 40)
     corr[np.arange(40), sy + m, sx + m] = 1.5  # a peak, also at the edges
     scale = 3.0
-    fy, fx = np.empty(40), np.empty(40)
-    ok = np.empty(40, dtype=bool)
-    code = _subpixel.SUBPIXEL_CODES[method]
+    peaks = Peaks.empty(40)
+    peaks.sy[:], peaks.sx[:] = sy, sx
+    fy, fx, ok = peaks.fy, peaks.fx, peaks.ok
+    c = SubpixelConstants(
+        method=_subpixel.SUBPIXEL_CODES[method], fy=np.zeros(1), fx=np.zeros(1),
+        shift=np.array([m, m], dtype=np.intp), envelope=np.zeros(2), scale=scale,
+    )  # fmt: skip
     order = rng.permutation(40).astype(np.intp)  # the batch's order of the blocks
-    _subpixel.subpixel_3pt(order, corr[order], code, scale, m, m, sy, sx, fy, fx, ok)
+    _subpixel.subpixel_3pt(c, order, corr[order], peaks)
     for i in range(40):
         cy, cx = sy[i] + m, sx[i] + m
         c = corr[i].astype(np.float64) / scale

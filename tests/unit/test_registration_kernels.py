@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 
 from afmdrift.registration import _kernels, _peaks, _spectra, _subpixel
+from afmdrift.registration._constants import PeakConstants, SpectrumConstants, SubpixelConstants
+from afmdrift.registration._passes import Peaks, Windows
 
 RNG = np.random.default_rng(11)
 
@@ -52,6 +54,22 @@ def _normalise_numpy(spec: np.ndarray, eps_rel: float) -> tuple[np.ndarray, np.n
     return spec / (mag + floor[:, None, None]), mag
 
 
+def _spectrum_constants(ramp: np.ndarray, ky: int, kx: int) -> SpectrumConstants:
+    """No window terms (the mean removal is tested through the engine)."""
+    none = np.zeros(0, dtype=np.intp)
+    return SpectrumConstants(
+        w_rows=none,
+        w_cols=none,
+        w_vals=np.zeros((0, 2), dtype=np.float32),
+        w_sum=1.0,
+        eps_rel=1e-6,
+        floor=1e-30,
+        ky=ky,
+        kx=kx,
+        ramp=_interleaved(ramp),
+    )
+
+
 def _band_rows(rows: int, ky: int) -> np.ndarray:
     return np.r_[rows - ky : rows, 0 : ky + 1]
 
@@ -60,20 +78,17 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     n, rows, cols = 3, 16, 24
     half = cols // 2 + 1
     ky, kx = 3, 4
-    # No window terms: the mean removal is tested through the engine.
-    none = np.zeros(0, dtype=np.intp)
-    no_vals = np.zeros((0, 2), dtype=np.float32)
     ref = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
     cur = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
     cur[1, 2, 3] = 0.0  # an exactly zero frequency stays finite
 
     ramp = np.exp(-2j * np.pi * RNG.random((rows, half))).astype(np.complex64)
+    c = _spectrum_constants(ramp, ky, kx)
     ref_out = np.empty((n, rows, 2 * half), dtype=np.int16)
     ref_band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.float32)
     _spectra.normalise_reference(
-        np.arange(n, dtype=np.intp), _interleaved(ref), none, none, no_vals, 1.0, 1e-6, 1e-30,
-        ky, kx, _interleaved(ramp), ref_out, ref_band,
-    )  # fmt: skip
+        c, np.arange(n, dtype=np.intp), _interleaved(ref), ref_out, ref_band
+    )
     want_ref, ref_mag = _normalise_numpy(ref, 1e-6)
     # Stored in fixed point: int16 multiples of 1 / 32767, rounded.
     fixed = ref_out.astype(np.float64) / _spectra.REF_SCALE
@@ -90,9 +105,8 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     cur_band = np.empty_like(ref_band)
     band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
     _spectra.normalise_cross(
-        order, spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
-        ref_band, _interleaved(ramp), keep, cur_band, band.view(np.float32),
-    )  # fmt: skip
+        c, order, spec, ref_out, ref_band, keep, cur_band, band.view(np.float32)
+    )
     back = np.argsort(order)
     spec = np.ascontiguousarray(spec.view(np.complex64)[back]).view(np.float32)
     band = band[back]
@@ -149,11 +163,12 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
     inner = np.array([8, 10], dtype=np.intp)
     lat_y = np.arange(0, 16, 3, dtype=np.intp)
     lat_x = np.arange(0, 20, 3, dtype=np.intp)
-    out = (np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, np.float32), np.empty(n))
+    c = PeakConstants(peaks=4, ratio=0.7, nms=2, inner=inner, mse_rows=lat_y, mse_cols=lat_x)
+    out = Peaks.empty(n)
     order = RNG.permutation(n).astype(np.intp)  # the batch's order of the blocks
     _peaks.pick_peaks(
-        order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
-        ref_top, ref_left, top, left, inner, lat_y, lat_x, *out,
+        c, order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp),
+        Windows(grad, top, left), Windows(ref_grad, ref_top, ref_left), out,
     )  # fmt: skip
     for i in range(n):
         cands = _peaks_numpy(corr[i], ry, rx, my, mx, 4, 0.7, 2)
@@ -169,9 +184,9 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
             ).astype(np.float64)
             scored.append((float(np.mean(d**2) - np.mean(d) ** 2), sy, sx, v))
         mse, sy, sx, v = min(scored, key=lambda t: t[0])  # first on ties, as the kernel
-        assert (out[0][i], out[1][i]) == (sy, sx)
-        assert out[2][i] == np.float32(v)
-        assert out[3][i] == pytest.approx(mse, rel=1e-9, abs=1e-12)
+        assert (out.sy[i], out.sx[i]) == (sy, sx)
+        assert out.peak[i] == np.float32(v)
+        assert out.mse[i] == pytest.approx(mse, rel=1e-9, abs=1e-12)
 
 
 def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
@@ -179,14 +194,18 @@ def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
     corr[0, 5, 6] = -0.5  # shift (1, 2)
     grad = np.zeros((40, 40), dtype=np.float32)
     zero = np.zeros(1, dtype=np.intp)
-    out = (np.empty(1, np.intp), np.empty(1, np.intp), np.empty(1, np.float32), np.empty(1))
-    _peaks.pick_peaks(
-        zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
-        zero + 4, zero + 4, np.array([4, 4], dtype=np.intp), np.arange(0, 8, dtype=np.intp),
-        np.arange(0, 8, dtype=np.intp), *out,
+    lattice = np.arange(0, 8, dtype=np.intp)
+    c = PeakConstants(
+        peaks=4, ratio=0.7, nms=2, inner=np.array([4, 4], dtype=np.intp), mse_rows=lattice,
+        mse_cols=lattice,
     )  # fmt: skip
-    assert (out[0][0], out[1][0], out[2][0]) == (1, 2, np.float32(-0.5))
-    assert out[3][0] == np.inf
+    out = Peaks.empty(1)
+    _peaks.pick_peaks(
+        c, zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), Windows(grad, zero + 4, zero + 4),
+        Windows(grad, zero, zero), out,
+    )  # fmt: skip
+    assert (out.sy[0], out.sx[0], out.peak[0]) == (1, 2, np.float32(-0.5))
+    assert out.mse[0] == np.inf
 
 
 @pytest.mark.parametrize(("dx", "dy"), [(0.0, 0.0), (0.37, -0.21), (-1.4, 2.2), (12.6, -7.45)])
@@ -204,26 +223,16 @@ def test_dft_subpixel_finds_the_shift_of_a_pure_translation_band(
     my, mx = ramp
     phase = fy[:, None] * (dy + my) + fx[None, :] * (dx + mx)
     band = (amp * np.exp(-2j * np.pi * phase))[None]
-    sy = np.array([round(dy)], dtype=np.intp)
-    sx = np.array([round(dx)], dtype=np.intp)
-    off_x, off_y, ok = np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool)
-    shift = np.array(ramp, dtype=np.intp)
-    _subpixel.dft_subpixel(
-        np.zeros(1, np.intp),
-        _interleaved(band),
-        fy,
-        fx,
-        sy,
-        sx,
-        shift,
-        np.zeros(2),
-        off_x,
-        off_y,
-        ok,
-    )
-    assert ok[0]
-    assert sx[0] + off_x[0] == pytest.approx(dx, abs=2e-4)
-    assert sy[0] + off_y[0] == pytest.approx(dy, abs=2e-4)
+    peaks = Peaks.empty(1)
+    peaks.sy[0], peaks.sx[0] = round(dy), round(dx)
+    c = SubpixelConstants(
+        method=0, fy=fy, fx=fx, shift=np.array(ramp, dtype=np.intp), envelope=np.zeros(2),
+        scale=1.0,
+    )  # fmt: skip
+    _subpixel.dft_subpixel(c, np.zeros(1, np.intp), _interleaved(band), peaks)
+    assert peaks.ok[0]
+    assert peaks.sx[0] + peaks.fx[0] == pytest.approx(dx, abs=2e-4)
+    assert peaks.sy[0] + peaks.fy[0] == pytest.approx(dy, abs=2e-4)
 
 
 def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
@@ -245,10 +254,11 @@ def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
     out = np.empty((2, rows, 2 * half), dtype=np.int16)
     band_mag = np.empty((2, 5, 3), dtype=np.float32)
     ramp = np.ones((rows, half), dtype=np.complex64)
-    _spectra.normalise_reference(
-        np.arange(2, dtype=np.intp), _interleaved(spec), w_rows, w_cols, w_vals,
-        float(wspec[0, 0].real), 1e-6, 1e-30, 2, 2, _interleaved(ramp), out, band_mag,
+    c = SpectrumConstants(
+        w_rows=w_rows, w_cols=w_cols, w_vals=w_vals, w_sum=float(wspec[0, 0].real), eps_rel=1e-6,
+        floor=1e-30, ky=2, kx=2, ramp=_interleaved(ramp),
     )  # fmt: skip
+    _spectra.normalise_reference(c, np.arange(2, dtype=np.intp), _interleaved(spec), out, band_mag)
     assert np.all(out[:, 0, 0:2] == 0)
     assert np.all(band_mag[:, 2, 0] == 0)  # band row ky = 0
     # The other frequencies keep unit magnitude (the texture is still there).
