@@ -3,9 +3,12 @@
 :class:`~afmdrift.registration.DriftTracker`).
 
 For one frame shape and configuration a :class:`BlockEngine` holds the block
-layout, the window, the FFTW plans and every work array, so that registering
-a new frame against cached reference spectra costs one forward and one
-inverse batched FFT plus a few passes over the spectra.
+layout, the window, the kernels' constants and its threads' FFTW plans and
+work arrays (:class:`~afmdrift.registration._passes.PassThreads`), so that
+registering a new frame against cached reference spectra costs one forward
+and one inverse batched FFT plus a few passes over the spectra. It makes
+reference spectra, calibrates each block's window response, places the
+windows and measures the blocks.
 
 Sign convention: a feature at ``u`` in the reference appears at ``u + d`` in
 the current frame; the correlation ``irfft2(Ĉ · conj(R̂))`` then peaks at
@@ -16,13 +19,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import itertools
 import logging
 import os
-import threading
 import weakref
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,7 +30,7 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.errors import InputError
-from afmdrift.registration import _intrinsics, _passes, _spectra
+from afmdrift.registration import _passes, _spectra
 from afmdrift.registration._blocks import (
     BlockLayout,
     FrameStats,
@@ -43,16 +43,19 @@ from afmdrift.registration._blocks import (
     raised_cosine,
 )
 from afmdrift.registration._constants import KernelConstants, kernel_constants
-from afmdrift.registration._fftw import BatchedRealFFT, resolve_wisdom_path
+from afmdrift.registration._fftw import resolve_wisdom_path
 from afmdrift.registration._passes import (
-    BatchTable,
     BlockVectors,
+    GradientTail,
     PassArrays,
+    PassRun,
+    PassThreads,
     Peaks,
     Placement,
     ThreadWork,
     Windows,
-    thread_work,
+    batch_blocks,
+    batch_split,
 )
 
 __all__ = ["BlockEngine", "BlockMeasurement", "ReferenceSpectra"]
@@ -71,71 +74,19 @@ BArr = npt.NDArray[np.bool_]
 #: edge reads nothing along itself (the aperture problem): such a block is
 #: left as it is.
 MAX_RESPONSE = 0.5
-#: Blocks per batch, the engine's unit of work: a batch goes through every
-#: pass (window, forward FFT, normalisation, inverse FFT, peaks, sub-pixel)
-#: before the next starts, so its work arrays (about 1 MB for 8 blocks of
-#: 128²) stay near the core instead of streaming the whole block stack
-#: through memory once per pass. The engine's threads take the batches in
-#: turn (see BlockEngine), so a thread on a slower core simply does fewer
-#: (virtual CPUs can differ in speed from minute to minute, and a fixed half
-#: of the blocks on the slower one would set the frame's time). The last
-#: ``2 * BATCH_BLOCKS`` blocks go in half batches, so that the threads end
-#: closer together and neither waits long for the other's last batch
-#: (figures in benchmarks/RESULTS.md). The split into batches depends only
-#: on the layout (:func:`batch_split`).
-BATCH_BLOCKS = 8
-#: Reads of a pass's gate before a worker that spins on it waits in Python
-#: instead (about 0.3 ms at 0.6 ns per read here; the gate usually opens
-#: within 0.1 ms of the worker reaching it, once the calling thread has
-#: completed and checked the gradient image).
-GATE_SPINS = 500_000
-#: Window area (px²) for which a batch holds BATCH_BLOCKS blocks; smaller
-#: windows go in proportionally larger batches (the same work arrays' size),
-#: so that per-batch call overhead stays small against the arithmetic.
-BATCH_WINDOW_PX2 = 128 * 128
-
-_pool_lock = threading.Lock()
-_pools: dict[int, ThreadPoolExecutor] = {}
 #: Engines that started a pass ahead (see BlockEngine.measure_ahead).
 _ahead_engines: weakref.WeakSet[BlockEngine] = weakref.WeakSet()
 
 
-def _forget_pools_after_fork() -> None:
-    # A forked child has none of the parent's worker threads: a pool taken
-    # over from the parent would queue work that never runs, and a pass it
-    # had started ahead would never end.
-    global _pool_lock
-    _pool_lock = threading.Lock()
-    _pools.clear()
+def _forget_passes_after_fork() -> None:
+    # A forked child has none of the parent's worker threads: a pass started
+    # ahead would never end.
     for engine in list(_ahead_engines):
         engine._ahead = None
     _ahead_engines.clear()
 
 
-os.register_at_fork(after_in_child=_forget_pools_after_fork)
-
-
-def _cpus_available() -> int:
-    """CPUs this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # not Linux
-        return os.cpu_count() or 1
-
-
-def _worker_pool(workers: int) -> ThreadPoolExecutor:
-    """Process-wide persistent pool of ``workers`` threads (made on first use).
-
-    The calling thread always takes batches itself, so ``threads`` threads
-    use ``threads - 1`` pool workers. Workers never submit work themselves,
-    so sharing the pool between engines and calling threads cannot deadlock.
-    """
-    with _pool_lock:
-        pool = _pools.get(workers)
-        if pool is None:
-            pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="afmdrift-reg")
-            _pools[workers] = pool
-        return pool
+os.register_at_fork(after_in_child=_forget_passes_after_fork)
 
 
 @dataclass(frozen=True)
@@ -190,29 +141,19 @@ class BlockMeasurement:
     median_px: tuple[float, float]
 
 
-@dataclass(frozen=True)
-class _Work:
-    """One thread's FFT plans and work arrays for batches of one size.
-
-    ``band`` receives the weighted cross-power band of the ``dft`` sub-pixel
-    step (interleaved complex; no blocks for the other methods)."""
-
-    fft: BatchedRealFFT
-    band: F32
-
-
 class BlockEngine:
     """Layout, window, FFT plans and work arrays for one frame shape.
 
-    The blocks are processed in batches of :func:`batch_blocks` (:data:`BATCH_BLOCKS`
-    of 128² windows); a measuring pass takes them column by column, so that
-    a batch's windows share their row transforms
-    (:func:`_spectra.forward_strips`). With
-    ``config.threads > 1`` the calling thread and pool workers take the
-    batches in turn, each with its own single-threaded FFTW plans and work
-    arrays: a thread's share of a measuring pass is one compiled call that
-    runs the FFTs itself and holds no GIL (:func:`_passes.measure_batches`);
-    :meth:`measure_ahead` starts a frame's pass before it is asked for. Every batch is
+    The blocks are processed in batches of :func:`~._passes.batch_blocks`
+    (:data:`~._passes.BATCH_BLOCKS` of 128² windows); a measuring pass takes
+    them column by column, so that a batch's windows share their row
+    transforms (:func:`_spectra.forward_strips`). With ``config.threads > 1``
+    the calling thread and pool workers take the batches in turn, each with
+    its own single-threaded FFTW plans and work arrays
+    (:class:`~._passes.PassThreads`): a thread's share of a measuring pass is
+    one compiled call that runs the FFTs itself and holds no GIL
+    (:func:`_passes.measure_batches`); :meth:`measure_ahead` starts a frame's
+    pass before it is asked for. Every batch is
     computed on its own (its blocks and order depend only on the layout), with plans
     of the same size (which FFTW's wisdom
     makes the same algorithm), so which thread does which batch never
@@ -251,54 +192,21 @@ class BlockEngine:
         self.constants: KernelConstants = kernel_constants(lay, self.window, config)
         spectrum = self.constants.spectrum
         band_shape = (2 * spectrum.ky + 1, spectrum.kx + 1)
-        wisdom = resolve_wisdom_path(config.fftw_wisdom)
         self._batches = batch_split(n, batch_blocks(lay.ext))
         # Batches take the blocks column by column, so that the blocks of a
         # batch share their windows' columns and rows
         # (_spectra.forward_strips).
         self._order: IArr = np.lexsort((lay.top, lay.left)).astype(np.intp)
-        self._threads = min(config.threads, len(self._batches))
-        #: Whether a worker waits for a pass's gate spinning (each thread has
-        #: a CPU of its own) or in Python (see _run_worker).
-        self._spin = self._threads <= _cpus_available()
-        dft = config.subpixel == "dft"
-        # Each thread's work arrays hold the largest batch; the plans of the
-        # smaller batches are made on their first blocks.
-        sizes = sorted({b.stop - b.start for b in self._batches}, reverse=True)
-
-        def make_work() -> dict[int, _Work]:
-            # 64-byte aligned on every thread, so that the compiled sums over
-            # it take the same order whichever thread measures a batch (their
-            # vectorised loops depend on the address's alignment).
-            band = _aligned_zeros((sizes[0] if dft else 0, *band_shape)).view(np.float32)
-            works: dict[int, _Work] = {}
-            for size in sizes:
-                works[size] = _Work(
-                    fft=BatchedRealFFT(
-                        size,
-                        (ey, ex),
-                        threads=1,
-                        planner=config.fftw_planner,
-                        wisdom_path=wisdom,
-                        out_rows=2 * lay.max_shift[0] + 1,
-                        share=works[sizes[0]].fft if works else None,
-                        strip_rows=size * ey,
-                    ),
-                    band=band[:size] if dft else band,
-                )
-            return works
-
-        self._work: tuple[dict[int, _Work], ...] = tuple(make_work() for _ in range(self._threads))
-        # What each thread passes to the compiled pass (measure_batches): the
-        # batches, their sizes' plans, its work arrays.
-        self._batch_table = BatchTable(
-            starts=np.array([b.start for b in self._batches], dtype=np.intp),
-            stops=np.array([b.stop for b in self._batches], dtype=np.intp),
-            kinds=np.array([sizes.index(b.stop - b.start) for b in self._batches], dtype=np.intp),
-        )
-        self._thread_args: tuple[ThreadWork, ...] = tuple(
-            thread_work([work[size].fft for size in sizes], work[sizes[0]].band)
-            for work in self._work
+        self._threads = PassThreads(
+            self._batches,
+            threads=config.threads,
+            block_shape=(ey, ex),
+            band_shape=band_shape,
+            dft=config.subpixel == "dft",
+            planner=config.fftw_planner,
+            wisdom_path=resolve_wisdom_path(config.fftw_wisdom),
+            out_rows=2 * lay.max_shift[0] + 1,
+            constants=self.constants,
         )
         #: A pass started ahead of its frame's measure call (see measure_ahead).
         self._ahead: _Pass | None = None
@@ -336,30 +244,11 @@ class BlockEngine:
 
     def _each_batch(self, work: Callable[[slice, ThreadWork, int], None]) -> None:
         """``work(blocks, arrays, kind)`` for every batch of blocks, from
-        Python; on ``threads`` threads (the caller's among them) that take the
-        batches in turn, each with its own work arrays and the plans of the
-        batch's size ``arrays.plans[kind]`` (the reference spectra; a
-        measuring pass is one compiled call per thread, see :meth:`_start`)."""
+        Python, on the engine's threads (:meth:`PassThreads.each_batch`: the
+        reference spectra; a measuring pass is one compiled call per thread,
+        see :meth:`_start`)."""
         self._drop_ahead()
-        batches = self._batches
-        order = itertools.count()  # next() is atomic: it holds the GIL
-
-        def run(t: int) -> None:
-            arrays = self._thread_args[t]
-            while (i := next(order)) < len(batches):
-                work(batches[i], arrays, int(self._batch_table.kinds[i]))
-
-        futures: list[Future[None]] = []
-        if self._threads > 1:
-            pool = _worker_pool(self._threads - 1)
-            futures = [pool.submit(run, t) for t in range(1, self._threads)]
-        try:
-            run(0)
-        finally:
-            # The workers write into shared arrays: never return (or raise)
-            # while one is still running.
-            _wait(futures)
-        _join(futures)  # a worker's exception
+        self._threads.each_batch(work)
 
     def prepare(
         self, heights: npt.NDArray[np.floating], *, out: F32 | None = None
@@ -380,7 +269,7 @@ class BlockEngine:
         so its first batch reads nearly every row: the workers start on the
         batches only once the whole image and its checks are done, and
         two threads get there in about half the time."""
-        if self._threads <= 1 or not compiled_gradient(heights, self.prefilter):
+        if self._threads.threads <= 1 or not compiled_gradient(heights, self.prefilter):
             return 0
         return int(heights.shape[0]) // 2
 
@@ -651,10 +540,9 @@ class BlockEngine:
         """Stop and forget a pass started ahead that no call used."""
         ahead, self._ahead = self._ahead, None
         if ahead is not None and ahead.result is None:
-            ahead.close_batches(len(self._batches))
             # Its result is not wanted: a worker's error is logged here
             # rather than raised from the unrelated call that dropped it.
-            for error in _wait(ahead.workers):
+            for error in self._threads.abandon(ahead.run):
                 _log.error("a block pass started ahead failed", exc_info=error)
 
     def _start(
@@ -671,10 +559,9 @@ class BlockEngine:
     ) -> _Pass:
         """Start a block pass with the current frame's windows at ``(top,
         left)`` (``placed``, ``near``: see :meth:`positions_for`): the pool
-        workers start on the batches (:func:`_passes.measure_batches`, one
-        call each, without the GIL); the calling thread joins in
-        :meth:`_finish`. With ``heights``, the gradient image is made and
-        checked here first (see :meth:`measure`)."""
+        workers start on the batches (:meth:`PassThreads.start`); the calling
+        thread joins in :meth:`_finish`. With ``heights``, the gradient image
+        is made and checked here first (see :meth:`measure`)."""
         self._drop_ahead()
         my, mx = self.layout.max_shift
         if search_px is not None:
@@ -692,71 +579,31 @@ class BlockEngine:
         )
         p = _Pass(
             ref=ref, grad=grad, search_px=search_px, top=top, left=left, placed=placed,
-            near=near, frame=frame,
+            near=near, run=PassRun(frame),
         )  # fmt: skip
+        complete: Callable[[], None] | None = None
         if heights is not None:
             if check is None:
                 raise ValueError("a new frame's heights come with their check")
             split = self._split_gradient(heights)
             if split:
-                p.tail = _GradientTail(heights, split)
+                tail = p.run.tail = GradientTail(heights, split)
+
+                def complete() -> None:
+                    check(tail.complete(grad))
+
             else:
                 # All of it, and the check, before any worker reads it.
                 check(self.prepare(heights, out=grad)[1])
-        started = False
-        try:
-            if self._threads > 1:
-                pool = _worker_pool(self._threads - 1)
-                for t in range(1, self._threads):
-                    p.workers.append(pool.submit(self._run_worker, p, t))
-            if p.tail is not None and check is not None:
-                check(p.tail.complete(grad))
-            started = True
-        finally:
-            # Whatever happened, the gate opens: a worker waits for it.
-            if not started:
-                p.close_batches(len(self._batches))  # no batch is to be taken
-            p.open()
-            if not started:
-                _wait(p.workers)
+        self._threads.start(p.run, complete)
         return p
-
-    def _batches_of(self, p: _Pass, t: int, spins: int = 0) -> bool:
-        """Thread ``t``'s share of pass ``p`` (see
-        :func:`_passes.measure_batches`): False if its gate stayed closed
-        for ``spins`` reads."""
-        done = _passes.measure_batches(
-            p.counter, p.gate, spins, self._batch_table, self._thread_args[t], p.frame,
-            self.constants,
-        )  # fmt: skip
-        return bool(done)
-
-    def _run_worker(self, p: _Pass, t: int) -> None:
-        if t == 1 and p.tail is not None:
-            p.tail.run(p.grad)
-        # With a CPU per thread, the worker waits for the gate spinning inside
-        # the compiled call: a Python wait would need the GIL back once the
-        # gate opens, which the calling thread holds while it places a frame
-        # (up to the 5 ms switch interval). With fewer CPUs a spinning worker
-        # would take the calling thread's CPU while it completes the gradient;
-        # and a gate that stays closed longer (a slow check, a busy machine)
-        # is waited for in Python after GATE_SPINS reads.
-        if self._spin and self._batches_of(p, t, GATE_SPINS):
-            return
-        p.opened.wait()
-        self._batches_of(p, t)
 
     def _finish(self, p: _Pass) -> BlockMeasurement:
         """The calling thread takes batches of ``p`` until none is left,
         waits for the workers, and assembles the block vectors."""
         if p.result is not None:
             return p.result
-        try:
-            self._batches_of(p, 0)
-        finally:
-            # The workers write into shared arrays: never return (or raise)
-            # while one is still running.
-            _join(p.workers)
+        self._threads.finish(p.run)
         n = self.layout.n_blocks
         out = BlockVectors(
             vectors=np.empty((n, 2), dtype=np.float64),
@@ -765,14 +612,14 @@ class BlockEngine:
             median=np.empty(2),
         )
         n_measured = _passes.assemble(
-            p.frame, p.near, p.ref.unbias, self.constants.subpixel.scale, out
+            p.run.frame, p.near, p.ref.unbias, self.constants.subpixel.scale, out
         )
         median = out.median
         return BlockMeasurement(
             centres_px=self._centres,
             vectors_px=out.vectors,
             confidence=out.confidence,
-            mse=p.frame.peaks.mse,
+            mse=p.run.frame.peaks.mse,
             measured=out.measured,
             placed=p.placed,
             in_overlap=p.near,
@@ -796,77 +643,11 @@ class BlockEngine:
         return self._finish(self._start(ref, grad, top, left, placed, near, search_px, None, None))
 
 
-def _aligned_zeros(shape: tuple[int, ...]) -> npt.NDArray[np.complex64]:
-    """Zeros (complex64) at a 64-byte aligned address."""
-    raw = np.zeros(int(np.prod(shape)) * 8 + 64, dtype=np.uint8)
-    start = -raw.ctypes.data % 64
-    return raw[start : start + int(np.prod(shape)) * 8].view(np.complex64).reshape(shape)
-
-
-def _wait(workers: list[Future[None]]) -> list[BaseException]:
-    """Wait for every worker; return their exceptions."""
-    return [e for e in (f.exception() for f in workers) if e is not None]
-
-
-def _join(workers: list[Future[None]]) -> None:
-    """Wait for every worker; then raise the first one's exception, if any."""
-    errors = _wait(workers)
-    if errors:
-        raise errors[0]
-
-
-class _GradientTail:
-    """The rows ``split:`` of a new frame's gradient image, computed by a
-    worker while the calling thread computes the rows above: their
-    :class:`FrameStats`, or the exception that stopped them."""
-
-    def __init__(self, heights: npt.NDArray[np.floating], split: int) -> None:
-        self.heights = heights
-        self.split = split
-        self._claim = threading.Lock()
-        self._done = threading.Event()
-        self._stats: FrameStats | None = None
-        self._error: BaseException | None = None
-
-    def run(self, grad: F32) -> None:
-        """Compute the rows into ``grad``, unless another thread has begun."""
-        if not self._claim.acquire(blocking=False):
-            return
-        try:
-            self._stats = gradient_and_stats(
-                self.heights[self.split :], "x", out=grad[self.split :]
-            )[1]
-        except BaseException as err:
-            self._error = err
-        finally:
-            self._done.set()
-
-    def complete(self, grad: F32) -> FrameStats:
-        """The calling thread's part: the rows above ``split``, and the
-        rows below too if no worker has begun them; the whole image's stats."""
-        _, head = gradient_and_stats(self.heights[: self.split], "x", out=grad[: self.split])
-        self.run(grad)
-        tail = self.result()
-        return FrameStats(
-            finite=head.finite and tail.finite,
-            nonzero=head.nonzero + tail.nonzero,
-            uniform=head.uniform and tail.uniform and bool(grad[0, 0] == grad[self.split, 0]),
-        )
-
-    def result(self) -> FrameStats:
-        """Wait for the rows; their stats, or raise what stopped them."""
-        self._done.wait()
-        if self._error is not None:
-            raise self._error
-        assert self._stats is not None
-        return self._stats
-
-
 @dataclass(eq=False)
 class _Pass:
     """A block pass in flight: what it measures (``ref``, ``grad``, the
     frame's ``heights`` and the prior and search it was started for), its
-    windows, its results, and the threads' shared batch counter."""
+    windows, its run on the threads and its result."""
 
     ref: ReferenceSpectra
     grad: F32
@@ -875,33 +656,10 @@ class _Pass:
     left: IArr
     placed: BArr
     near: BArr
-    #: What the compiled pass reads and writes (measure_batches).
-    frame: PassArrays
+    run: PassRun
     heights: npt.NDArray[np.floating] | None = None
     prior_px: tuple[float, float] | None = None
-    #: The next batch to take.
-    counter: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    #: The rows of the gradient image the first worker computes (see
-    #: BlockEngine._split_gradient).
-    tail: _GradientTail | None = None
-    #: Set to 1 once the gradient image is complete and checked: workers may
-    #: then take batches (see _passes.measure_batches); ``opened`` is set
-    #: with it, for workers that wait in Python.
-    gate: npt.NDArray[np.int64] = field(default_factory=lambda: np.zeros(1, dtype=np.int64))
-    opened: threading.Event = field(default_factory=threading.Event)
-    workers: list[Future[None]] = field(default_factory=list)
     result: BlockMeasurement | None = None
-
-    def open(self) -> None:
-        """Let the workers take batches (see :attr:`gate`), once everything
-        this thread wrote before is visible to them."""
-        _intrinsics.publish(self.gate, 0, 1)
-        self.opened.set()
-
-    def close_batches(self, n_batches: int) -> None:
-        """Let no thread take a further batch, and open the gate."""
-        _intrinsics.publish(self.counter, 0, n_batches)
-        self.open()
 
     def matches(
         self,
@@ -921,22 +679,3 @@ class _Pass:
             and self.prior_px == prior_px
             and self.search_px == search_px
         )
-
-
-def batch_blocks(ext: tuple[int, int]) -> int:
-    """Blocks per batch for windows of ``ext`` px: :data:`BATCH_BLOCKS` for
-    128² windows, more for smaller ones (the same work array size: 32 for
-    64² windows)."""
-    return BATCH_BLOCKS * max(1, BATCH_WINDOW_PX2 // max(1, ext[0] * ext[1]))
-
-
-def batch_split(n: int, size: int = BATCH_BLOCKS) -> tuple[slice, ...]:
-    """Batches of ``size`` of ``n`` blocks; the last ``2 * size`` blocks,
-    and what does not fill a whole batch before them, in batches of half
-    that size."""
-    tail_start = max(0, n - 2 * size)
-    tail_start -= tail_start % size
-    half = max(1, size // 2)
-    starts = [*range(0, tail_start, size), *range(tail_start, n, half)]
-    stops = [*starts[1:], n]
-    return tuple(slice(a, b) for a, b in zip(starts, stops, strict=True))

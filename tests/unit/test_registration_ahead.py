@@ -77,8 +77,8 @@ def test_finish_ahead_leaves_no_worker_running_and_keeps_the_result() -> None:
     pending = engine._ahead
     assert pending is not None
     engine.finish_ahead()
-    assert all(w.done() for w in pending.workers)
-    assert int(pending.counter[0]) >= engine.n_batches  # every batch was taken
+    assert all(w.done() for w in pending.run.workers)
+    assert int(pending.run.counter[0]) >= engine.n_batches  # every batch was taken
     kept = pending.result
     got, _, _ = engine.measure(
         ref, grad, prior_px=(1.7, -0.6), heights=frames[1], check=lambda stats: None
@@ -114,7 +114,7 @@ def test_a_different_call_drops_the_pass_and_measures_afresh() -> None:
     assert pending is not None
     engine.reference(engine.prepare(frames[0])[0])
     assert engine._ahead is None
-    assert all(w.done() for w in pending.workers)
+    assert all(w.done() for w in pending.run.workers)
 
 
 def test_a_frame_the_check_refuses_is_not_started_and_the_update_still_refuses_it() -> None:

@@ -414,7 +414,7 @@ def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> N
 @pytest.mark.parametrize("size", [8, 32])
 @pytest.mark.parametrize("n", [1, 9, 16, 20, 36, 64, 80, 100])
 def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int, size: int) -> None:
-    from afmdrift.registration._engine import batch_split
+    from afmdrift.registration._passes import batch_split
 
     batches = batch_split(n, size)
     assert [b.start for b in batches] == [0, *(b.stop for b in batches[:-1])]
@@ -431,7 +431,7 @@ def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int, s
 
 
 def test_smaller_windows_go_in_larger_batches() -> None:
-    from afmdrift.registration._engine import BATCH_BLOCKS, batch_blocks
+    from afmdrift.registration._passes import BATCH_BLOCKS, batch_blocks
 
     assert batch_blocks((128, 128)) == BATCH_BLOCKS
     assert batch_blocks((64, 64)) == 4 * BATCH_BLOCKS
