@@ -28,9 +28,9 @@ __all__ = ["KERNEL_MODULES", "jit", "jit_finite", "jit_sums"]
 KERNEL_MODULES = (
     "_intrinsics",
     "_jit",
-    "_kernels",
     "_passes",
     "_peaks",
+    "_selection",
     "_spectra",
     "_subpixel",
 )

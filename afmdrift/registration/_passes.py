@@ -29,8 +29,8 @@ from afmdrift.registration._constants import KernelConstants
 from afmdrift.registration._fftw import BatchedRealFFT, Planner
 from afmdrift.registration._intrinsics import atomic_load, fetch_add, fftw_execute, publish
 from afmdrift.registration._jit import jit
-from afmdrift.registration._kernels import masked_medians
 from afmdrift.registration._peaks import pick_peaks
+from afmdrift.registration._selection import masked_medians
 from afmdrift.registration._spectra import forward_strips, normalise_cross
 from afmdrift.registration._subpixel import dft_subpixel, subpixel_3pt
 

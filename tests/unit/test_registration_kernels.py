@@ -1,5 +1,5 @@
 """The compiled per-block kernels against plain NumPy statements of the same
-arithmetic (afmdrift.registration._spectra, _peaks, _subpixel, _kernels)."""
+arithmetic (afmdrift.registration._spectra, _peaks, _subpixel, _selection)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.registration import _kernels, _peaks, _spectra, _subpixel
+from afmdrift.registration import _peaks, _selection, _spectra, _subpixel
 from afmdrift.registration._constants import PeakConstants, SpectrumConstants, SubpixelConstants
 from afmdrift.registration._passes import Peaks, Windows
 
@@ -348,7 +348,7 @@ def test_masked_mean_std_matches_numpy(count: int, ddof: int) -> None:
     mask = np.zeros(64, dtype=bool)
     mask[RNG.choice(64, count, replace=False)] = True
     out = np.empty(4)
-    _kernels.masked_mean_std(vectors, mask, ddof, out)
+    _selection.masked_mean_std(vectors, mask, ddof, out)
     sel = vectors[mask]
     if count > 0:
         np.testing.assert_allclose(out[:2], sel.mean(axis=0), rtol=1e-13)
@@ -365,45 +365,47 @@ def test_usable_blocks_prefers_placed_windows_and_falls_back() -> None:
     placed = np.array([1, 1, 0, 1, 0, 1], dtype=bool)
     in_overlap = np.array([1, 1, 1, 1, 1, 0], dtype=bool)
     out = np.empty(6, dtype=bool)
-    assert _kernels.usable_blocks(measured, placed, in_overlap, 3, out) == placed.sum()
+    assert _selection.usable_blocks(measured, placed, in_overlap, 3, out) == placed.sum()
     np.testing.assert_array_equal(out, measured & placed)
     # Only 3 measured and placed: with 4 required, every measured block is
     # usable, and the blocks in the overlap are the ones available.
-    assert _kernels.usable_blocks(measured, placed, in_overlap, 4, out) == in_overlap.sum()
+    assert _selection.usable_blocks(measured, placed, in_overlap, 4, out) == in_overlap.sum()
     np.testing.assert_array_equal(out, measured)
 
 
 def test_masked_medians_returns_the_selected_count() -> None:
     vectors = np.array([[1.0, 5.0], [2.0, 6.0], [9.0, -1.0], [4.0, 0.0]])
     out = np.empty(2)
-    assert _kernels.masked_medians(vectors, np.array([1, 1, 0, 1], dtype=bool), out) == 3
+    assert _selection.masked_medians(vectors, np.array([1, 1, 0, 1], dtype=bool), out) == 3
     np.testing.assert_array_equal(out, [2.0, 5.0])
-    assert _kernels.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
+    assert _selection.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
     assert np.isnan(out).all()
 
 
 @pytest.mark.parametrize("mad", [True, False])
 def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> None:
     """The one-call selection of combine against its three steps."""
-    from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER, reject_mad, reject_paper
+    from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
 
     vectors = np.vstack([RNG.normal([3.0, -2.0], 0.05, size=(40, 2)), [[9.0, 4.0], [3.4, -2.0]]])
     measured = RNG.random(42) < 0.9
     placed = RNG.random(42) < 0.8
     in_overlap = np.ones(42, dtype=bool)
-    valid = np.empty(42, dtype=bool)
+    usable, valid = np.empty((2, 42), dtype=bool)
     stats = np.empty(4)
-    available, n_valid = _kernels.select_blocks(
-        vectors, measured, placed, in_overlap, 8, mad, 3.5, MAD_FLOOR_PX, MAX_ITER, 0.5,
-        valid, stats,
+    rule = _selection.MadRule(threshold=3.5, floor=MAD_FLOOR_PX, max_iter=MAX_ITER)
+    available, n_valid = _selection.select_blocks(
+        vectors, measured, placed, in_overlap,
+        _selection.SelectionRule(min_blocks=8, mad=mad, mad_rule=rule, epsilon=0.5),
+        usable, valid, stats,
     )  # fmt: skip
-    usable = measured & placed
+    np.testing.assert_array_equal(usable, measured & placed)
     assert available == placed.sum()
-    expect = (
-        reject_mad(vectors, usable, threshold=3.5)
-        if mad
-        else reject_paper(vectors, usable, epsilon_px=0.5)
-    )
+    expect = np.empty(42, dtype=bool)
+    if mad:
+        _selection.reject_mad(vectors, usable, rule, expect)
+    else:
+        _selection.reject_paper(vectors, usable, 0.5, expect)
     np.testing.assert_array_equal(valid, expect)
     assert n_valid == expect.sum() > 20
     assert not valid[40]

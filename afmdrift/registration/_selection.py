@@ -1,7 +1,9 @@
 """Compiled block-selection statistics (Numba, no GIL): which blocks are
 usable, the outlier rules (the iterated median/MAD rule and the paper's),
 the trend rule over the block rows, and the masked means, deviations,
-medians and row means of the block vectors.
+medians and row means of the block vectors; with the records of the rules'
+settings. The one selection path that uses them is
+:func:`afmdrift.registration._outliers.select_blocks`.
 
 They work on the whole frame's blocks and allocate only small scratch
 arrays.
@@ -10,12 +12,18 @@ arrays.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
+import numpy.typing as npt
 
 from afmdrift.registration._jit import jit
 
 __all__ = [
+    "MadRule",
+    "RowMeans",
+    "SelectionRule",
+    "TrendRule",
     "masked_mean_std",
     "masked_medians",
     "reject_mad",
@@ -26,6 +34,51 @@ __all__ = [
     "trend_select",
     "usable_blocks",
 ]
+
+
+class MadRule(NamedTuple):
+    """The iterated per-axis median/MAD rule (:func:`reject_mad`)."""
+
+    #: Largest robust z-score kept.
+    threshold: float
+    #: Smallest robust scale (px).
+    floor: float
+    #: Most rounds.
+    max_iter: int
+
+
+class TrendRule(NamedTuple):
+    """The trend over the block rows (:func:`trend_select`)."""
+
+    #: Highest degree of the per-axis polynomial in the row.
+    max_degree: int
+    #: F statistic above which the trend is preferred to one mean, and the
+    #: smallest share of the one mean's residual sum of squares it must explain.
+    f_min: float
+    explained_min: float
+
+
+class SelectionRule(NamedTuple):
+    """Which blocks are usable and which outlier rule judges them
+    (:func:`select_blocks`)."""
+
+    #: Placed blocks needed before clamped ones are used too (tiny frames).
+    min_blocks: int
+    #: The MAD rule (``mad``) if True, else the paper's rule (``epsilon`` px
+    #: from the mean vector).
+    mad: bool
+    mad_rule: MadRule
+    epsilon: float
+
+
+class RowMeans(NamedTuple):
+    """Outputs of :func:`row_means`, ``(n,)`` and ``(n, 2)`` float64; the
+    first entries are written."""
+
+    levels: npt.NDArray[np.float64]
+    counts: npt.NDArray[np.float64]
+    means: npt.NDArray[np.float64]
+    at: npt.NDArray[np.float64]
 
 
 @jit
@@ -41,16 +94,17 @@ def _gather(vectors, mask, axis, out):  # type: ignore[no-untyped-def]
 
 
 @jit
-def reject_mad(vectors, keep, threshold, floor, max_iter, out):  # type: ignore[no-untyped-def]
+def reject_mad(vectors, keep, rule, out):  # type: ignore[no-untyped-def]
     """Iterated per-axis median/MAD outlier rule (see
     :mod:`afmdrift.registration._outliers`): ``out`` starts as ``keep``;
     while at least 3 blocks remain, blocks of ``keep`` whose robust z-score
     ``|v - median| / (1.4826 · max(MAD, floor))`` exceeds ``threshold`` on
     either axis are dropped, until nothing changes (at most ``max_iter``
-    rounds).
+    rounds; ``rule``: a :class:`MadRule`). Returns the number kept.
 
     vectors : (n, 2) float64; keep, out : (n,) bool.
     """
+    threshold, floor, max_iter = rule
     n = vectors.shape[0]
     out[:] = keep
     sel = np.empty(n)
@@ -177,16 +231,17 @@ def row_groups(rows, levels, group):  # type: ignore[no-untyped-def]
 
 
 @jit
-def row_means(valid, vectors, row_px, weight_row_px, levels, counts, means, at):  # type: ignore[no-untyped-def]
+def row_means(valid, vectors, row_px, weight_row_px, out):  # type: ignore[no-untyped-def]
     """The ``valid`` blocks grouped by their row (:func:`row_groups`), into
-    the starts of the outputs: the distinct rows ``levels`` and, per row,
-    the number of its blocks, their mean vector and the mean of their
-    ``weight_row_px`` (each sum in block order). Returns ``(valid blocks,
-    rows)``.
+    the starts of the outputs (a :class:`RowMeans`): the distinct rows
+    ``levels`` and, per row, the number of its blocks, their mean vector and
+    the mean of their ``weight_row_px`` (each sum in block order). Returns
+    ``(valid blocks, rows)``.
 
     valid : (n,) bool; vectors : (n, 2) float64; row_px, weight_row_px : (n,)
     float64.
     """
+    levels, counts, means, at = out
     n = valid.size
     rows = np.empty(n)
     m = 0
@@ -216,18 +271,18 @@ def row_means(valid, vectors, row_px, weight_row_px, levels, counts, means, at):
 
 
 @jit
-def trend_select(  # type: ignore[no-untyped-def]
-    vectors, row_px, usable, threshold, floor, max_iter, max_degree, f_min, explained_min, out
-):
+def trend_select(vectors, row_px, usable, mad, trend, out):  # type: ignore[no-untyped-def]
     """The trend rule of :func:`afmdrift.registration._trend.select_by_trend`
     (see there), in one compiled pass: per-row medians, a weighted polynomial
-    of degree up to ``max_degree`` through them, the MAD rule on the
-    residuals (:func:`reject_mad`), refitted on the kept blocks and judged
-    once more; the spreads and the F test of the trend against one mean.
+    of degree up to ``trend.max_degree`` through them, the MAD rule ``mad``
+    on the residuals (:func:`reject_mad`), refitted on the kept blocks and
+    judged once more; the spreads and the F test of the trend against one
+    mean (``trend``: a :class:`TrendRule`).
 
     vectors : (n, 2) float64; row_px : (n,) float64; usable, out : (n,) bool.
     Returns ``(n_valid, spread_x, spread_y, significant)``.
     """
+    max_degree, f_min, explained_min = trend
     n = vectors.shape[0]
     out[:] = usable
     m = 0
@@ -271,7 +326,7 @@ def trend_select(  # type: ignore[no-untyped-def]
     _poly_residual(x_rows, vectors, coef, degree, residual)
     ones = np.ones(n)
     for _ in range(2):
-        good = reject_mad(residual, usable, threshold, floor, max_iter, out)
+        good = reject_mad(residual, usable, mad, out)
         if good < degree + 2:
             break
         _poly_fit(x_rows, vectors, ones, out, degree, coef)
@@ -295,7 +350,7 @@ def trend_select(  # type: ignore[no-untyped-def]
     rss_sum = rss[0] + rss[1]
     rss0_sum = rss0[0] + rss0[1]
     gain = (rss0_sum - rss_sum) / (2 * degree)
-    noise = max(rss_sum / (2 * dof), (floor / 2) ** 2)
+    noise = max(rss_sum / (2 * dof), (mad.floor / 2) ** 2)
     explained = 1.0 - rss_sum / max(rss0_sum, 1e-300)
     significant = gain / noise > f_min and explained >= explained_min
     return good, math.sqrt(rss[0] / dof), math.sqrt(rss[1] / dof), significant
@@ -326,20 +381,18 @@ def reject_paper(vectors, keep, epsilon, out):  # type: ignore[no-untyped-def]
 
 
 @jit
-def select_blocks(  # type: ignore[no-untyped-def]
-    vectors, measured, placed, in_overlap, min_blocks, mad, threshold, floor, max_iter,
-    epsilon, valid, stats,
-):  # fmt: skip
-    """The frame's valid blocks in one call: :func:`usable_blocks`, then the
-    outlier rule (:func:`reject_mad` if ``mad``, else :func:`reject_paper`)
-    into ``valid``, then :func:`masked_mean_std` (sample deviation) of the valid
-    blocks into ``stats``. Returns ``(available, valid count)``."""
-    usable = np.empty_like(measured)
-    available = usable_blocks(measured, placed, in_overlap, min_blocks, usable)
-    if mad:
-        n_valid = reject_mad(vectors, usable, threshold, floor, max_iter, valid)
+def select_blocks(vectors, measured, placed, in_overlap, rule, usable, valid, stats):  # type: ignore[no-untyped-def]
+    """The frame's valid blocks in one call (``rule``: a
+    :class:`SelectionRule`): :func:`usable_blocks` into ``usable``, then the
+    outlier rule (:func:`reject_mad` if ``rule.mad``, else
+    :func:`reject_paper`) into ``valid``, then :func:`masked_mean_std`
+    (sample deviation) of the valid blocks into ``stats``. Returns
+    ``(available, valid count)``."""
+    available = usable_blocks(measured, placed, in_overlap, rule.min_blocks, usable)
+    if rule.mad:
+        n_valid = reject_mad(vectors, usable, rule.mad_rule, valid)
     else:
-        n_valid = reject_paper(vectors, usable, epsilon, valid)
+        n_valid = reject_paper(vectors, usable, rule.epsilon, valid)
     masked_mean_std(vectors, valid, 1, stats)
     return available, n_valid
 
