@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
-from afmdrift.registration import _kernels
+from afmdrift.registration import _spectra
 
 __all__ = [
     "BlockLayout",
@@ -91,7 +91,7 @@ def gradient_image(
     # Differences are taken in the input precision and only then rounded to
     # float32, so a large z offset does not eat the texture's digits.
     if compiled_gradient(h, gradient):
-        _kernels.gradient_x(h, out)  # one compiled pass (its figures unused here)
+        _spectra.gradient_x(h, out)  # one compiled pass (its figures unused here)
     elif gradient == "x":
         np.subtract(h[:, 1:], h[:, :-1], out=out, casting="same_kind")
     elif gradient == "y":
@@ -177,7 +177,7 @@ class FrameStats(NamedTuple):
 
 def compiled_gradient(heights: npt.NDArray[np.floating], gradient: Gradient) -> bool:
     """Whether the gradient image of ``heights`` is the compiled x-gradient
-    pass (:func:`afmdrift.registration._kernels.gradient_x`): the x gradient
+    pass (:func:`afmdrift.registration._spectra.gradient_x`): the x gradient
     of a float32 or float64 image."""
     return gradient == "x" and heights.dtype in (np.float32, np.float64)
 
@@ -194,7 +194,7 @@ def gradient_and_stats(
     if compiled_gradient(heights, gradient):
         rows, cols = gradient_shape((int(heights.shape[0]), int(heights.shape[1])), gradient)
         grad = out if out is not None else np.empty((rows, cols), dtype=np.float32)
-        finite, nonzero, uniform = _kernels.gradient_x(heights, grad)
+        finite, nonzero, uniform = _spectra.gradient_x(heights, grad)
         return grad, FrameStats(bool(finite), int(nonzero), bool(uniform))
     grad = gradient_image(heights, gradient, out=out)
     finite = bool(np.isfinite(heights).all() and np.isfinite(grad).all())

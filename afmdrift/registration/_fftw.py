@@ -6,7 +6,7 @@ through FFTW's C interface (``fftwf_plan_many_dft_r2c``, ``fftwf_plan_guru_*``
 and the new-array execute functions ``fftwf_execute_dft_*``; FFTW manual,
 "New-array Execute Functions") of the single-precision library pyFFTW uses
 (see :func:`fftwf`), so that compiled code can run them without the GIL (see
-:func:`afmdrift.registration._kernels.measure_batches`); pyFFTW provides the
+:func:`afmdrift.registration._passes.measure_batches`); pyFFTW provides the
 library, aligned arrays and the wisdom in memory. FFTW *wisdom* (the planner's
 measurements) is loaded once per process from a file and written back after
 new plans were made, so the second run of afmdrift plans in milliseconds.
@@ -35,7 +35,7 @@ import numpy as np
 import numpy.typing as npt
 import pyfftw
 
-from afmdrift.registration._kernels import STRIP_CHUNK
+from afmdrift.registration._spectra import STRIP_CHUNK
 
 __all__ = ["BatchedRealFFT", "Fftwf", "default_wisdom_path", "fftwf", "resolve_wisdom_path"]
 
@@ -234,7 +234,7 @@ class BatchedRealFFT:
         full 2-D inverse).
     strip_rows : int, optional
         Also make the arrays and plans of a forward transform in two steps
-        (:func:`afmdrift.registration._kernels.forward_strips`): row
+        (:func:`afmdrift.registration._spectra.forward_strips`): row
         transforms of up to ``strip_rows`` windowed image rows,
         :data:`STRIP_CHUNK` rows per call, and the column transforms of
         ``spectrum`` in place.
@@ -286,40 +286,13 @@ class BatchedRealFFT:
         strip_rows: int | None = None,
     ) -> None:
         rows, cols = block_shape
-        half = cols // 2 + 1
         keep = rows if out_rows is None else min(out_rows, rows)
-        stripped = strip_rows is not None
-        if share is not None:
-            if (
-                share.real.shape[0] < n_blocks
-                or share.real.shape[1:] != (rows, cols)
-                or share.out.shape[1:] != (keep, cols)
-                or (stripped and share.strip.shape[0] < strip_rows + STRIP_CHUNK)  # type: ignore[operator]
-            ):
-                raise ValueError("a shared BatchedRealFFT needs as many blocks and the same shape")
-            self.real = share.real[:n_blocks]
-            self.spectrum = share.spectrum[:n_blocks]
-            self.out = share.out[:n_blocks]
-            self.strip, self.strip_spectrum = share.strip, share.strip_spectrum
-        else:
-            self.real = pyfftw.empty_aligned((n_blocks, rows, cols), dtype="float32")
-            self.spectrum = pyfftw.empty_aligned((n_blocks, rows, half), "complex64")
-            self.out = (
-                pyfftw.empty_aligned((n_blocks, keep, cols), dtype="float32")
-                if keep < rows
-                else self.real
-            )
-            strips = strip_rows + STRIP_CHUNK if strip_rows is not None else 0
-            self.strip = pyfftw.empty_aligned((strips, cols), dtype="float32")
-            self.strip_spectrum = pyfftw.empty_aligned((strips, half), "complex64")
-            self.strip.fill(0.0)
+        self._arrays(n_blocks, (rows, cols), keep, share, strip_rows)
         lib = fftwf()
         self._lib = lib.lib
         if threads > 1 and lib.threads is None:
             raise ValueError("FFTW's threads library was not found: use threads=1")
-        flags = _FLAGS[planner] | _DESTROY_INPUT
-        arrays = (self.real, self.spectrum, self.out, self.strip, self.strip_spectrum)
-        real, spec, out, strip, strip_spec = (a.ctypes.data for a in arrays)
+        real, spec, out, strip, strip_spec = self._addresses()
         with _lock:
             if wisdom_path is not None:
                 _load_wisdom(wisdom_path)
@@ -327,36 +300,10 @@ class BatchedRealFFT:
             if lib.threads is not None:
                 lib.threads.fftwf_plan_with_nthreads(threads)
             try:
-                shape = (ctypes.c_int * 2)(rows, cols)
-                plans: tuple[int | None, ...] = (
-                    self._lib.fftwf_plan_many_dft_r2c(
-                        2, shape, n_blocks, real, None, 1, rows * cols, spec, None, 1, rows * half,
-                        flags,
-                    ),
-                    self._lib.fftwf_plan_guru_dft(
-                        1, _dims((rows, half, half)), 2,
-                        _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
-                        spec, spec, _BACKWARD, flags,
-                    ),
-                    self._lib.fftwf_plan_guru_dft_c2r(
-                        1, _dims((cols, 1, 1)), 2,
-                        _dims((n_blocks, rows * half, keep * cols), (keep, half, cols)),
-                        spec, out, flags,
-                    ),
+                plans = self._plan(
+                    n_blocks, (rows, cols), keep, _FLAGS[planner] | _DESTROY_INPUT,
+                    stripped=strip_rows is not None,
                 )  # fmt: skip
-                if stripped:
-                    n_row = (ctypes.c_int * 1)(cols)
-                    plans += (
-                        self._lib.fftwf_plan_guru_dft(
-                            1, _dims((rows, half, half)), 2,
-                            _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
-                            spec, spec, _FORWARD, flags,
-                        ),
-                        self._lib.fftwf_plan_many_dft_r2c(
-                            1, n_row, STRIP_CHUNK, strip, None, 1, cols, strip_spec, None, 1,
-                            half, flags,
-                        ),
-                    )  # fmt: skip
             finally:
                 if lib.threads is not None:
                     lib.threads.fftwf_plan_with_nthreads(1)
@@ -377,6 +324,88 @@ class BatchedRealFFT:
         )
         self.real.fill(0.0)
         self.out.fill(0.0)
+
+    def _arrays(
+        self,
+        n_blocks: int,
+        block_shape: tuple[int, int],
+        keep: int,
+        share: BatchedRealFFT | None,
+        strip_rows: int | None,
+    ) -> None:
+        """The aligned arrays (see the class's attributes): new ones, or the
+        first ``n_blocks`` blocks of ``share``'s."""
+        rows, cols = block_shape
+        half = cols // 2 + 1
+        stripped = strip_rows is not None
+        if share is not None:
+            if (
+                share.real.shape[0] < n_blocks
+                or share.real.shape[1:] != (rows, cols)
+                or share.out.shape[1:] != (keep, cols)
+                or (stripped and share.strip.shape[0] < strip_rows + STRIP_CHUNK)  # type: ignore[operator]
+            ):
+                raise ValueError("a shared BatchedRealFFT needs as many blocks and the same shape")
+            self.real = share.real[:n_blocks]
+            self.spectrum = share.spectrum[:n_blocks]
+            self.out = share.out[:n_blocks]
+            self.strip, self.strip_spectrum = share.strip, share.strip_spectrum
+            return
+        self.real = pyfftw.empty_aligned((n_blocks, rows, cols), dtype="float32")
+        self.spectrum = pyfftw.empty_aligned((n_blocks, rows, half), "complex64")
+        self.out = (
+            pyfftw.empty_aligned((n_blocks, keep, cols), dtype="float32")
+            if keep < rows
+            else self.real
+        )
+        strips = strip_rows + STRIP_CHUNK if strip_rows is not None else 0
+        self.strip = pyfftw.empty_aligned((strips, cols), dtype="float32")
+        self.strip_spectrum = pyfftw.empty_aligned((strips, half), "complex64")
+        self.strip.fill(0.0)
+
+    def _addresses(self) -> tuple[int, ...]:
+        """Addresses of ``real``, ``spectrum``, ``out``, ``strip`` and
+        ``strip_spectrum``."""
+        arrays = (self.real, self.spectrum, self.out, self.strip, self.strip_spectrum)
+        return tuple(int(a.ctypes.data) for a in arrays)
+
+    def _plan(
+        self, n_blocks: int, block_shape: tuple[int, int], keep: int, flags: int, *, stripped: bool
+    ) -> tuple[int | None, ...]:
+        """FFTW's plans on the arrays (see the class's ``plans``), None where
+        FFTW could not plan; the caller holds the planner lock."""
+        rows, cols = block_shape
+        half = cols // 2 + 1
+        real, spec, out, strip, strip_spec = self._addresses()
+        shape = (ctypes.c_int * 2)(rows, cols)
+        plans: tuple[int | None, ...] = (
+            self._lib.fftwf_plan_many_dft_r2c(
+                2, shape, n_blocks, real, None, 1, rows * cols, spec, None, 1, rows * half, flags,
+            ),
+            self._lib.fftwf_plan_guru_dft(
+                1, _dims((rows, half, half)), 2,
+                _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
+                spec, spec, _BACKWARD, flags,
+            ),
+            self._lib.fftwf_plan_guru_dft_c2r(
+                1, _dims((cols, 1, 1)), 2,
+                _dims((n_blocks, rows * half, keep * cols), (keep, half, cols)),
+                spec, out, flags,
+            ),
+        )  # fmt: skip
+        if stripped:
+            n_row = (ctypes.c_int * 1)(cols)
+            plans += (
+                self._lib.fftwf_plan_guru_dft(
+                    1, _dims((rows, half, half)), 2,
+                    _dims((n_blocks, rows * half, rows * half), (half, 1, 1)),
+                    spec, spec, _FORWARD, flags,
+                ),
+                self._lib.fftwf_plan_many_dft_r2c(
+                    1, n_row, STRIP_CHUNK, strip, None, 1, cols, strip_spec, None, 1, half, flags,
+                ),
+            )  # fmt: skip
+        return plans
 
     def forward(self) -> None:
         """``spectrum = rfft2(real)`` over the last two axes (unnormalised)."""

@@ -13,7 +13,6 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
-from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import FrameStats, config_for_image
 from afmdrift.registration._coarse import CoarseShift, coarse_shift, overlap_slices
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
@@ -22,9 +21,8 @@ from afmdrift.registration._errors import (
     NearlyBlankError,
     RegistrationError,
 )
-from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
+from afmdrift.registration._outliers import needed_blocks, select_blocks
 from afmdrift.registration._result import BlockField, DriftResult
-from afmdrift.registration._trend import select_by_trend
 
 __all__ = [
     "MIN_IMAGE_PX",
@@ -196,53 +194,13 @@ def combine(
     cfg = engine.config
     vec = meas.vectors_px
     measured = meas.measured
-    # Prefer blocks whose windows sit where their content is expected (fall
-    # back to clamped windows only when too few are left: tiny frames), drop
-    # the outliers, and take the mean (x, y) and sample standard deviation
-    # (x, y) of the valid blocks: one compiled call.
-    valid = np.empty_like(measured)
-    stats = np.empty(4)
-    if cfg.outlier_rule == "mad":
-        # Blocks are judged by their residual from a smooth trend over the
-        # block rows, which are scanned at different times (._trend).
-        usable = np.empty_like(measured)
-        available = int(
-            _kernels.usable_blocks(
-                measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks, usable
-            )
-        )
-        if textured is not None:
-            # the same blocks usable_blocks counted (placed, or in the overlap
-            # in its fallback for tiny frames), less the featureless ones
-            placed_ok = int(np.count_nonzero(measured & meas.placed)) >= cfg.min_valid_blocks
-            base = meas.placed if placed_ok else meas.in_overlap
-            available = min(available, int(np.count_nonzero(textured & base)))
-        n_valid = int(
-            _kernels.reject_mad(vec, usable, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, valid)
-        )
-        _kernels.masked_mean_std(vec, valid, 1, stats)
-        mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
-        need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
-        trend_valid = np.empty_like(measured)
-        n_trend, tx, ty, significant = select_by_trend(
-            vec, meas.centres_px[:, 1], usable, threshold=cfg.mad_threshold,
-            floor_px=MAD_FLOOR_PX, max_iter=MAX_ITER, out=trend_valid,
-        )  # fmt: skip
-        one_mean_ok = n_valid >= need and max(spread_x, spread_y) <= cfg.max_block_spread_px
-        if n_trend >= need and (significant or not one_mean_ok):
-            # The drift changed while the frame was scanned: the trend over
-            # the rows explains the blocks better than one mean does.
-            valid[:] = trend_valid
-            n_valid, spread_x, spread_y = n_trend, tx, ty
-            _kernels.masked_mean_std(vec, valid, 1, stats)
-            mean_x, mean_y = float(stats[0]), float(stats[1])
-    else:
-        available, n_valid = _kernels.select_blocks(
-            vec, measured, meas.placed, meas.in_overlap, cfg.min_valid_blocks,
-            False, cfg.mad_threshold, MAD_FLOOR_PX, MAX_ITER, cfg.epsilon_px,
-            valid, stats,
-        )  # fmt: skip
-        mean_x, mean_y, spread_x, spread_y = (float(v) for v in stats)
+    # The valid blocks, their mean and spread: the one selection path.
+    sel = select_blocks(
+        vec, measured, meas.placed, meas.in_overlap, row_px=meas.centres_px[:, 1], config=cfg,
+        textured=textured,
+    )  # fmt: skip
+    valid, n_valid, available = sel.valid, sel.n_valid, sel.available
+    (mean_x, mean_y), (spread_x, spread_y) = sel.mean_px, sel.spread_px
     total = int(vec.shape[0])
     field = BlockField(
         centres_px=meas.centres_px.astype(dtype),
@@ -255,7 +213,7 @@ def combine(
     )
     px, py = pixel_size_nm
     reason = None
-    need = max(cfg.min_valid_blocks, math.ceil(cfg.min_valid_fraction * available))
+    need = needed_blocks(cfg, available)
     if n_valid < need:
         counted = "in the overlap" if textured is None else "with texture in the overlap"
         reason = (

@@ -56,12 +56,12 @@ class BlockField:
         standard deviation ``[2:4]`` (``(x, y)``, px; ``ddof`` as NumPy's
         ``std``, NaN where undefined): the kernel the frame's drift is
         combined with."""
-        from afmdrift.registration import _kernels
+        from afmdrift.registration import _selection
 
         valid = np.ascontiguousarray(self.valid, dtype=bool).reshape(-1)
         vectors = np.ascontiguousarray(self.vectors_px, dtype=np.float64).reshape(-1, 2)
         out = np.empty(4)
-        _kernels.masked_mean_std(vectors, valid, ddof, out)
+        _selection.masked_mean_std(vectors, valid, ddof, out)
         return int(np.count_nonzero(valid)), out
 
     def valid_row_means_px(
@@ -72,21 +72,18 @@ class BlockField:
         over): their number, and per row (sorted) the row, its number of
         blocks, their mean vector ``(x, y)`` and the mean row of their
         weight centres (where the row's vector applies), all px."""
-        from afmdrift.registration import _kernels
+        from afmdrift.registration import _selection
 
         valid = np.ascontiguousarray(self.valid, dtype=bool).reshape(-1)
         n = valid.size
         levels, counts, at = np.empty((3, n))
         means = np.empty((n, 2))
-        n_valid, n_rows = _kernels.row_means(
+        n_valid, n_rows = _selection.row_means(
             valid,
             np.ascontiguousarray(self.vectors_px, dtype=np.float64).reshape(-1, 2),
             np.ascontiguousarray(self.centres_px[:, 1], dtype=np.float64),
             np.ascontiguousarray(self.weight_centres_px[:, 1], dtype=np.float64),
-            levels,
-            counts,
-            means,
-            at,
+            _selection.RowMeans(levels, counts, means, at),
         )
         return int(n_valid), levels[:n_rows], counts[:n_rows], means[:n_rows], at[:n_rows]
 

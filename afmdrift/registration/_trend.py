@@ -14,12 +14,12 @@ row, per axis, of degree up to ``TREND_DEGREE``), fitted robustly:
 
 1. per block row, the median of the usable blocks (robust within a row);
 2. a weighted polynomial through those medians (weights: blocks per row);
-3. the iterated median/MAD rule (:func:`afmdrift.registration._kernels.reject_mad`)
+3. the iterated median/MAD rule (:func:`afmdrift.registration._selection.reject_mad`)
    on the residual vectors;
 4. the polynomial refitted by least squares on the blocks kept, and step 3
    repeated once on the new residuals.
 
-One compiled pass (:func:`afmdrift.registration._kernels.trend_select`) does
+One compiled pass (:func:`afmdrift.registration._selection.trend_select`) does
 it all: the rule runs on every frame, and as NumPy calls on a few dozen
 blocks it cost more than the block engine's own post-processing.
 
@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.registration import _kernels
+from afmdrift.registration._selection import MadRule, TrendRule, trend_select
 
 __all__ = ["TREND_DEGREE", "TREND_EXPLAINED", "TREND_F", "select_by_trend"]
 
@@ -51,15 +51,15 @@ TREND_EXPLAINED = 0.5
 #: well below the sub-pixel noise of a block).
 TREND_DEGREE = 2
 
+_TREND = TrendRule(max_degree=TREND_DEGREE, f_min=TREND_F, explained_min=TREND_EXPLAINED)
+
 
 def select_by_trend(
     vectors_px: npt.NDArray[np.float64],
     row_px: npt.NDArray[np.float64],
     usable: npt.NDArray[np.bool_],
     *,
-    threshold: float,
-    floor_px: float,
-    max_iter: int,
+    rule: MadRule,
     out: npt.NDArray[np.bool_],
 ) -> tuple[int, float, float, bool]:
     """Valid blocks judged by their residual from a smooth trend over the rows.
@@ -72,8 +72,8 @@ def select_by_trend(
         Row of each block's centre in the reference frame, px.
     usable : ndarray of bool, shape (n,)
         Blocks that may be valid.
-    threshold, floor_px, max_iter
-        Parameters of the median/MAD rule (see :mod:`._outliers`).
+    rule : MadRule
+        The median/MAD rule (see :mod:`._outliers`).
     out : ndarray of bool, shape (n,)
         Receives the valid blocks.
 
@@ -86,8 +86,7 @@ def select_by_trend(
         :data:`TREND_F`, the residual noise floored at half the MAD floor, and
         at least :data:`TREND_EXPLAINED` of their scatter explained).
     """
-    n_valid, spread_x, spread_y, significant = _kernels.trend_select(
-        vectors_px, row_px, usable, threshold, floor_px, max_iter,
-        TREND_DEGREE, TREND_F, TREND_EXPLAINED, out,
-    )  # fmt: skip
+    n_valid, spread_x, spread_y, significant = trend_select(
+        vectors_px, row_px, usable, rule, _TREND, out
+    )
     return int(n_valid), float(spread_x), float(spread_y), bool(significant)

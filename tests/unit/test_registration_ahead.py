@@ -12,11 +12,13 @@ import numpy as np
 import pytest
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.registration import DriftTracker, RegistrationConfig, _kernels
+from afmdrift.registration import DriftTracker, RegistrationConfig, _subpixel
 from afmdrift.registration._blocks import config_for_image
+from afmdrift.registration._constants import SubpixelConstants
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement
 from afmdrift.registration._errors import InvalidFrameError
 from afmdrift.registration._fftw import BatchedRealFFT
+from afmdrift.registration._passes import Peaks
 from afmdrift.testing import TextureShifter, add_noise, particle_texture
 
 
@@ -75,8 +77,8 @@ def test_finish_ahead_leaves_no_worker_running_and_keeps_the_result() -> None:
     pending = engine._ahead
     assert pending is not None
     engine.finish_ahead()
-    assert all(w.done() for w in pending.workers)
-    assert int(pending.counter[0]) >= engine.n_batches  # every batch was taken
+    assert all(w.done() for w in pending.run.workers)
+    assert int(pending.run.counter[0]) >= engine.n_batches  # every batch was taken
     kept = pending.result
     got, _, _ = engine.measure(
         ref, grad, prior_px=(1.7, -0.6), heights=frames[1], check=lambda stats: None
@@ -112,7 +114,7 @@ def test_a_different_call_drops_the_pass_and_measures_afresh() -> None:
     assert pending is not None
     engine.reference(engine.prepare(frames[0])[0])
     assert engine._ahead is None
-    assert all(w.done() for w in pending.workers)
+    assert all(w.done() for w in pending.run.workers)
 
 
 def test_a_frame_the_check_refuses_is_not_started_and_the_update_still_refuses_it() -> None:
@@ -208,11 +210,15 @@ def test_three_point_subpixel_kernel_follows_its_formula(method: str) -> None:
     sx = rng.integers(-m, m + 1, 40)
     corr[np.arange(40), sy + m, sx + m] = 1.5  # a peak, also at the edges
     scale = 3.0
-    fy, fx = np.empty(40), np.empty(40)
-    ok = np.empty(40, dtype=bool)
-    code = _kernels.SUBPIXEL_CODES[method]
+    peaks = Peaks.empty(40)
+    peaks.sy[:], peaks.sx[:] = sy, sx
+    fy, fx, ok = peaks.fy, peaks.fx, peaks.ok
+    c = SubpixelConstants(
+        method=_subpixel.SUBPIXEL_CODES[method], fy=np.zeros(1), fx=np.zeros(1),
+        shift=np.array([m, m], dtype=np.intp), envelope=np.zeros(2), scale=scale,
+    )  # fmt: skip
     order = rng.permutation(40).astype(np.intp)  # the batch's order of the blocks
-    _kernels.subpixel_3pt(order, corr[order], code, scale, m, m, sy, sx, fy, fx, ok)
+    _subpixel.subpixel_3pt(c, order, corr[order], peaks)
     for i in range(40):
         cy, cx = sy[i] + m, sx[i] + m
         c = corr[i].astype(np.float64) / scale

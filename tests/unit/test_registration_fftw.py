@@ -115,8 +115,10 @@ def test_forward_strips_equals_the_2d_transform_of_each_window(
     """The two-step forward transform (rows once per run of windows, then
     columns) gives each window's ``rfft2(block · wy ⊗ wx)``, whatever the
     runs, and in the batch's order of the blocks."""
-    from afmdrift.registration import _kernels
+    from afmdrift.registration import _spectra
     from afmdrift.registration._blocks import raised_cosine_axis
+    from afmdrift.registration._constants import TransformConstants
+    from afmdrift.registration._passes import Windows, thread_work
 
     rng = np.random.default_rng(5)
     ey, ex, nb = 32, 24, len(top)
@@ -133,10 +135,9 @@ def test_forward_strips_equals_the_2d_transform_of_each_window(
     lefts[order] = left
     lib = _fftw.fftwf()
     execute = np.array([lib.execute_r2c, lib.execute_c2c], dtype=np.uint64)
-    _kernels.forward_strips(
-        grad, tops, lefts, order, wy, wx, execute, fft.plans, fft.pointers,
-        fft.strip, fft.strip_spectrum.view(np.float32), fft.spectrum.view(np.float32),
-        np.empty(nb, np.intp),
+    _spectra.forward_strips(
+        TransformConstants(wy=wy, wx=wx, execute=execute), Windows(grad, tops, lefts), order,
+        fft.plans, thread_work([fft], np.zeros((0, 1, 2), np.float32)),
     )  # fmt: skip
     for k, i in enumerate(order):
         block = grad[tops[i] : tops[i] + ey, lefts[i] : lefts[i] + ex].astype(np.float64)

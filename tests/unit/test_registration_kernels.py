@@ -1,5 +1,5 @@
 """The compiled per-block kernels against plain NumPy statements of the same
-arithmetic (afmdrift.registration._kernels)."""
+arithmetic (afmdrift.registration._spectra, _peaks, _subpixel, _selection)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from afmdrift.registration import _kernels
+from afmdrift.registration import _peaks, _selection, _spectra, _subpixel
+from afmdrift.registration._constants import PeakConstants, SpectrumConstants, SubpixelConstants
+from afmdrift.registration._passes import Peaks, Windows
 
 RNG = np.random.default_rng(11)
 
@@ -27,7 +29,7 @@ def test_gradient_x_and_its_figures_match_numpy(dtype: type) -> None:
     against NumPy, on heights with repeated values (zero differences)."""
     h = (np.round(RNG.standard_normal((70, 90)) * 2.0) / 2.0 + 1e3).astype(dtype)
     out = np.empty((70, 89), np.float32)
-    finite, nonzero, uniform = _kernels.gradient_x(h, out)
+    finite, nonzero, uniform = _spectra.gradient_x(h, out)
     expect = (h[:, 1:] - h[:, :-1]).astype(np.float32)
     np.testing.assert_array_equal(out, expect)
     assert (finite, nonzero, uniform) == (True, np.count_nonzero(expect), False)
@@ -35,13 +37,13 @@ def test_gradient_x_and_its_figures_match_numpy(dtype: type) -> None:
     for r, c, bad in [(0, 0, np.nan), (69, 89, np.inf), (33, 44, -np.inf), (5, 89, np.nan)]:
         g = h.copy()
         g[r, c] = bad
-        assert not _kernels.gradient_x(g, out)[0], (r, c, bad)
+        assert not _spectra.gradient_x(g, out)[0], (r, c, bad)
     plane = (np.arange(90)[None, :] * 3.0 + np.arange(70)[:, None] * 2.0).astype(dtype)
-    assert _kernels.gradient_x(plane, out) == (True, out.size, True)
-    assert _kernels.gradient_x(np.full((70, 90), 7.0, dtype), out) == (True, 0, True)
+    assert _spectra.gradient_x(plane, out) == (True, out.size, True)
+    assert _spectra.gradient_x(np.full((70, 90), 7.0, dtype), out) == (True, 0, True)
     if dtype is np.float64:  # finite heights whose differences overflow float32
         huge = np.where(np.arange(90) % 2 == 0, 3e38, -3e38)[None, :].repeat(70, axis=0)
-        assert not _kernels.gradient_x(huge, out)[0]
+        assert not _spectra.gradient_x(huge, out)[0]
 
 
 def _normalise_numpy(spec: np.ndarray, eps_rel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -52,6 +54,22 @@ def _normalise_numpy(spec: np.ndarray, eps_rel: float) -> tuple[np.ndarray, np.n
     return spec / (mag + floor[:, None, None]), mag
 
 
+def _spectrum_constants(ramp: np.ndarray, ky: int, kx: int) -> SpectrumConstants:
+    """No window terms (the mean removal is tested through the engine)."""
+    none = np.zeros(0, dtype=np.intp)
+    return SpectrumConstants(
+        w_rows=none,
+        w_cols=none,
+        w_vals=np.zeros((0, 2), dtype=np.float32),
+        w_sum=1.0,
+        eps_rel=1e-6,
+        floor=1e-30,
+        ky=ky,
+        kx=kx,
+        ramp=_interleaved(ramp),
+    )
+
+
 def _band_rows(rows: int, ky: int) -> np.ndarray:
     return np.r_[rows - ky : rows, 0 : ky + 1]
 
@@ -60,23 +78,20 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     n, rows, cols = 3, 16, 24
     half = cols // 2 + 1
     ky, kx = 3, 4
-    # No window terms: the mean removal is tested through the engine.
-    none = np.zeros(0, dtype=np.intp)
-    no_vals = np.zeros((0, 2), dtype=np.float32)
     ref = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
     cur = np.fft.rfft2(RNG.standard_normal((n, rows, cols))).astype(np.complex64)
     cur[1, 2, 3] = 0.0  # an exactly zero frequency stays finite
 
     ramp = np.exp(-2j * np.pi * RNG.random((rows, half))).astype(np.complex64)
+    c = _spectrum_constants(ramp, ky, kx)
     ref_out = np.empty((n, rows, 2 * half), dtype=np.int16)
     ref_band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.float32)
-    _kernels.normalise_reference(
-        np.arange(n, dtype=np.intp), _interleaved(ref), none, none, no_vals, 1.0, 1e-6, 1e-30,
-        ky, kx, _interleaved(ramp), ref_out, ref_band,
-    )  # fmt: skip
+    _spectra.normalise_reference(
+        c, np.arange(n, dtype=np.intp), _interleaved(ref), ref_out, ref_band
+    )
     want_ref, ref_mag = _normalise_numpy(ref, 1e-6)
     # Stored in fixed point: int16 multiples of 1 / 32767, rounded.
-    fixed = ref_out.astype(np.float64) / _kernels.REF_SCALE
+    fixed = ref_out.astype(np.float64) / _spectra.REF_SCALE
     ref_value = fixed[..., 0::2] + 1j * fixed[..., 1::2]
     np.testing.assert_allclose(ref_value, np.conj(want_ref) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(ref_band, ref_mag[:, _band_rows(rows, ky), : kx + 1], rtol=1e-6)
@@ -89,15 +104,14 @@ def test_normalise_reference_and_cross_match_the_numpy_statement() -> None:
     keep = np.empty((n, rows, 2 * half), dtype=np.int16)
     cur_band = np.empty_like(ref_band)
     band = np.empty((n, 2 * ky + 1, kx + 1), dtype=np.complex64)
-    _kernels.normalise_cross(
-        order, spec, none, none, no_vals, 1.0, 1e-6, 1e-30, ky, kx, ref_out,
-        ref_band, _interleaved(ramp), keep, cur_band, band.view(np.float32),
-    )  # fmt: skip
+    _spectra.normalise_cross(
+        c, order, spec, ref_out, ref_band, keep, cur_band, band.view(np.float32)
+    )
     back = np.argsort(order)
     spec = np.ascontiguousarray(spec.view(np.complex64)[back]).view(np.float32)
     band = band[back]
     # The kept spectra are ready to serve as the next reference.
-    kept = keep.astype(np.float64) / _kernels.REF_SCALE
+    kept = keep.astype(np.float64) / _spectra.REF_SCALE
     kept_value = kept[..., 0::2] + 1j * kept[..., 1::2]
     np.testing.assert_allclose(kept_value, np.conj(want_norm) * ramp, rtol=0, atol=0.75 / 32767)
     np.testing.assert_allclose(spec.view(np.complex64), want_cross, rtol=5e-6, atol=1e-6)
@@ -149,11 +163,12 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
     inner = np.array([8, 10], dtype=np.intp)
     lat_y = np.arange(0, 16, 3, dtype=np.intp)
     lat_x = np.arange(0, 20, 3, dtype=np.intp)
-    out = (np.empty(n, np.intp), np.empty(n, np.intp), np.empty(n, np.float32), np.empty(n))
+    c = PeakConstants(peaks=4, ratio=0.7, nms=2, inner=inner, mse_rows=lat_y, mse_cols=lat_x)
+    out = Peaks.empty(n)
     order = RNG.permutation(n).astype(np.intp)  # the batch's order of the blocks
-    _kernels.pick_peaks(
-        order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp), 4, 0.7, 2, grad, ref_grad,
-        ref_top, ref_left, top, left, inner, lat_y, lat_x, *out,
+    _peaks.pick_peaks(
+        c, order, corr[order], np.array([ry, rx, my, mx], dtype=np.intp),
+        Windows(grad, top, left), Windows(ref_grad, ref_top, ref_left), out,
     )  # fmt: skip
     for i in range(n):
         cands = _peaks_numpy(corr[i], ry, rx, my, mx, 4, 0.7, 2)
@@ -169,9 +184,9 @@ def test_pick_peaks_verifies_the_candidates_numpy_finds(search: tuple[int, int])
             ).astype(np.float64)
             scored.append((float(np.mean(d**2) - np.mean(d) ** 2), sy, sx, v))
         mse, sy, sx, v = min(scored, key=lambda t: t[0])  # first on ties, as the kernel
-        assert (out[0][i], out[1][i]) == (sy, sx)
-        assert out[2][i] == np.float32(v)
-        assert out[3][i] == pytest.approx(mse, rel=1e-9, abs=1e-12)
+        assert (out.sy[i], out.sx[i]) == (sy, sx)
+        assert out.peak[i] == np.float32(v)
+        assert out.mse[i] == pytest.approx(mse, rel=1e-9, abs=1e-12)
 
 
 def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
@@ -179,14 +194,18 @@ def test_pick_peaks_without_a_positive_peak_reports_infinite_mse() -> None:
     corr[0, 5, 6] = -0.5  # shift (1, 2)
     grad = np.zeros((40, 40), dtype=np.float32)
     zero = np.zeros(1, dtype=np.intp)
-    out = (np.empty(1, np.intp), np.empty(1, np.intp), np.empty(1, np.float32), np.empty(1))
-    _kernels.pick_peaks(
-        zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), 4, 0.7, 2, grad, grad, zero, zero,
-        zero + 4, zero + 4, np.array([4, 4], dtype=np.intp), np.arange(0, 8, dtype=np.intp),
-        np.arange(0, 8, dtype=np.intp), *out,
+    lattice = np.arange(0, 8, dtype=np.intp)
+    c = PeakConstants(
+        peaks=4, ratio=0.7, nms=2, inner=np.array([4, 4], dtype=np.intp), mse_rows=lattice,
+        mse_cols=lattice,
     )  # fmt: skip
-    assert (out[0][0], out[1][0], out[2][0]) == (1, 2, np.float32(-0.5))
-    assert out[3][0] == np.inf
+    out = Peaks.empty(1)
+    _peaks.pick_peaks(
+        c, zero, corr, np.array([4, 4, 4, 4], dtype=np.intp), Windows(grad, zero + 4, zero + 4),
+        Windows(grad, zero, zero), out,
+    )  # fmt: skip
+    assert (out.sy[0], out.sx[0], out.peak[0]) == (1, 2, np.float32(-0.5))
+    assert out.mse[0] == np.inf
 
 
 @pytest.mark.parametrize(("dx", "dy"), [(0.0, 0.0), (0.37, -0.21), (-1.4, 2.2), (12.6, -7.45)])
@@ -204,26 +223,16 @@ def test_dft_subpixel_finds_the_shift_of_a_pure_translation_band(
     my, mx = ramp
     phase = fy[:, None] * (dy + my) + fx[None, :] * (dx + mx)
     band = (amp * np.exp(-2j * np.pi * phase))[None]
-    sy = np.array([round(dy)], dtype=np.intp)
-    sx = np.array([round(dx)], dtype=np.intp)
-    off_x, off_y, ok = np.zeros(1), np.zeros(1), np.zeros(1, dtype=bool)
-    shift = np.array(ramp, dtype=np.intp)
-    _kernels.dft_subpixel(
-        np.zeros(1, np.intp),
-        _interleaved(band),
-        fy,
-        fx,
-        sy,
-        sx,
-        shift,
-        np.zeros(2),
-        off_x,
-        off_y,
-        ok,
-    )
-    assert ok[0]
-    assert sx[0] + off_x[0] == pytest.approx(dx, abs=2e-4)
-    assert sy[0] + off_y[0] == pytest.approx(dy, abs=2e-4)
+    peaks = Peaks.empty(1)
+    peaks.sy[0], peaks.sx[0] = round(dy), round(dx)
+    c = SubpixelConstants(
+        method=0, fy=fy, fx=fx, shift=np.array(ramp, dtype=np.intp), envelope=np.zeros(2),
+        scale=1.0,
+    )  # fmt: skip
+    _subpixel.dft_subpixel(c, np.zeros(1, np.intp), _interleaved(band), peaks)
+    assert peaks.ok[0]
+    assert peaks.sx[0] + peaks.fx[0] == pytest.approx(dx, abs=2e-4)
+    assert peaks.sy[0] + peaks.fy[0] == pytest.approx(dy, abs=2e-4)
 
 
 def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
@@ -245,14 +254,15 @@ def test_mean_removal_leaves_an_exact_zero_frequency() -> None:
     out = np.empty((2, rows, 2 * half), dtype=np.int16)
     band_mag = np.empty((2, 5, 3), dtype=np.float32)
     ramp = np.ones((rows, half), dtype=np.complex64)
-    _kernels.normalise_reference(
-        np.arange(2, dtype=np.intp), _interleaved(spec), w_rows, w_cols, w_vals,
-        float(wspec[0, 0].real), 1e-6, 1e-30, 2, 2, _interleaved(ramp), out, band_mag,
+    c = SpectrumConstants(
+        w_rows=w_rows, w_cols=w_cols, w_vals=w_vals, w_sum=float(wspec[0, 0].real), eps_rel=1e-6,
+        floor=1e-30, ky=2, kx=2, ramp=_interleaved(ramp),
     )  # fmt: skip
+    _spectra.normalise_reference(c, np.arange(2, dtype=np.intp), _interleaved(spec), out, band_mag)
     assert np.all(out[:, 0, 0:2] == 0)
     assert np.all(band_mag[:, 2, 0] == 0)  # band row ky = 0
     # The other frequencies keep unit magnitude (the texture is still there).
-    value = out.astype(np.float64) / _kernels.REF_SCALE
+    value = out.astype(np.float64) / _spectra.REF_SCALE
     assert np.abs(value[:, 1:, 0::2] + 1j * value[:, 1:, 1::2]).min() > 0.99
 
 
@@ -338,7 +348,7 @@ def test_masked_mean_std_matches_numpy(count: int, ddof: int) -> None:
     mask = np.zeros(64, dtype=bool)
     mask[RNG.choice(64, count, replace=False)] = True
     out = np.empty(4)
-    _kernels.masked_mean_std(vectors, mask, ddof, out)
+    _selection.masked_mean_std(vectors, mask, ddof, out)
     sel = vectors[mask]
     if count > 0:
         np.testing.assert_allclose(out[:2], sel.mean(axis=0), rtol=1e-13)
@@ -355,45 +365,47 @@ def test_usable_blocks_prefers_placed_windows_and_falls_back() -> None:
     placed = np.array([1, 1, 0, 1, 0, 1], dtype=bool)
     in_overlap = np.array([1, 1, 1, 1, 1, 0], dtype=bool)
     out = np.empty(6, dtype=bool)
-    assert _kernels.usable_blocks(measured, placed, in_overlap, 3, out) == placed.sum()
+    assert _selection.usable_blocks(measured, placed, in_overlap, 3, out) == placed.sum()
     np.testing.assert_array_equal(out, measured & placed)
     # Only 3 measured and placed: with 4 required, every measured block is
     # usable, and the blocks in the overlap are the ones available.
-    assert _kernels.usable_blocks(measured, placed, in_overlap, 4, out) == in_overlap.sum()
+    assert _selection.usable_blocks(measured, placed, in_overlap, 4, out) == in_overlap.sum()
     np.testing.assert_array_equal(out, measured)
 
 
 def test_masked_medians_returns_the_selected_count() -> None:
     vectors = np.array([[1.0, 5.0], [2.0, 6.0], [9.0, -1.0], [4.0, 0.0]])
     out = np.empty(2)
-    assert _kernels.masked_medians(vectors, np.array([1, 1, 0, 1], dtype=bool), out) == 3
+    assert _selection.masked_medians(vectors, np.array([1, 1, 0, 1], dtype=bool), out) == 3
     np.testing.assert_array_equal(out, [2.0, 5.0])
-    assert _kernels.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
+    assert _selection.masked_medians(vectors, np.zeros(4, dtype=bool), out) == 0
     assert np.isnan(out).all()
 
 
 @pytest.mark.parametrize("mad", [True, False])
 def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> None:
     """The one-call selection of combine against its three steps."""
-    from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER, reject_mad, reject_paper
+    from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
 
     vectors = np.vstack([RNG.normal([3.0, -2.0], 0.05, size=(40, 2)), [[9.0, 4.0], [3.4, -2.0]]])
     measured = RNG.random(42) < 0.9
     placed = RNG.random(42) < 0.8
     in_overlap = np.ones(42, dtype=bool)
-    valid = np.empty(42, dtype=bool)
+    usable, valid = np.empty((2, 42), dtype=bool)
     stats = np.empty(4)
-    available, n_valid = _kernels.select_blocks(
-        vectors, measured, placed, in_overlap, 8, mad, 3.5, MAD_FLOOR_PX, MAX_ITER, 0.5,
-        valid, stats,
+    rule = _selection.MadRule(threshold=3.5, floor=MAD_FLOOR_PX, max_iter=MAX_ITER)
+    available, n_valid = _selection.select_blocks(
+        vectors, measured, placed, in_overlap,
+        _selection.SelectionRule(min_blocks=8, mad=mad, mad_rule=rule, epsilon=0.5),
+        usable, valid, stats,
     )  # fmt: skip
-    usable = measured & placed
+    np.testing.assert_array_equal(usable, measured & placed)
     assert available == placed.sum()
-    expect = (
-        reject_mad(vectors, usable, threshold=3.5)
-        if mad
-        else reject_paper(vectors, usable, epsilon_px=0.5)
-    )
+    expect = np.empty(42, dtype=bool)
+    if mad:
+        _selection.reject_mad(vectors, usable, rule, expect)
+    else:
+        _selection.reject_paper(vectors, usable, 0.5, expect)
     np.testing.assert_array_equal(valid, expect)
     assert n_valid == expect.sum() > 20
     assert not valid[40]
@@ -404,7 +416,7 @@ def test_select_blocks_is_usable_then_outlier_rule_then_mean_std(mad: bool) -> N
 @pytest.mark.parametrize("size", [8, 32])
 @pytest.mark.parametrize("n", [1, 9, 16, 20, 36, 64, 80, 100])
 def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int, size: int) -> None:
-    from afmdrift.registration._engine import batch_split
+    from afmdrift.registration._passes import batch_split
 
     batches = batch_split(n, size)
     assert [b.start for b in batches] == [0, *(b.stop for b in batches[:-1])]
@@ -421,8 +433,33 @@ def test_batch_split_covers_every_block_once_with_smaller_last_batches(n: int, s
 
 
 def test_smaller_windows_go_in_larger_batches() -> None:
-    from afmdrift.registration._engine import BATCH_BLOCKS, batch_blocks
+    from afmdrift.registration._passes import BATCH_BLOCKS, batch_blocks
 
     assert batch_blocks((128, 128)) == BATCH_BLOCKS
     assert batch_blocks((64, 64)) == 4 * BATCH_BLOCKS
     assert batch_blocks((256, 256)) == BATCH_BLOCKS
+
+
+def test_every_kernel_cache_is_stamped_with_all_kernel_modules() -> None:
+    """Regression guard: Numba stamps a cached kernel with its own module's
+    source only (numba#1833), so a kernel inlining one of another module kept
+    the old code after that module changed. Every compiled kernel of the
+    package lives in a module of ``KERNEL_MODULES`` and its cache carries the
+    digest of all of them."""
+    import importlib
+    import pkgutil
+
+    from numba.core.dispatcher import Dispatcher
+
+    import afmdrift.registration as registration
+    from afmdrift.registration import _jit
+
+    found = set()
+    for info in pkgutil.iter_modules(registration.__path__):
+        module = importlib.import_module(f"afmdrift.registration.{info.name}")
+        for obj in vars(module).values():
+            if isinstance(obj, Dispatcher) and obj.py_func.__module__ == module.__name__:
+                found.add(info.name)
+                stamp = obj._cache._cache_file._source_stamp
+                assert stamp[1] == _jit._SOURCES, obj
+    assert found == set(_jit.KERNEL_MODULES) - {"_jit"}  # _jit only compiles them

@@ -1,11 +1,13 @@
-"""The two outlier rules on hand-made block vectors."""
+"""The two outlier rules on hand-made block vectors, through the one
+block-selection path (``_outliers.select_blocks``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from afmdrift.registration._outliers import MAD_FLOOR_PX, reject_mad, reject_paper
+from afmdrift.registration import RegistrationConfig, _selection
+from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER, select_blocks
 
 
 def _vectors(rng: np.random.Generator, n_good: int = 40) -> np.ndarray:
@@ -13,15 +15,26 @@ def _vectors(rng: np.random.Generator, n_good: int = 40) -> np.ndarray:
     return good
 
 
+def _valid(v: np.ndarray, keep: np.ndarray, **config: object) -> np.ndarray:
+    """The valid blocks among ``keep`` (measured and placed), all on one
+    block row (no trend to find)."""
+    sel = select_blocks(
+        v, keep, keep, keep, row_px=np.zeros(len(v)),
+        config=RegistrationConfig.model_validate(config),
+    )  # fmt: skip
+    assert sel.n_valid == sel.valid.sum()
+    return sel.valid
+
+
 def test_paper_rule_keeps_blocks_within_epsilon_of_the_mean() -> None:
     v = np.array([[0.0, 0.0], [0.2, 0.0], [-0.2, 0.0], [0.0, 0.3], [1.6, 0.0]])
     keep = np.ones(5, dtype=bool)
     # mean = (0.32, 0.06): block 4 is 1.28 px away.
-    out = reject_paper(v, keep, epsilon_px=1.0)
+    out = _valid(v, keep, outlier_rule="paper", epsilon_px=1.0)
     assert out.tolist() == [True, True, True, True, False]
     # Blocks already excluded stay excluded and do not enter the mean.
     keep[1] = False
-    assert not reject_paper(v, keep, epsilon_px=10.0)[1]
+    assert not _valid(v, keep, outlier_rule="paper", epsilon_px=10.0)[1]
 
 
 def test_paper_rule_is_dragged_by_a_gross_outlier_while_mad_is_not() -> None:
@@ -30,8 +43,8 @@ def test_paper_rule_is_dragged_by_a_gross_outlier_while_mad_is_not() -> None:
     rng = np.random.default_rng(0)
     v = np.vstack([_vectors(rng), [[40.0, 30.0]]])
     keep = np.ones(len(v), dtype=bool)
-    paper = reject_paper(v, keep, epsilon_px=0.5)
-    mad = reject_mad(v, keep, threshold=3.5)
+    paper = _valid(v, keep, outlier_rule="paper", epsilon_px=0.5)
+    mad = _valid(v, keep, outlier_rule="mad", mad_threshold=3.5)
     assert paper[:-1].sum() < 10  # most good blocks lost
     assert mad[:-1].all()
     assert not mad[-1]
@@ -42,7 +55,7 @@ def test_mad_rule_iterates_and_rejects_a_cluster_of_outliers() -> None:
     good = _vectors(rng, 48)
     pushed = np.array([5.0, -3.0]) + rng.normal(0.0, 0.05, (16, 2))  # 25 % moved together
     v = np.vstack([good, pushed])
-    out = reject_mad(v, np.ones(len(v), dtype=bool), threshold=3.5)
+    out = _valid(v, np.ones(len(v), dtype=bool), outlier_rule="mad", mad_threshold=3.5)
     assert out[:48].sum() >= 46
     assert not out[48:].any()
 
@@ -52,15 +65,34 @@ def test_mad_floor_keeps_identical_vectors() -> None:
     not turn rounding noise into outliers."""
     v = np.tile([1.0, 2.0], (20, 1)) + np.linspace(0, 1e-6, 20)[:, None]
     v[3] += MAD_FLOOR_PX  # a twentieth of a pixel off: still the same motion
-    out = reject_mad(v, np.ones(20, dtype=bool), threshold=3.5)
+    out = _valid(v, np.ones(20, dtype=bool), outlier_rule="mad", mad_threshold=3.5)
     assert out.all()
 
 
 def test_too_few_blocks_are_left_alone() -> None:
     v = np.array([[0.0, 0.0], [5.0, 5.0]])
     keep = np.array([True, True])
-    assert reject_mad(v, keep, threshold=3.5).tolist() == [True, True]
-    assert not reject_paper(v, np.zeros(2, dtype=bool), epsilon_px=1.0).any()
+    assert _valid(v, keep, outlier_rule="mad").tolist() == [True, True]
+    assert not _valid(v, np.zeros(2, dtype=bool), outlier_rule="paper").any()
+
+
+def test_the_trend_over_the_rows_replaces_one_mean_where_the_drift_changed() -> None:
+    """With the MAD rule, blocks whose rows were scanned at different times
+    are judged about a trend over the rows: a drift that sped up during the
+    scan (here 0.5 px per block row) keeps every block and reports the
+    residual spread, where one mean would call the rows outliers."""
+    rng = np.random.default_rng(2)
+    rows = np.repeat(np.arange(8) * 50.0 + 64.0, 8)
+    v = np.column_stack([3.0 + 0.01 * rows, -2.0 + 0.0 * rows]) + rng.normal(0.0, 0.03, (64, 2))
+    keep = np.ones(64, dtype=bool)
+    sel = select_blocks(v, keep, keep, keep, row_px=rows, config=RegistrationConfig())
+    assert sel.n_valid == 64
+    assert max(sel.spread_px) < 0.05
+    assert sel.mean_px[0] == pytest.approx(v[:, 0].mean(), rel=1e-12)
+    paper = select_blocks(
+        v, keep, keep, keep, row_px=rows, config=RegistrationConfig(outlier_rule="paper")
+    )
+    assert paper.spread_px[0] > 0.5  # one mean: the rows' spread
 
 
 def _reject_mad_numpy(vec: np.ndarray, keep: np.ndarray, threshold: float) -> np.ndarray:
@@ -87,6 +119,7 @@ def test_compiled_mad_rule_matches_its_numpy_statement(seed: int) -> None:
     bad = rng.random(n) < rng.uniform(0.0, 0.4)
     vec[bad] += rng.normal(0.0, 5.0, (int(bad.sum()), 2))
     keep = rng.random(n) < 0.9
-    np.testing.assert_array_equal(
-        reject_mad(vec, keep, threshold=3.5), _reject_mad_numpy(vec, keep, 3.5)
-    )
+    out = np.empty(n, dtype=bool)
+    rule = _selection.MadRule(threshold=3.5, floor=MAD_FLOOR_PX, max_iter=MAX_ITER)
+    _selection.reject_mad(vec, keep, rule, out)
+    np.testing.assert_array_equal(out, _reject_mad_numpy(vec, keep, 3.5))

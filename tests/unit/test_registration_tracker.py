@@ -257,7 +257,7 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(
     worker starts (a worker once measured the first batch on the previous
     frame's gradient). Two threads run twice: with a CPU each (the worker
     waits for the gate spinning) and as if on one CPU (it waits in Python)."""
-    from afmdrift.registration import _engine
+    from afmdrift.registration import _passes
 
     t = np.arange(10)
     path = np.column_stack([2.5 * t, 1.0 * np.sin(t)])
@@ -265,7 +265,7 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(
     assert BlockEngine((512, 640), RegistrationConfig(gradient=gradient)).n_batches == 12
     runs = []
     for threads, cpus in ((1, 4), (2, 4), (3, 4), (2, 1)):
-        monkeypatch.setattr(_engine, "_cpus_available", lambda cpus=cpus: cpus)
+        monkeypatch.setattr(_passes, "_cpus_available", lambda cpus=cpus: cpus)
         cfg = RegistrationConfig(threads=threads, reference=reference, gradient=gradient)
         tracker = DriftTracker(pixel_size_nm=2.0, config=cfg)
         out: list[object] = []
@@ -310,12 +310,12 @@ def test_gradient_rows_that_a_busy_worker_has_not_begun_are_done_by_the_caller()
     first does them, once, so a worker busy with another pass never holds
     the calling thread up."""
     from afmdrift.registration._blocks import gradient_and_stats
-    from afmdrift.registration._engine import _GradientTail
+    from afmdrift.registration._passes import GradientTail
 
     heights = np.random.default_rng(3).standard_normal((64, 40))
     heights[50, 7] = np.nan
     grad = np.full((64, 39), 7.0, dtype=np.float32)
-    tail = _GradientTail(heights, 32)
+    tail = GradientTail(heights, 32)
     tail.run(grad)  # the calling thread, first
     want_grad, want = gradient_and_stats(heights[32:], "x")
     np.testing.assert_array_equal(grad[32:], want_grad)
