@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -27,8 +28,9 @@ log = logging.getLogger(__name__)
 
 #: Frames waiting for the worker before the oldest is dropped (and logged).
 _FRAME_QUEUE = 32
-#: Most event polls left out after a read that left the log further behind.
-_BEHIND_MAX_POLLS = 64
+#: After a read that left the log further behind, the pause before the next one,
+#: in units of that read's time: such a log has at most 1/(1 + _BEHIND_PAUSE) of the line.
+_BEHIND_PAUSE = 9.0
 
 
 @dataclass(slots=True)
@@ -66,8 +68,7 @@ class Acquisition:
         self.frames_dropped = 0
         #: Entries the event log announced but the last read left (see EventBacklog).
         self.event_backlog = 0
-        self._behind_polls = 0  # event polls left out after each read while behind
-        self._skip_polls = 0
+        self._behind_until = -math.inf  # no event read before (loop time), while behind
         self._last_frame_key: tuple[int, float] | None = None
         self._channels: list[ChannelSample] = []
         self._events: list[LoggedEvent] = []
@@ -111,18 +112,19 @@ class Acquisition:
 
     async def _poll_events_paced(self) -> None:
         """A poll of the event loop. While the log is further behind than one read
-        takes (a log that streams without end), reads are spaced out, doubling up
-        to ``_BEHIND_MAX_POLLS`` poll periods, so that the log costs a bounded share
-        of the line and of the worker; a log that catches up is polled as usual."""
-        if self._skip_polls:
-            self._skip_polls -= 1
+        takes (a log that streams without end), the next read waits
+        ``_BEHIND_PAUSE`` times as long as this one took, so that such a log
+        has at most a tenth of the line (and feeds the worker at that pace);
+        a log that catches up is polled as usual."""
+        loop = asyncio.get_running_loop()
+        if loop.time() < self._behind_until:
             return
+        started = loop.time()
         read = await self.poll_events()
         if self.event_backlog > read:
-            self._behind_polls = min(2 * self._behind_polls or 1, _BEHIND_MAX_POLLS)
-            self._skip_polls = self._behind_polls
+            self._behind_until = loop.time() + _BEHIND_PAUSE * (loop.time() - started)
         else:
-            self._behind_polls = 0
+            self._behind_until = -math.inf
 
     async def poll_events(self) -> int:
         """Read the event log from the cursor; the cursor has one owner, this lock.
