@@ -24,6 +24,7 @@ import weakref
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -149,7 +150,8 @@ class ReferenceSpectra:
     :func:`afmdrift.registration._kernels.normalise_reference`) and their
     magnitudes in the sub-pixel band. ``derived`` keeps what is computed
     from the reference once and reused for every frame measured against it
-    (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`)."""
+    (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`;
+    whether it repeats itself, :func:`afmdrift.registration._measure.reference_repeats`)."""
 
     grad: F32
     top: IArr
@@ -163,7 +165,7 @@ class ReferenceSpectra:
     #: Per block, the centre of its correlation weight ``(x, y)``, reference
     #: px (:func:`afmdrift.registration._kernels.weight_centroids`).
     weight_centres_px: F64
-    derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
+    derived: dict[str, npt.NDArray[Any]] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)

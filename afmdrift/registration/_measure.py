@@ -15,13 +15,20 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration import _kernels
 from afmdrift.registration._blocks import FrameStats, config_for_image
-from afmdrift.registration._coarse import CoarseShift, coarse_shift, overlap_slices
+from afmdrift.registration._coarse import (
+    CoarseShift,
+    coarse_shift,
+    format_shifts,
+    levelled,
+    overlap_slices,
+)
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
     InvalidFrameError,
     NearlyBlankError,
     RegistrationError,
 )
+from afmdrift.registration._lattice import repeat_vectors
 from afmdrift.registration._outliers import MAD_FLOOR_PX, MAX_ITER
 from afmdrift.registration._result import BlockField, DriftResult
 from afmdrift.registration._trend import select_by_trend
@@ -356,8 +363,11 @@ def register(
        the coarse alignment :func:`coarse_shift` (``config.coarse``) does,
        within ±``coarse_search_px`` (less on a lattice: never as far as the
        next lattice translation); an untrusted one leaves zero and the
-       full search. Shifts the images cannot tell apart and that are equally
-       near the prior are refused as ambiguous.
+       full search. When the reference repeats itself (a lattice,
+       :func:`reference_repeats`), the coarse alignment decides the lattice
+       translation with ``expected_px`` too (by content, else the one
+       nearest it). Lattice translations that neither the content nor the
+       expected drift decide between are refused as ambiguous, naming them.
     2. **Blocks**, refined once around their median (:func:`measure_blocks`),
        and combined (:func:`combine`).
     3. **Retry.** A result that came out invalid is measured once more around
@@ -377,6 +387,33 @@ def register(
     fresh = check is not None
     if expected_px is not None:
         prior, how = expected_px, source
+        if cfg.coarse and ref_heights is not None and reference_repeats(ref, ref_heights):
+            # A periodic sample: blocks searching ±max_shift_px around the
+            # expected drift lock onto whichever lattice translation their
+            # own peaks favour (a given prior 3 px from the truth once gave a
+            # valid result a period off). The lattice decision of the coarse
+            # alignment picks the translation (by content, else the one
+            # nearest the expectation), and the blocks search around it only.
+            if check is not None:
+                check(engine.prepare(heights, out=grad)[1])
+                fresh = False
+            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
+            if coarse.ambiguous:
+                result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
+                result = replace(
+                    result, prior_px=prior, prior=f"{source}; {coarse.describe()}",
+                    lattice_px=coarse.candidates_px,
+                )  # fmt: skip
+                empty = np.zeros(0, dtype=np.intp)
+                return Registration(result, empty, empty, coarse)
+            if coarse.lattice_by and coarse.trusted:
+                prior, search = coarse.prior_px, _coarse_search(cfg, coarse)
+                how = f"{source}, lattice translation by the coarse alignment ({coarse.describe()})"
+            else:
+                # No lattice decision to go by: the blocks search only up to
+                # half a period around the expected drift.
+                search = _lattice_search(cfg, ref)
+                how = f"{source}; search within half the reference's period"
     elif cfg.coarse and ref_heights is not None:
         if check is not None:
             # The coarse alignment needs the frame checked first.
@@ -384,13 +421,8 @@ def register(
             fresh = False
         coarse = coarse_shift(ref_heights, heights)
         if coarse.ambiguous:
-            reason = (
-                f"ambiguous: the images cannot tell apart shifts that differ by "
-                f"{_vectors(coarse.lattice_px)} px (a periodic sample), and two are "
-                "equally near the prior; give the expected drift (prior_px)"
-            )
-            result = invalid_result(_no_field(engine, dtype), reason)
-            result = replace(result, prior=coarse.describe(), lattice_px=coarse.lattice_px)
+            result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
+            result = replace(result, prior=coarse.describe(), lattice_px=coarse.candidates_px)
             empty = np.zeros(0, dtype=np.intp)
             return Registration(result, empty, empty, coarse)
         if coarse.trusted:
@@ -421,7 +453,7 @@ def register(
     lattice = coarse.lattice_px if coarse is not None and search is not None else ()
     if not result.valid and cfg.coarse and ref_heights is not None and search is None:
         if coarse is None or expected_px is not None:
-            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px or (0.0, 0.0))
+            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
         if coarse.trusted:
             retry, top2, left2 = measure_blocks(
                 engine, ref, grad, prior_px=coarse.prior_px, search_px=_coarse_search(cfg, coarse)
@@ -492,14 +524,48 @@ def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[n
     return out
 
 
+#: Edge of the central part of a reference in which :func:`reference_repeats`
+#: looks for a lattice (px): lattice vectors up to half of it, beyond the
+#: block search, are found, for one small FFT per reference.
+REPEAT_PROBE_PX = 128
+
+
+def reference_repeats(ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floating]) -> bool:
+    """Whether the reference repeats itself (a lattice: :func:`repeat_vectors`
+    of the central :data:`REPEAT_PROBE_PX` of its levelled heights finds a
+    vector), computed once per reference and kept with it. Its shortest
+    vectors are kept too (``derived["repeats"]``)."""
+    cached = ref.derived.get("repeats")
+    if cached is None:
+        rows, cols = ref_heights.shape
+        r0, c0 = max(0, (rows - REPEAT_PROBE_PX) // 2), max(0, (cols - REPEAT_PROBE_PX) // 2)
+        probe = np.asarray(ref_heights[r0 : r0 + REPEAT_PROBE_PX, c0 : c0 + REPEAT_PROBE_PX])
+        cached = repeat_vectors(levelled(probe))
+        ref.derived["repeats"] = cached
+    return len(cached) > 0
+
+
+def _lattice_search(cfg: RegistrationConfig, ref: ReferenceSpectra) -> float:
+    """Block search half-width that cannot reach the next lattice translation
+    of the reference (:func:`reference_repeats` found its vectors)."""
+    vectors = ref.derived["repeats"]
+    shortest = float(np.min(np.max(np.abs(vectors), axis=1)))
+    return min(cfg.coarse_search_px, max(1.0, math.ceil(shortest / 2) - 1))
+
+
 def _coarse_search(cfg: RegistrationConfig, coarse: CoarseShift) -> float:
     """Block search half-width around a trusted coarse prior."""
     limit = coarse.search_limit_px()
     return cfg.coarse_search_px if limit is None else min(cfg.coarse_search_px, limit)
 
 
-def _vectors(vectors: tuple[tuple[float, float], ...]) -> str:
-    return ", ".join(f"({a:+g}, {b:+g})" for a, b in vectors[:4])
+def ambiguous_reason(coarse: CoarseShift) -> str:
+    """Why a pair whose lattice translations tie is refused, naming them."""
+    return (
+        f"ambiguous: the images cannot tell apart the shifts {format_shifts(coarse.candidates_px)}"
+        " px (lattice translations of a periodic sample: the content fits each as well), "
+        "and no expected drift decides; give it (prior_px)"
+    )
 
 
 def _take_engine(shape: tuple[int, int], config: RegistrationConfig) -> BlockEngine:
@@ -545,6 +611,8 @@ def measure_drift(
     prior_px : (float, float), optional
         Expected drift ``(dx, dy)`` in px. Windows in ``current`` are moved by
         its rounded value, so drifts up to ``prior ± max shift`` are measured.
+        On a periodic sample it decides between lattice translations that
+        the content cannot tell apart (the one nearest it is measured).
         Default: the whole-image coarse alignment :func:`coarse_shift` when
         ``config.coarse`` and its peak is trusted (the block search is then
         narrowed to ±``config.coarse_search_px``), else zero.
@@ -552,7 +620,9 @@ def measure_drift(
     Returns
     -------
     DriftResult
-        ``valid`` False (with ``reason``) when too few blocks agree.
+        ``valid`` False (with ``reason``) when too few blocks agree, or when
+        lattice translations tie and no prior decides (``reason`` starting
+        "ambiguous", the tied shifts in ``lattice_px``).
 
     Raises
     ------

@@ -84,6 +84,8 @@ class Pair:
     config: RegistrationConfig | None = None
     #: Truth unknown: a valid result must lie within this many px of zero.
     bound_px: float | None = None
+    #: The expected drift given to ``measure_drift`` (None: the coarse alignment).
+    prior_px: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -171,7 +173,11 @@ def _judge(
 def _run_pair(case: Case, pair: Pair) -> Outcome:
     try:
         r = measure_drift(
-            pair.reference, pair.current, pixel_size_nm=pair.pixel_size_nm, config=pair.config
+            pair.reference,
+            pair.current,
+            pixel_size_nm=pair.pixel_size_nm,
+            config=pair.config,
+            prior_px=pair.prior_px,
         )
     except InputError as err:
         return Outcome(case, "refused", reason=f"{type(err).__name__}: {err}")
@@ -676,28 +682,51 @@ def _grid_shifts() -> list[tuple[int, int]]:
     return out
 
 
-def _s2p_grid(dx: int, dy: int) -> Callable[[], Pair]:
+def _s2p_grid(dx: int, dy: int, *, told: bool = False) -> Callable[[], Pair]:
     def build() -> Pair:
         g = _line_grid()
-        return Pair(g.copy(), fourier_shift(g, dx_px=dx, dy_px=dy), (float(dx), float(dy)))
+        # A tracker's prediction: within a pixel of the truth.
+        prior = (dx + 0.8, dy - 0.6) if told else None
+        cur = fourier_shift(g, dx_px=dx, dy_px=dy)
+        return Pair(g.copy(), cur, (float(dx), float(dy)), prior_px=prior)
 
     return build
 
 
 SUITE2P: list[Case] = [
-    Case(
-        "suite2p",
-        f"line_grid_{i:02d}_{dx:+d}_{dy:+d}",
-        S2P,
-        f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}): the minimal translation",
-        0.5,
-        _s2p_grid(dx, dy),
-        note="suite2p asserts that the registered frames of its 256² pure line grid "
-        "(16 lines per axis, rigid shifts) are identical, which any lattice translation "
-        "would satisfy; we require the minimal one (issue 13). Band-limited 1.9-px lines, "
-        "periodic integer shifts |d| ≤ 7 px",
-    )
-    for i, (dx, dy) in enumerate(_grid_shifts())
+    *[
+        Case(
+            "suite2p",
+            f"line_grid_{i:02d}_{dx:+d}_{dy:+d}",
+            S2P,
+            f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}): registered frames "
+            "identical (any lattice translation); we ask the minimal one, or a refusal",
+            0.5,
+            _s2p_grid(dx, dy),
+            note="a perfect lattice that tiles the frame: the data are the same for d and "
+            "d + 16 px, so nothing identifies the shift. suite2p's assertion (the registered "
+            "frames are identical) holds for every lattice translation and does not show it "
+            "found this one; without an expected drift afmdrift refuses as ambiguous and "
+            "names the translations, the minimal one first (issue 29). Band-limited 1.9-px "
+            "lines, periodic integer shifts |d| ≤ 7 px",
+            peer_succeeds=False,
+        )
+        for i, (dx, dy) in enumerate(_grid_shifts())
+    ],
+    *[
+        Case(
+            "suite2p",
+            f"line_grid_prior_{i:02d}_{dx:+d}_{dy:+d}",
+            S2P,
+            f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}), the expected drift "
+            "given within a pixel: the minimal translation",
+            0.5,
+            _s2p_grid(dx, dy, told=True),
+            note="as line_grid_*, with the expected drift (a tracker's prediction, "
+            "(+0.8, −0.6) px off) given, which decides between the translations",
+        )
+        for i, (dx, dy) in enumerate(_grid_shifts()[:10])
+    ],
 ]
 
 
