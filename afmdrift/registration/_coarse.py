@@ -8,7 +8,8 @@ window-induced bias of large in-window shifts away.
 
 The shift is a peak of the phase correlation of the two images with their
 per-line medians removed (line levelling, which takes out the line-to-line
-offsets of AFM scans), without a window. It is used only when two checks
+offsets of AFM scans), their borders tapered (see the end of this
+docstring). It is used only when two checks
 agree (:attr:`CoarseShift.trusted`): the peak stands out of its correlation
 surface, and the x-gradient images (eq. 2 of Yang et al. 2008, what the
 block engine sees) also correlate at that shift. On the real NanoScope pair
@@ -43,11 +44,21 @@ Three things make a correlation peak lie, and each has its own step here:
 * **Static structure.** A fixed mask, a border or an artefact burnt into both
   frames correlates perfectly at zero shift. Patches of pixels with exactly
   the same height in both frames are *static*; when they are present
-  (but not everywhere: identical frames are simply not moved), the
-  correlation is the masked normalised cross-correlation of Padfield
-  (IEEE TIP 21(5), 2012) over the other pixels, zero-padded so that no shift
-  wraps, and the peak is taken where at least :data:`MASKED_MIN_OVERLAP` of
-  the pixels overlap.
+  (but not everywhere: identical frames are simply not moved) and the phase
+  correlation finds no trusted shift away from zero, the correlation is the
+  masked normalised cross-correlation of Padfield (IEEE TIP 21(5), 2012)
+  over the other pixels, zero-padded so that no shift wraps, and the peak
+  is taken where at least :data:`MASKED_MIN_OVERLAP` of the pixels overlap.
+  (Equal pixels are also the featureless ground of a sparse image, equal
+  wherever it moved; where the phase correlation found a shift, they did not
+  decide it.)
+
+The frames' borders are tapered before the phase correlation (:func:`_taper`):
+on smooth textures the wrap-around jumps and the corners, which both frames
+share, would otherwise make the highest peak. A shift whose overlap lies in
+the tapered border is found by correlating the whole frames when the tapered
+correlation finds no trusted shift (and, in ``register``, when the blocks
+fail around the one it found).
 """
 
 from __future__ import annotations
@@ -118,7 +129,8 @@ class CoarseShift(NamedTuple):
     """Lattice translations the images cannot tell apart, and no prior decides
     between them (:attr:`candidates_px`): no choice is defensible."""
     method: str = "phase"
-    """``phase`` (phase correlation) or ``masked`` (static pixels left out)."""
+    """``phase`` (phase correlation, borders tapered), ``phase, untapered`` (of
+    the whole frames) or ``masked`` (static pixels left out)."""
     peak_ncc: float = math.nan
     """``masked``: the normalised cross-correlation at the shift (1: identical)."""
     period_px: tuple[tuple[float, float], ...] = ()
@@ -147,6 +159,11 @@ class CoarseShift(NamedTuple):
         if self.method == "masked":
             return self.peak_ncc >= MASKED_MIN_NCC
         return self.peak_z >= COARSE_MIN_Z and self.gradient_z >= COARSE_MIN_GRADIENT_Z
+
+    @property
+    def tapered(self) -> bool:
+        """The phase correlation of the frames with their borders tapered."""
+        return self.method == "phase"
 
     @property
     def prior_px(self) -> tuple[float, float]:
@@ -205,9 +222,57 @@ def _phase_correlation(reference: F64, current: F64) -> F64:
     return corr
 
 
-def _z(corr: F64, r: int, c: int) -> float:
+#: Share of each edge of a frame over which :func:`_taper` falls to zero.
+TAPER = 1.0 / 16
+
+
+def _taper(image: F64) -> F64:
+    """``image`` times a Tukey window: one, falling to zero by a raised cosine
+    over the outer :data:`TAPER` of each axis. Without it the jumps where the
+    circular correlation wraps the frame (and worse, its corners, common to
+    both frames) carry the whitened spectrum of a smooth texture: its highest
+    peak sat within 2 px of zero for shifts of 4–20 px of 212² frames of a
+    smooth background with a few sharp features, whichever the shift."""
+    out = np.array(image, dtype=np.float64)
+    windows = []
+    for n in image.shape:
+        k = int(n * TAPER)
+        w = np.ones(n)
+        if k >= 1:
+            ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
+            w[:k], w[n - k :] = ramp, ramp[::-1]
+        windows.append(w)
+    wy, wx = windows
+    # Each line's (and column's) offset, weighted as the window weighs it,
+    # comes off first: an offset times the window is the window's own shape,
+    # the same in both frames, and would correlate at zero shift along the
+    # other axis (unrelated frames reached z = 16 along dx = 0).
+    out -= (out @ wx)[:, None] / wx.sum()
+    out -= (wy @ out)[None, :] / wy.sum()
+    out *= wy[:, None] * wx[None, :]
+    return out
+
+
+def _z_surface(corr: F64) -> F64:
+    """``corr`` in standard deviations of its null: the larger of the
+    surface's standard deviation and the robust spread (1.4826 × MAD) of
+    the row and of the column each value lies in. A window multiplies both
+    frames by the same separable profile, which correlates the spectrum
+    along each axis and raises whole rows and columns of the correlation
+    near the axes: unrelated 128²–512² frames reached z = 9.2–10.5 there
+    (the plain correlation 4.9–5.2); per row and column they stay at
+    4.7–5.3, as the plain correlation does either way."""
     spread = float(corr.std())
-    return float(corr[r, c]) / spread if spread > 0 else 0.0
+    if spread == 0:
+        return np.zeros_like(corr)
+
+    def mad(axis: int) -> F64:
+        dev = np.abs(corr - np.median(corr, axis=axis, keepdims=True))
+        out: F64 = 1.4826 * np.median(dev, axis=axis, keepdims=True)
+        return out
+
+    out: F64 = corr / np.maximum(np.maximum(spread, mad(1)), mad(0))
+    return out
 
 
 def levelled(h: npt.NDArray[np.floating]) -> F64:
@@ -365,13 +430,14 @@ def coarse_shift(
     *,
     prior_px: tuple[float, float] | None = None,
     static: BArr | None = None,
+    taper: bool = True,
 ) -> CoarseShift:
     """Integer drift ``(dx, dy)`` in px from whole-image correlations.
 
     Two significances, each in standard deviations of its correlation
-    surface: ``peak_z`` of the levelled-height peak (unrelated images give
-    about ``sqrt(2 ln N)``, 4.1 for 200×200 px; consecutive HS-AFM frames
-    7–12; the NanoScope pair 19) and ``gradient_z``, the correlation of the
+    surface (:func:`_z_surface`): ``peak_z`` of the levelled-height peak
+    (unrelated images give about ``sqrt(2 ln N)``, 4.7–5.3 for 128²–512²
+    px) and ``gradient_z``, the correlation of the
     two x-gradient images at the same shift. Scan-line artefacts (streaks)
     correlate strongly in the levelled heights at spurious shifts (z 14–37
     on HS-AFM frames 22–31 of ``hsafm_sample_0.asd``) but not in the
@@ -392,6 +458,10 @@ def coarse_shift(
     static : ndarray of bool, optional
         Static pixels to leave out (:func:`static_pixels`); default: found
         here.
+    taper : bool
+        Taper the frames' borders before the phase correlation
+        (:func:`_taper`); when that finds no trusted shift, the whole frames
+        are correlated. False: the whole frames only.
 
     Returns
     -------
@@ -400,12 +470,41 @@ def coarse_shift(
     a, b = levelled(reference), levelled(current)
     if static is None:
         static = static_pixels(reference, current)
-    if static is not None:
-        return _masked_shift(a, b, ~static, reference, current, prior_px)
-    corr = _phase_correlation(a, b)
-    spread = float(corr.std())
+    phase = _phase_shift(a, b, reference, current, prior_px, taper=taper)
+    if taper and not (phase.trusted or phase.ambiguous):
+        # A shift whose overlap lies in the tapered border (350 px of a 450 px
+        # frame, both ways) is found without the taper.
+        plain = _phase_shift(a, b, reference, current, prior_px, taper=False)
+        if plain.trusted or plain.ambiguous:
+            phase = plain
+    if static is None:
+        return phase
+    # Static structure pulls the phase correlation to zero shift. Where it
+    # found a shift elsewhere, the equal pixels did not decide it: they are
+    # featureless ground that is equal wherever it moved (a flat background
+    # around one rectangle, the zeros of a frame of few photon counts), and
+    # leaving them out would leave too little to correlate.
+    if phase.trusted and max(abs(phase.dx_px), abs(phase.dy_px)) > 1:
+        return phase
+    return _masked_shift(a, b, ~static, reference, current, prior_px)
+
+
+def _phase_shift(
+    a: F64,
+    b: F64,
+    reference: npt.NDArray[np.floating],
+    current: npt.NDArray[np.floating],
+    prior_px: tuple[float, float] | None,
+    *,
+    taper: bool,
+) -> CoarseShift:
+    """Coarse shift from the phase correlation of the levelled images ``a``
+    and ``b`` (see :func:`coarse_shift`), their borders tapered
+    (:func:`_taper`) or not."""
+    corr = _phase_correlation(_taper(a) if taper else a, _taper(b) if taper else b)
+    zs = _z_surface(corr)
     n_rows, n_cols = corr.shape
-    rows, cols = local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
+    rows, cols = local_peaks(zs, LATTICE_PEAK_RATIO * float(zs.max()))
     minimal = [
         (
             int(c) - n_cols if c > n_cols // 2 else int(c),
@@ -422,11 +521,17 @@ def coarse_shift(
     chosen = lattice.shift
     # The significance of the correlation is that of its highest peak; a
     # lattice translation of it is chosen by the content test, not by height.
-    peak_z = _z(corr, top[1] % n_rows, top[0] % n_cols) if spread > 0 else 0.0
+    peak_z = float(zs[top[1] % n_rows, top[0] % n_cols])
     g_ref, g_cur = _gradient(reference), _gradient(current)
-    g_corr = _phase_correlation(g_ref, g_cur)
-    g_z = _z(g_corr, chosen[1] % g_corr.shape[0], chosen[0] % g_corr.shape[1])
-    return lattice.coarse(peak_z, g_z, "phase")
+    if taper:
+        g_ref, g_cur = _taper(g_ref), _taper(g_cur)
+    g_zs = _z_surface(_phase_correlation(g_ref, g_cur))
+    g_z = float(g_zs[chosen[1] % g_zs.shape[0], chosen[0] % g_zs.shape[1]])
+    if lattice.by:
+        # The x gradients support the correlation when they do at the highest
+        # peak or at the lattice translation taken (the content took it).
+        g_z = max(g_z, float(g_zs[top[1] % g_zs.shape[0], top[0] % g_zs.shape[1]]))
+    return lattice.coarse(peak_z, g_z, "phase" if taper else "phase, untapered")
 
 
 class _Choice(NamedTuple):
@@ -529,5 +634,6 @@ def _masked_shift(
     g_ref, g_cur = _gradient(reference), _gradient(current)
     g_corr = _masked_ncc(g_ref, g_cur, valid[:, 1:] & valid[:, :-1])
     g_spread = float(g_corr[g_corr != 0].std()) if np.any(g_corr != 0) else 0.0
-    g_z = float(g_corr[dy % rows2, dx % cols2]) / g_spread if g_spread > 0 else 0.0
+    g_rows, g_cols = g_corr.shape  # the x gradient has a column fewer
+    g_z = float(g_corr[dy % g_rows, dx % g_cols]) / g_spread if g_spread > 0 else 0.0
     return choice.coarse(z, g_z, "masked", float(corr[r, c]))

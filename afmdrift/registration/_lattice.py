@@ -11,9 +11,10 @@ data, and says so when the content cannot decide.
 Steps (:func:`decide`):
 
 1. **Lattice vectors** (:func:`repeat_vectors`): the offsets at which the
-   reference repeats itself, local maxima of its normalised circular
-   autocorrelation of at least :data:`REPEAT_AC_MIN`, to a fraction of a
-   pixel (a parabola through each maximum).
+   reference repeats itself, local maxima of its normalised autocorrelation
+   (without wrap-around) of at least :data:`REPEAT_AC_MIN` that stand out
+   of a dip on the way from the origin, to a fraction of a pixel (a
+   parabola through each maximum).
 2. **Candidates**: the highest correlation peak and its translations by the
    shortest lattice vectors, other correlation peaks that are lattice
    translations of it, and the translations nearest the prior (or nearest
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -74,6 +76,11 @@ Shift = tuple[float, float]
 
 #: Smallest normalised autocorrelation of the reference at a lattice vector.
 REPEAT_AC_MIN = 0.5
+#: ... and how far it must rise above the lowest autocorrelation on the way
+#: from the origin to it.
+REPEAT_DIP = 0.3
+#: Largest edge of the central part of a reference searched for a lattice (px).
+REPEAT_PROBE_PX = 256
 #: Shortest lattice vectors whose translations are candidates (± each).
 NEIGHBOUR_VECTORS = 8
 #: Smallest statistic (normal deviate) of the paired test by which a candidate
@@ -137,26 +144,72 @@ def local_peaks(surface: F64, floor: float) -> tuple[npt.NDArray[np.intp], npt.N
     return rows[order], cols[order]
 
 
+def _autocorrelation(image: F64) -> F64:
+    """Normalised autocorrelation of ``image`` without wrap-around: at each
+    offset the Pearson correlation of the image with itself moved by it, over
+    their overlap (zero-padded FFTs; element ``[dy mod 2R, dx mod 2C]``)."""
+    rows, cols = image.shape
+    shape = (2 * rows, 2 * cols)
+    a = image - image.mean()
+
+    def corr(x: F64, y: F64) -> F64:
+        out: F64 = sfft.irfft2(np.conj(sfft.rfft2(x, s=shape)) * sfft.rfft2(y, s=shape), s=shape)
+        return out
+
+    ones = np.ones_like(a)
+    n = np.maximum(np.round(corr(ones, ones)), 1.0)
+    s_fixed, s_moved = corr(a, ones), corr(ones, a)
+    q_fixed, q_moved = corr(a * a, ones), corr(ones, a * a)
+    var_fixed = np.maximum(q_fixed - s_fixed**2 / n, 0.0)
+    var_moved = np.maximum(q_moved - s_moved**2 / n, 0.0)
+    den = np.sqrt(var_fixed * var_moved)
+    out: F64 = np.zeros(shape)
+    ok = den > 1e-12 * float(den.max())
+    np.divide(corr(a, a) - s_fixed * s_moved / n, den, out=out, where=ok)
+    return out
+
+
 def repeat_vectors(image: F64) -> F64:
     """Lattice vectors of ``image``: offsets ``(dx, dy)`` px (sub-pixel) at
-    which its normalised circular autocorrelation has a local maximum of at
-    least :data:`REPEAT_AC_MIN`, the origin excluded, shortest first; shape
-    ``(k, 2)``, empty when the image does not repeat itself (a rough or
-    particle texture, whose autocorrelation falls off from the origin)."""
-    centred = image - image.mean()
-    ac: F64 = np.fft.irfft2(np.abs(np.fft.rfft2(centred)) ** 2, s=image.shape)
-    if ac[0, 0] <= 0:
+    which it repeats itself, shortest first; shape ``(k, 2)``, empty when it
+    does not (a rough or particle texture, whose autocorrelation falls off
+    from the origin).
+
+    An offset ``v`` repeats the image when its autocorrelation
+    (:func:`_autocorrelation`, of the central :data:`REPEAT_PROBE_PX` at
+    most) has a local maximum of at least :data:`REPEAT_AC_MIN` there that
+    stands :data:`REPEAT_DIP` above the lowest value on the way from the
+    origin (a lattice falls to zero or below between its repeats, whereas a
+    smooth texture's autocorrelation only wanders), and reaches
+    :data:`REPEAT_AC_MIN` again at ``2v`` (a lattice repeats again; a chance
+    alignment of a few particles does not). ``2v`` must lie within a third
+    of the probe, where the overlap stays large: lattice vectors up to 42 px
+    are found, beyond what the block search could confuse."""
+    rows, cols = image.shape
+    r0, c0 = max(0, (rows - REPEAT_PROBE_PX) // 2), max(0, (cols - REPEAT_PROBE_PX) // 2)
+    probe = image[r0 : r0 + REPEAT_PROBE_PX, c0 : c0 + REPEAT_PROBE_PX]
+    if float(probe.std()) == 0.0:
         return np.zeros((0, 2))
-    ac /= ac[0, 0]
-    rows, cols = local_peaks(ac, REPEAT_AC_MIN)
-    n_rows, n_cols = image.shape
+    ac = _autocorrelation(probe)
+    n_rows, n_cols = ac.shape
+    p_rows, p_cols = probe.shape
     out = []
-    for r, c in zip(rows, cols, strict=True):
-        if r == 0 and c == 0:
+    for r, c in zip(*local_peaks(ac, REPEAT_AC_MIN), strict=True):
+        dy = int(r) - n_rows if r >= n_rows // 2 else int(r)
+        dx = int(c) - n_cols if c >= n_cols // 2 else int(c)
+        if (dx, dy) == (0, 0) or 6 * abs(dy) > p_rows or 6 * abs(dx) > p_cols:
             continue
-        dy = int(r) - n_rows if r > n_rows // 2 else int(r)
-        dx = int(c) - n_cols if c > n_cols // 2 else int(c)
-        out.append(subpixel_peak(ac, dx, dy))
+        steps = np.linspace(0.0, 1.0, 2 * max(abs(dx), abs(dy)) + 1)[1:-1]
+        way = ac[
+            np.round(steps * dy).astype(int) % n_rows, np.round(steps * dx).astype(int) % n_cols
+        ]
+        dips = way.size > 0 and float(way.min()) <= float(ac[r, c]) - REPEAT_DIP
+        # a lattice repeats again at twice the vector (within a pixel)
+        twice = ac[
+            np.ix_((2 * dy + np.arange(-1, 2)) % n_rows, (2 * dx + np.arange(-1, 2)) % n_cols)
+        ]
+        if dips and float(twice.max()) >= REPEAT_AC_MIN:
+            out.append(subpixel_peak(ac, dx, dy))
     if not out:
         return np.zeros((0, 2))
     vecs = np.array(out)
@@ -176,7 +229,7 @@ class Residuals:
     def __init__(self, a: F64, b: F64) -> None:
         self.a, self.b = a, b
         self._refined: dict[Shift, Shift | None] = {}
-        self._moved: dict[Shift, tuple[Region, F64]] = {}
+        self._moved: dict[Shift, tuple[Region, F64, F64, F64]] = {}
 
     def region(self, shift: Shift, *, limit: int = MAX_REGION_PX) -> Region | None:
         """The part of the reference that ``shift`` keeps inside the current
@@ -272,36 +325,56 @@ class Residuals:
         self._refined[key] = s
         return s
 
-    def moved(self, shift: Shift) -> tuple[Region, F64]:
-        """``b(u + shift)`` over the shift's overlap (:meth:`region`), for a
-        shift :meth:`refine` returned."""
+    def moved(self, shift: Shift) -> tuple[Region, F64, F64, F64]:
+        """``b(u + shift)`` over the shift's overlap (:meth:`region`), and its
+        x and y derivatives, for a shift :meth:`refine` returned."""
         if shift not in self._moved:
             region = self.region(shift)
             assert region is not None
             base = (round(shift[0]), round(shift[1]))
             rest = (shift[0] - base[0], shift[1] - base[1])
-            value, _, _ = self._shifted(self._spectrum(region, base), region, rest, gradient=False)
-            self._moved[shift] = (region, value)
+            value, gx, gy = self._shifted(self._spectrum(region, base), region, rest, gradient=True)
+            assert gx is not None
+            assert gy is not None
+            self._moved[shift] = (region, value, gx, gy)
         return self._moved[shift]
 
-    def pair(self, x: Shift, y: Shift) -> tuple[F64, F64, float] | None:
-        """Residuals of ``x`` and ``y`` (means removed) over the part of the
-        reference both keep, and its signal variance (the mean of the two
-        frames' there); None when smaller than :data:`TILE_PX`."""
-        (ry, vy), (rx, vx) = self.moved(y), self.moved(x)
+    def pair(self, x: Shift, y: Shift) -> Pair | None:
+        """The residuals of ``x`` and ``y`` over the part of the reference
+        both keep (:class:`Pair`); None when smaller than :data:`TILE_PX`."""
+        mx, my = self.moved(x), self.moved(y)
+        rx, ry = mx[0], my[0]
         y0, y1 = max(rx[0], ry[0]), min(rx[1], ry[1])
         x0, x1 = max(rx[2], ry[2]), min(rx[3], ry[3])
         if min(y1 - y0, x1 - x0) < TILE_PX:
             return None
         a = self.a[y0:y1, x0:x1]
-        out = []
-        for (r0, _, c0, _), v in ((rx, vx), (ry, vy)):
-            e = a - v[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0]
-            out.append(e - e.mean())
+        parts = []
+        for (r0, _, c0, _), *arrays in (mx, my):
+            value, gx, gy = (z[y0 - r0 : y1 - r0, x0 - c0 : x1 - c0] for z in arrays)
+            parts.append((a - value, gx, gy))
         bx = (round(x[1]), round(x[0]))
         b = self.b[y0 + bx[0] : y1 + bx[0], x0 + bx[1] : x1 + bx[1]]
         scale = 0.5 * (float(a.var()) + float(b.var()))
-        return out[0], out[1], scale
+        return Pair(*parts[0], *parts[1], scale)
+
+
+class Pair(NamedTuple):
+    """Two candidates' residuals over their common overlap, with the current
+    frame's x and y derivatives there (moved by each), and the overlap's
+    signal variance (the mean of the two frames')."""
+
+    residual: F64
+    gx: F64
+    gy: F64
+    other_residual: F64
+    other_gx: F64
+    other_gy: F64
+    signal_var: float
+
+    def swapped(self) -> Pair:
+        """The same pair, the other candidate first."""
+        return Pair(*self[3:6], *self[:3], self.signal_var)
 
 
 @dataclass(frozen=True)
@@ -338,7 +411,7 @@ class PairedTest:
 NO_TEST = PairedTest(0.0, 0.0, 0.0, 0.0, 0)
 
 
-def paired_test(e_best: F64, e_other: F64, signal_var: float) -> PairedTest:
+def paired_test(pair: Pair) -> PairedTest:
     """Paired test of two candidates' residuals over their common overlap.
 
     The per-pixel differences of squared residuals are correlated over the
@@ -351,13 +424,13 @@ def paired_test(e_best: F64, e_other: F64, signal_var: float) -> PairedTest:
     made: a t test (strong when most tiles differ a little) and a sign test
     (strong when a changed area makes a few tiles differ wildly either way).
     """
-    rows, cols = e_best.shape
+    rows, cols = pair.residual.shape
     tile = TILE_PX
     nr, nc = rows // tile, cols // tile
     if nr * nc < 2:
         return NO_TEST
     mse_best, mse_other = (
-        (_tiles_levelled(e, tile, nr, nc) ** 2).mean(axis=1) for e in (e_best, e_other)
+        _tile_misfit(e, gx, gy, tile, nr, nc) for e, gx, gy in (pair[:3], pair[3:6])
     )
     # Tiles that neither candidate fits (a changed area: a moved or new
     # particle, a scratch) are left out, whichever is right: there the
@@ -379,8 +452,25 @@ def paired_test(e_best: F64, e_other: F64, signal_var: float) -> PairedTest:
     sign_z = (
         (2.0 * int(np.count_nonzero(diff > 0)) - nonzero) / math.sqrt(nonzero) if nonzero else 0.0
     )
-    scale = 1.0 / signal_var if signal_var > 0 else 0.0
+    scale = 1.0 / pair.signal_var if pair.signal_var > 0 else 0.0
     return PairedTest(t, sign_z, mean * scale, float(np.median(diff)) * scale, n)
+
+
+def _tile_misfit(e: F64, gx: F64, gy: F64, tile: int, nr: int, nc: int) -> F64:
+    """Mean square of the residual ``e`` in each of ``nr × nc`` tiles, after
+    line levelling (:func:`_tiles_levelled`) and the tile's own least-squares
+    shift (within the linear range, a fraction of a pixel: ``e − gx·δx −
+    gy·δy``, with the current frame's derivatives): two scans of a sample
+    differ by local shifts of a fraction of a pixel (creep, scan
+    nonlinearity), which a lattice translation a period off cannot make
+    good, but which otherwise decide the tiles by chance."""
+    et, xt, yt = (_tiles_levelled(z, tile, nr, nc) for z in (e, gx, gy))
+    jac = np.stack([xt, yt], axis=2)  # (tiles, pixels, 2)
+    normal = np.einsum("tpi,tpj->tij", jac, jac) + 1e-12 * np.eye(2)
+    rhs = np.einsum("tpi,tp->ti", jac, et)
+    step = np.linalg.solve(normal, rhs[..., None])[..., 0]
+    out: F64 = ((et - np.einsum("tpi,ti->tp", jac, step)) ** 2).mean(axis=1)
+    return out
 
 
 def _tiles_levelled(e: F64, tile: int, nr: int, nc: int) -> F64:
@@ -482,7 +572,7 @@ def decide(
         """x against y, on their common overlap."""
         if (x, y) not in tests:
             both = res.pair(x, y)
-            tests[(x, y)] = NO_TEST if both is None else paired_test(*both)
+            tests[(x, y)] = NO_TEST if both is None else paired_test(both)
         return tests[(x, y)]
 
     best = cands[0]

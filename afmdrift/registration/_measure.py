@@ -168,7 +168,9 @@ def allow_nearly_blank(
     the coarse alignment disabled, the frame is refused."""
     if not enabled or reference is None:
         raise err
-    lock = coarse_shift(reference, current)
+    # The frames' borders are flat here (nearly blank): no taper is needed,
+    # and a taper lowers a sparse frame's z (64² rectangle: 42 → 15).
+    lock = coarse_shift(reference, current, taper=False)
     if not (lock.trusted and min(lock.peak_z, lock.gradient_z) >= BLANK_LOCK_Z):
         raise err
 
@@ -334,12 +336,15 @@ def _no_field(engine: BlockEngine, dtype: np.dtype[np.floating]) -> BlockField:
 class Registration:
     """What :func:`register` found: the result, the window corners used in the
     current frame (``top``, ``left``: its spectra can become the next
-    reference) and the coarse alignment, when one was made."""
+    reference) and the coarse alignment, when one was made (and its
+    untapered alternative, when that was tried in vain)."""
 
     result: DriftResult
     top: npt.NDArray[np.intp]
     left: npt.NDArray[np.intp]
     coarse: CoarseShift | None
+    #: The whole-frame coarse alignment tried after the tapered one failed.
+    alternative: CoarseShift | None = None
 
 
 def register(
@@ -381,6 +386,7 @@ def register(
     cfg = engine.config
     dtype = result_dtype(heights)
     coarse: CoarseShift | None = None
+    alternative: CoarseShift | None = None
     search: float | None = None
     prior: tuple[float, float] = (0.0, 0.0)
     how = "none"
@@ -462,8 +468,32 @@ def register(
             if again.valid:
                 result, top, left, prior = again, top2, left2, coarse.prior_px
                 how, lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
+    elif (
+        not result.valid
+        and ref_heights is not None
+        and coarse is not None
+        and coarse.trusted
+        and coarse.tapered
+    ):
+        # The taper keeps the frame edges out of the correlation, but also an
+        # overlap that lies in the tapered border (shifts of most of the
+        # frame both ways); the correlation of the whole frames is the other
+        # candidate, and the blocks (or the overlap, measure_drift) decide.
+        plain = coarse_shift(ref_heights, heights, prior_px=expected_px, taper=False)
+        if plain.trusted and plain.prior_px != coarse.prior_px:
+            alternative = plain
+            retry, top2, left2 = measure_blocks(
+                engine, ref, grad, prior_px=plain.prior_px, search_px=_coarse_search(cfg, plain)
+            )
+            again = combine(
+                retry, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype, textured=textured
+            )
+            if again.valid:
+                result, top, left, prior = again, top2, left2, plain.prior_px
+                how, lattice = f"coarse retry ({plain.describe()})", plain.lattice_px
+                coarse, alternative = plain, None
     result = replace(result, prior_px=prior, prior=how, lattice_px=lattice)
-    return Registration(result, top, left, coarse)
+    return Registration(result, top, left, coarse, alternative)
 
 
 #: A block has texture when its reference content's variance is at least this
@@ -524,23 +554,13 @@ def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[n
     return out
 
 
-#: Edge of the central part of a reference in which :func:`reference_repeats`
-#: looks for a lattice (px): lattice vectors up to half of it, beyond the
-#: block search, are found, for one small FFT per reference.
-REPEAT_PROBE_PX = 128
-
-
 def reference_repeats(ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floating]) -> bool:
     """Whether the reference repeats itself (a lattice: :func:`repeat_vectors`
-    of the central :data:`REPEAT_PROBE_PX` of its levelled heights finds a
-    vector), computed once per reference and kept with it. Its shortest
-    vectors are kept too (``derived["repeats"]``)."""
+    of its levelled heights finds a vector), computed once per reference and
+    kept with it, with its vectors (``derived["repeats"]``)."""
     cached = ref.derived.get("repeats")
     if cached is None:
-        rows, cols = ref_heights.shape
-        r0, c0 = max(0, (rows - REPEAT_PROBE_PX) // 2), max(0, (cols - REPEAT_PROBE_PX) // 2)
-        probe = np.asarray(ref_heights[r0 : r0 + REPEAT_PROBE_PX, c0 : c0 + REPEAT_PROBE_PX])
-        cached = repeat_vectors(levelled(probe))
+        cached = repeat_vectors(levelled(np.asarray(ref_heights)))
         ref.derived["repeats"] = cached
     return len(cached) > 0
 
@@ -661,20 +681,22 @@ def measure_drift(
             engine, ref_spec, g_cur, cur, ref_heights=ref, expected_px=given,
             source="given", pixel_size_nm=pixel,
         )  # fmt: skip
-        coarse = found.coarse
-        if (
-            not found.result.valid
-            and coarse is not None
-            and coarse.trusted
-            and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
-            < cfg.min_valid_blocks
-        ):
-            small = _measure_overlap(ref, cur, coarse, base, pixel)
-            if small is not None:
-                return small
+        refused: DriftResult | None = None
+        for coarse in (found.coarse, found.alternative):
+            if (
+                not found.result.valid
+                and coarse is not None
+                and coarse.trusted
+                and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
+                < cfg.min_valid_blocks
+            ):
+                small = _measure_overlap(ref, cur, coarse, base, pixel)
+                if small is not None and small.valid:
+                    return small
+                refused = refused or small
     finally:
         _give_engine(engine)
-    return found.result
+    return refused or found.result
 
 
 def _measure_overlap(

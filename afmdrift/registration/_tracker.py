@@ -517,6 +517,11 @@ class DriftTracker:
                 self._ref = engine.current_as_reference(grad, top, left)
             else:
                 self._ref = engine.reference(grad)
+            if "repeats" in ref.derived:
+                # A sample does not turn into a lattice (or out of one) from a
+                # frame to the next: the stream's first reference decides it,
+                # so that consecutive mode does not pay the search per frame.
+                self._ref.derived["repeats"] = ref.derived["repeats"]
             self._ref_index = index
             self._ref_pos = (self._ref_pos[0] + rel[0], self._ref_pos[1] + rel[1])
             self._rel = (0.0, 0.0)

@@ -20,7 +20,7 @@ TOLERANCE_PX = 0.1
 #: Textures whose every pair must be measured. The NanoScope lattice (period
 #: about 10 px) cut natively into 192² frames has its own test below: with
 #: shifts up to 30 px and a changed area, its content does not always decide
-#: the lattice translation (3 of 100 pairs refused as ambiguous in the
+#: the lattice translation (6 of 100 pairs refused as ambiguous in the
 #: benchmark; 11 of 100 were valid and one or more periods off before).
 TEXTURES = ("gold", "terraces", "gold_tester", "nanoscope_tiled", "hsafm")
 

@@ -162,8 +162,8 @@ def test_paired_test_does_not_separate_equal_translations_and_does_separate_diff
             assert other is not None
             both = res.pair(best, other)
             assert both is not None
-            forward = paired_test(*both)
-            backward = paired_test(both[1], both[0], both[2])
+            forward = paired_test(both)
+            backward = paired_test(both.swapped())
             assert forward.wins is expect, (vacancy, v, forward)
             assert not backward.wins, (vacancy, v, backward)
 
