@@ -30,13 +30,15 @@ Steps (:func:`decide`):
 4. **Paired test** (:func:`paired_test`): over the overlap two candidates
    share, cut into tiles of :data:`TILE_PX` (larger than the residuals'
    correlation length, so tiles are nearly independent), each tile levelled
-   line by line, the difference of their mean squared residuals per tile;
+   line by line and given its own least-squares shift within a fraction of
+   a pixel (:func:`_tile_misfit`), the difference of their mean squared
+   residuals per tile;
    tiles neither candidate fits (a changed area) are left out; a t test and
    a sign test of the differences. On a perfect lattice with noise (both
    candidates equally right) the statistics stay within ±3.1 (960
    comparisons of SNR 5–10 pairs: cropped, circular, with line-correlated
    noise); the right translation of the real NanoScope frame beats its
-   lattice neighbours at 12–25, a dot lattice with a tenth of its dots
+   lattice neighbours at 11–26, a dot lattice with a tenth of its dots
    missing at 6.5–9.7 (numbers in ``docs/registration.md``).
 5. **Decision**: the best candidate must beat every other by
    :data:`WIN_Z` and by :data:`WIN_EFFECT` of the signal variance, and its
