@@ -29,9 +29,11 @@ translations and static structure handled); when it is trusted, the blocks
 are measured within ``--search-px`` (default ``[registration]
 coarse_search_px``, 6 px) around it, else around zero. ``--prior-px`` sets
 the expected drift by hand (the block search is then the full
-``(extended_size - block_size) / 2``, or ``--search-px``). The output says
-where the prior came from (``prior_px``, ``prior``) and lists lattice
-translations the images cannot tell apart (``lattice_px``).
+``(extended_size - block_size) / 2``, or ``--search-px``; on a periodic
+sample, the lattice translation nearest it). The output says where the prior
+came from (``prior_px``, ``prior``) and lists lattice translations the
+images cannot tell apart (``lattice_px``); a pair whose translations tie
+with no prior to decide is refused as ambiguous, naming them.
 
 Exit status: 0 when every measurement is valid, 1 when one is invalid (the
 result is still printed), 2 on an error (unreadable file, unusable image).
@@ -84,7 +86,8 @@ def register(sub: Any) -> None:
         type=float,
         nargs=2,
         metavar=("DX", "DY"),
-        help="expected drift in px; the block search is centred on it (no coarse step)",
+        help="expected drift in px; the block search is centred on it (no coarse step, "
+        "except on a periodic sample: the lattice translation nearest it is measured)",
     )
     p.add_argument(
         "--search-px",

@@ -8,14 +8,16 @@ window-induced bias of large in-window shifts away.
 
 The shift is a peak of the phase correlation of the two images with their
 per-line medians removed (line levelling, which takes out the line-to-line
-offsets of AFM scans), without a window. It is used only when two checks
+offsets of AFM scans), their borders tapered (see the end of this
+docstring). It is used only when two checks
 agree (:attr:`CoarseShift.trusted`): the peak stands out of its correlation
 surface, and the x-gradient images (eq. 2 of Yang et al. 2008, what the
 block engine sees) also correlate at that shift. On the real NanoScope pair
-(a lattice with a period of about 10 px, true shift about (0, 28) px) this
-gives (0, 28); the previous method (2×2-binned gradient images under a
-raised-cosine window) gave (2, 18), a wrong lattice peak, and a Hann window
-on the heights moved the peak to 18 px as well.
+(a lattice with a period of about 10 px) its highest peak is (0, 28), a
+previous method (2×2-binned gradient images under a raised-cosine window)
+gave (2, 18) and a Hann window on the heights 18 px as well: lattice
+translations of each other, which the content of the two frames fits
+equally well, so the pair is ambiguous (see *Lattices*).
 
 Three things make a correlation peak lie, and each has its own step here:
 
@@ -27,28 +29,36 @@ Three things make a correlation peak lie, and each has its own step here:
   the frame (the NCC of a thin strip is as high by chance as that of the
   whole frame is with half its content changed), and the best is kept.
 * **Lattices.** On a periodic sample (graphite, a grating) the correlation
-  has near-equal peaks at every lattice translation. Peaks of at least
-  :data:`LATTICE_PEAK_RATIO` of the highest, at offsets from it where the
-  reference repeats itself (a local maximum of its autocorrelation of at
-  least :data:`LATTICE_AC_MIN`), are compared by the content
-  itself: the mean squared difference of the levelled images over the
-  overlap (normalised by their variance). Peaks whose difference is within
-  :data:`LATTICE_MSE_RATIO` (and :data:`LATTICE_MSE_FLOOR`) of the best
-  cannot be told apart by any method that compares the two images; the one
-  nearest the prior (the predicted drift, or zero) is taken,
-  :attr:`CoarseShift.lattice_px` lists the others' offsets, and
-  :attr:`CoarseShift.ambiguous` says when two were equally near the prior
-  (then no choice is defensible). On the real NanoScope pair the second
-  peak, 0.89 of the first, differs in content (its difference is several
-  times larger) and is dropped.
+  has near-equal peaks at every lattice translation, and which is highest
+  says little (on crops of a lattice the frame edges decide it). When the
+  reference repeats itself (:func:`~afmdrift.registration._lattice.repeat_vectors`),
+  the translations of the highest peak are compared by the content itself,
+  with a paired test whose significance holds on noisy data
+  (:func:`~afmdrift.registration._lattice.decide`): one that fits clearly
+  better than every other is taken; among those it cannot tell apart, the
+  one nearest the prior (the given or predicted drift) when it is clearly
+  the nearest; otherwise the result is :attr:`CoarseShift.ambiguous` and
+  names the tied translations (:attr:`CoarseShift.candidates_px`).
+  :attr:`CoarseShift.period_px` keeps the lattice vectors, so the block
+  search stays within half a period of the chosen translation.
 * **Static structure.** A fixed mask, a border or an artefact burnt into both
   frames correlates perfectly at zero shift. Patches of pixels with exactly
   the same height in both frames are *static*; when they are present
-  (but not everywhere: identical frames are simply not moved), the
-  correlation is the masked normalised cross-correlation of Padfield
-  (IEEE TIP 21(5), 2012) over the other pixels, zero-padded so that no shift
-  wraps, and the peak is taken where at least :data:`MASKED_MIN_OVERLAP` of
-  the pixels overlap.
+  (but not everywhere: identical frames are simply not moved) and the phase
+  correlation finds no trusted shift away from zero, the correlation is the
+  masked normalised cross-correlation of Padfield (IEEE TIP 21(5), 2012)
+  over the other pixels, zero-padded so that no shift wraps, and the peak
+  is taken where at least :data:`MASKED_MIN_OVERLAP` of the pixels overlap.
+  (Equal pixels are also the featureless ground of a sparse image, equal
+  wherever it moved; where the phase correlation found a shift, they did not
+  decide it.)
+
+The frames' borders are tapered before the phase correlation (:func:`_taper`):
+on smooth textures the wrap-around jumps and the corners, which both frames
+share, would otherwise make the highest peak. A shift whose overlap lies in
+the tapered border is found by correlating the whole frames when the tapered
+correlation finds no trusted shift (and, in ``register``, when the blocks
+fail around the one it found).
 """
 
 from __future__ import annotations
@@ -59,11 +69,15 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.registration._lattice import decide, local_peaks, repeat_vectors, subpixel_peak
+
 __all__ = [
     "COARSE_MIN_GRADIENT_Z",
     "COARSE_MIN_Z",
     "CoarseShift",
     "coarse_shift",
+    "format_shifts",
+    "levelled",
     "overlap_slices",
     "static_pixels",
 ]
@@ -72,15 +86,10 @@ __all__ = [
 COARSE_MIN_Z = 6.0
 #: Smallest x-gradient correlation at the coarse shift (one location, so 3 sigma suffices).
 COARSE_MIN_GRADIENT_Z = 3.0
-#: Peaks at least this fraction of the highest are lattice candidates.
+#: Peaks at least this fraction of the highest, at a lattice translation of it, join
+#: the candidates of the lattice decision.
 LATTICE_PEAK_RATIO = 0.7
-#: Smallest normalised autocorrelation of the reference at a lattice vector.
-LATTICE_AC_MIN = 0.5
-#: Candidates whose normalised difference is within this factor of the best (and
-#: :data:`LATTICE_MSE_FLOOR` above it) are indistinguishable by content.
-LATTICE_MSE_RATIO = 1.1
-LATTICE_MSE_FLOOR = 2e-3
-#: Candidates compared by content (the nearest to the prior, and the highest).
+#: Correlation peaks considered besides the highest (those nearest the prior).
 LATTICE_CANDIDATES = 6
 #: Smallest overlap (px per axis) at which a wrap-around alternative is scored.
 MIN_OVERLAP_PX = 16
@@ -114,13 +123,29 @@ class CoarseShift(NamedTuple):
     """The x-gradient correlation at the same shift, in its surface's standard deviations."""
     lattice_px: tuple[tuple[float, float], ...] = ()
     """Offsets ``(dx, dy)`` from this shift to other shifts the images cannot tell
-    apart (lattice translations of a periodic sample), shortest first."""
+    apart (lattice translations of a periodic sample) and the prior set aside,
+    shortest first."""
     ambiguous: bool = False
-    """Two indistinguishable shifts were equally near the prior: no choice is defensible."""
+    """Lattice translations the images cannot tell apart, and no prior decides
+    between them (:attr:`candidates_px`): no choice is defensible."""
     method: str = "phase"
-    """``phase`` (phase correlation) or ``masked`` (static pixels left out)."""
+    """``phase`` (phase correlation, borders tapered), ``phase, untapered`` (of
+    the whole frames) or ``masked`` (static pixels left out)."""
     peak_ncc: float = math.nan
     """``masked``: the normalised cross-correlation at the shift (1: identical)."""
+    period_px: tuple[tuple[float, float], ...] = ()
+    """The reference's shortest lattice vectors (px, shortest first), empty when
+    it does not repeat itself."""
+    lattice_by: str = ""
+    """How a lattice translation was chosen: ``content`` (it fits clearly
+    better than its lattice neighbours), ``prior`` (tied in content, nearest
+    the prior), ``ambiguous`` (none chosen), or empty (no lattice)."""
+    candidates_px: tuple[tuple[float, float], ...] = ()
+    """Tied lattice translations (sub-pixel shifts, px), nearest the prior (or
+    zero) first: ``prior`` and ``ambiguous`` only."""
+    lattice_t: float = math.nan
+    """The paired test's smallest statistic (a normal deviate) of the best
+    translation against the others."""
 
     @property
     def trusted(self) -> bool:
@@ -136,6 +161,11 @@ class CoarseShift(NamedTuple):
         return self.peak_z >= COARSE_MIN_Z and self.gradient_z >= COARSE_MIN_GRADIENT_Z
 
     @property
+    def tapered(self) -> bool:
+        """The phase correlation of the frames with their borders tapered."""
+        return self.method == "phase"
+
+    @property
     def prior_px(self) -> tuple[float, float]:
         """``(dx, dy)`` when trusted, else ``(0, 0)``."""
         return (self.dx_px, self.dy_px) if self.trusted else (0.0, 0.0)
@@ -143,9 +173,10 @@ class CoarseShift(NamedTuple):
     def search_limit_px(self) -> float | None:
         """Largest block search half-width that cannot reach the next lattice
         translation (None without a lattice)."""
-        if not self.lattice_px:
+        vectors = self.period_px or self.lattice_px
+        if not vectors:
             return None
-        shortest = min(max(abs(a), abs(b)) for a, b in self.lattice_px)
+        shortest = min(max(abs(a), abs(b)) for a, b in vectors)
         return max(1.0, math.ceil(shortest / 2) - 1)
 
     def describe(self) -> str:
@@ -154,12 +185,29 @@ class CoarseShift(NamedTuple):
             text = f"masked correlation {self.peak_ncc:.2f} (static pixels left out)"
         else:
             text = f"{self.method} peak z={self.peak_z:.1f}, gradient z={self.gradient_z:.1f}"
-        if self.lattice_px:
-            vecs = ", ".join(f"({a:+g}, {b:+g})" for a, b in self.lattice_px[:4])
-            text += f"; lattice: also {vecs} px, took the one nearest the prior"
-        if self.ambiguous:
-            text += "; ambiguous: two lattice translations equally near the prior"
+        if self.lattice_by == "content":
+            period = format_shifts(self.period_px[:1])
+            text += (
+                f"; lattice (period {period} px): the content decides "
+                f"(z={self.lattice_t:.1f} against its lattice neighbours)"
+            )
+        elif self.lattice_by == "prior":
+            text += (
+                f"; lattice: also {format_shifts(self.lattice_px)} px fit as well, "
+                "took the one nearest the prior"
+            )
+        elif self.ambiguous:
+            text += (
+                f"; ambiguous: the lattice translations {format_shifts(self.candidates_px)} px "
+                "fit as well"
+            )
         return text
+
+
+def format_shifts(shifts: tuple[tuple[float, float], ...], limit: int = 4) -> str:
+    """``(+1.2, -3), (…)``: the first ``limit`` shifts, to 0.1 px."""
+    text = ", ".join(f"({round(a, 1) + 0.0:+g}, {round(b, 1) + 0.0:+g})" for a, b in shifts[:limit])
+    return text + (f", … ({len(shifts)} in all)" if len(shifts) > limit else "")
 
 
 def _phase_correlation(reference: F64, current: F64) -> F64:
@@ -174,12 +222,61 @@ def _phase_correlation(reference: F64, current: F64) -> F64:
     return corr
 
 
-def _z(corr: F64, r: int, c: int) -> float:
+#: Share of each edge of a frame over which :func:`_taper` falls to zero.
+TAPER = 1.0 / 16
+
+
+def _taper(image: F64) -> F64:
+    """``image`` times a Tukey window: one, falling to zero by a raised cosine
+    over the outer :data:`TAPER` of each axis. Without it the jumps where the
+    circular correlation wraps the frame (and worse, its corners, common to
+    both frames) carry the whitened spectrum of a smooth texture: its highest
+    peak sat within 2 px of zero for shifts of 4–20 px of 212² frames of a
+    smooth background with a few sharp features, whichever the shift."""
+    out = np.array(image, dtype=np.float64)
+    windows = []
+    for n in image.shape:
+        k = int(n * TAPER)
+        w = np.ones(n)
+        if k >= 1:
+            ramp = 0.5 * (1.0 - np.cos(np.pi * (np.arange(k) + 0.5) / k))
+            w[:k], w[n - k :] = ramp, ramp[::-1]
+        windows.append(w)
+    wy, wx = windows
+    # Each line's (and column's) offset, weighted as the window weighs it,
+    # comes off first: an offset times the window is the window's own shape,
+    # the same in both frames, and would correlate at zero shift along the
+    # other axis (unrelated frames reached z = 16 along dx = 0).
+    out -= (out @ wx)[:, None] / wx.sum()
+    out -= (wy @ out)[None, :] / wy.sum()
+    out *= wy[:, None] * wx[None, :]
+    return out
+
+
+def _z_surface(corr: F64) -> F64:
+    """``corr`` in standard deviations of its null: the larger of the
+    surface's standard deviation and the robust spread (1.4826 × MAD) of
+    the row and of the column each value lies in. A window multiplies both
+    frames by the same separable profile, which correlates the spectrum
+    along each axis and raises whole rows and columns of the correlation
+    near the axes: unrelated 128²–512² frames reached z = 9.2–10.5 there
+    (the plain correlation 4.9–5.2); per row and column they stay at
+    4.7–5.3, as the plain correlation does either way."""
     spread = float(corr.std())
-    return float(corr[r, c]) / spread if spread > 0 else 0.0
+    if spread == 0:
+        return np.zeros_like(corr)
+
+    def mad(axis: int) -> F64:
+        dev = np.abs(corr - np.median(corr, axis=axis, keepdims=True))
+        out: F64 = 1.4826 * np.median(dev, axis=axis, keepdims=True)
+        return out
+
+    out: F64 = corr / np.maximum(np.maximum(spread, mad(1)), mad(0))
+    return out
 
 
-def _levelled(h: npt.NDArray[np.floating]) -> F64:
+def levelled(h: npt.NDArray[np.floating]) -> F64:
+    """Heights with each scan line's median removed (line levelling)."""
     g = np.asarray(h, dtype=np.float64)
     out: F64 = g - np.median(g, axis=1, keepdims=True)
     return out
@@ -220,19 +317,6 @@ def static_pixels(
     return mask
 
 
-def _local_peaks(corr: F64, floor: float) -> tuple[npt.NDArray[np.intp], npt.NDArray[np.intp]]:
-    """Rows and columns of the circular 3×3 local maxima of ``corr`` at or above
-    ``floor``, highest first."""
-    peak = corr >= floor
-    for dr in (-1, 0, 1):
-        for dc in (-1, 0, 1):
-            if dr or dc:
-                peak &= corr >= np.roll(corr, (dr, dc), axis=(0, 1))
-    rows, cols = np.nonzero(peak)
-    order = np.argsort(-corr[rows, cols], kind="stable")
-    return rows[order], cols[order]
-
-
 def overlap_slices(
     shape: tuple[int, ...], dx: int, dy: int
 ) -> tuple[tuple[slice, slice], tuple[slice, slice]]:
@@ -265,19 +349,6 @@ def _ncc(a: F64, b: F64, dx: int, dy: int) -> float:
     pb = pb - pb.mean()
     den = math.sqrt(float(np.sum(pa * pa)) * float(np.sum(pb * pb)))
     return float(np.sum(pa * pb)) / den if den > 0 else -math.inf
-
-
-def _difference(a: F64, b: F64, dx: int, dy: int) -> float:
-    """Mean squared difference over the overlap (its mean removed), divided by
-    the mean of the two parts' variances: 0 for identical content, about 2
-    for unrelated content."""
-    part = _overlap(a, b, dx, dy)
-    if part is None:
-        return math.inf
-    pa, pb = part
-    diff = pa - pb
-    scale = 0.5 * (float(pa.var()) + float(pb.var()))
-    return float(diff.var()) / scale if scale > 0 else math.inf
 
 
 def _overlap_score(a: F64, b: F64, dx: int, dy: int) -> float:
@@ -357,15 +428,16 @@ def coarse_shift(
     reference: npt.NDArray[np.floating],
     current: npt.NDArray[np.floating],
     *,
-    prior_px: tuple[float, float] = (0.0, 0.0),
+    prior_px: tuple[float, float] | None = None,
     static: BArr | None = None,
+    taper: bool = True,
 ) -> CoarseShift:
     """Integer drift ``(dx, dy)`` in px from whole-image correlations.
 
     Two significances, each in standard deviations of its correlation
-    surface: ``peak_z`` of the levelled-height peak (unrelated images give
-    about ``sqrt(2 ln N)``, 4.1 for 200×200 px; consecutive HS-AFM frames
-    7–12; the NanoScope pair 19) and ``gradient_z``, the correlation of the
+    surface (:func:`_z_surface`): ``peak_z`` of the levelled-height peak
+    (unrelated images give about ``sqrt(2 ln N)``, 4.7–5.3 for 128²–512²
+    px) and ``gradient_z``, the correlation of the
     two x-gradient images at the same shift. Scan-line artefacts (streaks)
     correlate strongly in the levelled heights at spurious shifts (z 14–37
     on HS-AFM frames 22–31 of ``hsafm_sample_0.asd``) but not in the
@@ -378,26 +450,61 @@ def coarse_shift(
     ----------
     reference, current : ndarray, shape (rows, cols)
         Height images of equal shape (finite; at least 2 columns).
-    prior_px : (float, float)
-        Expected drift: among shifts the images cannot tell apart (a
-        lattice), the nearest to it is taken.
+    prior_px : (float, float), optional
+        Expected drift (given by a caller or predicted by a tracker): among
+        lattice translations the content cannot tell apart, the one nearest
+        it is taken when it is clearly the nearest. Without one such a tie
+        is :attr:`CoarseShift.ambiguous`.
     static : ndarray of bool, optional
         Static pixels to leave out (:func:`static_pixels`); default: found
         here.
+    taper : bool
+        Taper the frames' borders before the phase correlation
+        (:func:`_taper`); when that finds no trusted shift, the whole frames
+        are correlated. False: the whole frames only.
 
     Returns
     -------
     CoarseShift
     """
-    a, b = _levelled(reference), _levelled(current)
+    a, b = levelled(reference), levelled(current)
     if static is None:
         static = static_pixels(reference, current)
-    if static is not None:
-        return _masked_shift(a, b, ~static, reference, current, prior_px)
-    corr = _phase_correlation(a, b)
-    spread = float(corr.std())
+    phase = _phase_shift(a, b, reference, current, prior_px, taper=taper)
+    if taper and not (phase.trusted or phase.ambiguous):
+        # A shift whose overlap lies in the tapered border (350 px of a 450 px
+        # frame, both ways) is found without the taper.
+        plain = _phase_shift(a, b, reference, current, prior_px, taper=False)
+        if plain.trusted or plain.ambiguous:
+            phase = plain
+    if static is None:
+        return phase
+    # Static structure pulls the phase correlation to zero shift. Where it
+    # found a shift elsewhere, the equal pixels did not decide it: they are
+    # featureless ground that is equal wherever it moved (a flat background
+    # around one rectangle, the zeros of a frame of few photon counts), and
+    # leaving them out would leave too little to correlate.
+    if phase.trusted and max(abs(phase.dx_px), abs(phase.dy_px)) > 1:
+        return phase
+    return _masked_shift(a, b, ~static, reference, current, prior_px)
+
+
+def _phase_shift(
+    a: F64,
+    b: F64,
+    reference: npt.NDArray[np.floating],
+    current: npt.NDArray[np.floating],
+    prior_px: tuple[float, float] | None,
+    *,
+    taper: bool,
+) -> CoarseShift:
+    """Coarse shift from the phase correlation of the levelled images ``a``
+    and ``b`` (see :func:`coarse_shift`), their borders tapered
+    (:func:`_taper`) or not."""
+    corr = _phase_correlation(_taper(a) if taper else a, _taper(b) if taper else b)
+    zs = _z_surface(corr)
     n_rows, n_cols = corr.shape
-    rows, cols = _local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
+    rows, cols = local_peaks(zs, LATTICE_PEAK_RATIO * float(zs.max()))
     minimal = [
         (
             int(c) - n_cols if c > n_cols // 2 else int(c),
@@ -405,77 +512,95 @@ def coarse_shift(
         )
         for r, c in zip(rows, cols, strict=True)
     ]
-    z_of = {s: float(corr[s[1] % n_rows, s[0] % n_cols]) / spread if spread > 0 else 0.0
-            for s in minimal}  # fmt: skip
-    near = sorted(minimal, key=lambda s: math.hypot(s[0] - prior_px[0], s[1] - prior_px[1]))
+    target = prior_px if prior_px is not None else (0.0, 0.0)
+    near = sorted(minimal, key=lambda s: math.hypot(s[0] - target[0], s[1] - target[1]))
     pool = list(dict.fromkeys([minimal[0], *near[:LATTICE_CANDIDATES]]))
-    unwrapped = {_unwrap(a, b, *s): z_of[s] for s in pool}
-    chosen, lattice, ambiguous = _resolve(a, b, list(unwrapped), prior_px)
+    top = _unwrap(a, b, *minimal[0])
+    peaks = [_unwrap(a, b, *s) for s in pool[1:]]
+    lattice = _choose(a, b, corr, top, peaks, prior_px)
+    chosen = lattice.shift
+    # The significance of the correlation is that of its highest peak; a
+    # lattice translation of it is chosen by the content test, not by height.
+    peak_z = float(zs[top[1] % n_rows, top[0] % n_cols])
     g_ref, g_cur = _gradient(reference), _gradient(current)
-    g_corr = _phase_correlation(g_ref, g_cur)
-    g_z = _z(g_corr, chosen[1] % g_corr.shape[0], chosen[0] % g_corr.shape[1])
-    return CoarseShift(
-        float(chosen[0]), float(chosen[1]), unwrapped[chosen], g_z, lattice, ambiguous, "phase"
-    )
+    if taper:
+        g_ref, g_cur = _taper(g_ref), _taper(g_cur)
+    g_zs = _z_surface(_phase_correlation(g_ref, g_cur))
+    g_z = float(g_zs[chosen[1] % g_zs.shape[0], chosen[0] % g_zs.shape[1]])
+    if lattice.by:
+        # The x gradients support the correlation when they do at the highest
+        # peak or at the lattice translation taken (the content took it).
+        g_z = max(g_z, float(g_zs[top[1] % g_zs.shape[0], top[0] % g_zs.shape[1]]))
+    return lattice.coarse(peak_z, g_z, "phase" if taper else "phase, untapered")
 
 
-def _resolve(
-    a: F64, b: F64, shifts: list[tuple[int, int]], prior_px: tuple[float, float]
-) -> tuple[tuple[int, int], tuple[tuple[float, float], ...], bool]:
-    """Among candidate ``shifts`` (highest peak first), the one the content
-    favours, or, among those it cannot tell apart, the nearest to the prior;
-    with the other indistinguishable offsets and the ambiguity flag."""
-    if len(shifts) > 1:
-        # Only offsets at which the reference repeats itself (a local maximum of
-        # its autocorrelation, within a pixel) are lattice translations; other
-        # near-equal peaks (the flank of a broad peak) are not candidates.
-        repeats = _self_similar(a)
-        top = shifts[0]
-        shifts = [top] + [
-            s for s in shifts[1:] if _near(repeats, s[0] - top[0], s[1] - top[1], a.shape)
-        ]
-    if len(shifts) == 1:
-        return shifts[0], (), False
+class _Choice(NamedTuple):
+    """The shift :func:`_choose` took, with its lattice details."""
 
-    def dist(s: tuple[int, int]) -> float:
-        return math.hypot(s[0] - prior_px[0], s[1] - prior_px[1])
+    shift: tuple[int, int]
+    period: tuple[tuple[float, float], ...] = ()
+    by: str = ""
+    tied: tuple[tuple[float, float], ...] = ()
+    t: float = math.nan
 
-    diff = {s: _difference(a, b, *s) for s in shifts}
-    best = min(diff.values())
-    same = [s for s in shifts if diff[s] <= LATTICE_MSE_RATIO * best + LATTICE_MSE_FLOOR]
-    same.sort(key=dist)
-    chosen = same[0]
-    lattice = tuple(
-        sorted(
-            ((float(s[0] - chosen[0]), float(s[1] - chosen[1])) for s in same[1:]),
-            key=lambda v: math.hypot(*v),
-        )
-    )
-    ambiguous = len(same) > 1 and dist(same[1]) - dist(chosen) < 1.0
-    return chosen, lattice, ambiguous
+    def coarse(
+        self, peak_z: float, gradient_z: float, method: str, ncc: float = math.nan
+    ) -> CoarseShift:
+        """The :class:`CoarseShift` of this choice, with the correlation's scores."""
+        dx, dy = self.shift
+        others = tuple(
+            sorted(
+                ((round(s[0] - dx, 1), round(s[1] - dy, 1)) for s in self.tied[1:]),
+                key=lambda v: math.hypot(*v),
+            )
+        ) if self.by == "prior" else ()  # fmt: skip
+        return CoarseShift(
+            float(dx), float(dy), peak_z, gradient_z, others, self.by == "ambiguous", method,
+            ncc, self.period, self.by, self.tied if self.by in ("prior", "ambiguous") else (),
+            self.t,
+        )  # fmt: skip
 
 
-def _self_similar(a: F64) -> BArr:
-    """Local maxima of the normalised autocorrelation of ``a`` (circular) of at
-    least :data:`LATTICE_AC_MIN`, the origin excluded: the offsets at which the
-    image repeats itself."""
-    centred = a - a.mean()
-    power = np.abs(np.fft.rfft2(centred)) ** 2
-    ac: F64 = np.fft.irfft2(power, s=a.shape)
-    if ac[0, 0] <= 0:
-        return np.zeros(a.shape, dtype=bool)
-    ac /= ac[0, 0]
-    rows, cols = _local_peaks(ac, LATTICE_AC_MIN)
-    mask = np.zeros(a.shape, dtype=bool)
-    mask[rows, cols] = True
-    mask[0, 0] = False
-    return mask
+#: Lattice vectors reported and used to narrow the block search.
+PERIOD_VECTORS = 4
 
 
-def _near(mask: BArr, dx: int, dy: int, shape: tuple[int, ...]) -> bool:
-    """Whether ``mask`` is set within one pixel of offset ``(dx, dy)`` (circular)."""
-    rows, cols = shape
-    return any(mask[(dy + i) % rows, (dx + j) % cols] for i in (-1, 0, 1) for j in (-1, 0, 1))
+def _choose(
+    a: F64,
+    b: F64,
+    corr: F64,
+    top: tuple[int, int],
+    peaks: list[tuple[int, int]],
+    prior_px: tuple[float, float] | None,
+) -> _Choice:
+    """The shift of the highest peak ``top`` of the correlation surface
+    ``corr``, or, when the reference repeats itself, the lattice translation
+    of it that the content (or, among those it cannot tell apart, the prior)
+    picks (:func:`afmdrift.registration._lattice.decide`); ``peaks`` are the
+    other high peaks, those among them at a lattice translation of ``top``
+    are candidates too."""
+    vectors = repeat_vectors(a)
+    if len(vectors) == 0:
+        return _Choice(top)
+    period = tuple((round(float(x), 2), round(float(y), 2)) for x, y in vectors[:PERIOD_VECTORS])
+    start = subpixel_peak(corr, *top)
+    translations = [
+        subpixel_peak(corr, *s)
+        for s in peaks
+        if s != top and _is_translation(vectors, s[0] - top[0], s[1] - top[1])
+    ]
+    found = decide(a, b, start=start, peaks=translations, vectors=vectors, prior_px=prior_px)
+    tied = tuple((round(x, 1), round(y, 1)) for x, y in found.tied)
+    if found.shift is None:
+        near = found.tied[0] if found.tied else start
+        return _Choice((round(near[0]), round(near[1])), period, "ambiguous", tied, found.t)
+    shift = (round(found.shift[0]), round(found.shift[1]))
+    return _Choice(shift, period, found.by, tied, found.t)
+
+
+def _is_translation(vectors: F64, dx: int, dy: int) -> bool:
+    """Whether the offset ``(dx, dy)`` is within 1.5 px of a lattice vector."""
+    return bool(np.min(np.hypot(vectors[:, 0] - dx, vectors[:, 1] - dy)) <= 1.5)
 
 
 def _masked_shift(
@@ -484,13 +609,13 @@ def _masked_shift(
     valid: BArr,
     reference: npt.NDArray[np.floating],
     current: npt.NDArray[np.floating],
-    prior_px: tuple[float, float],
+    prior_px: tuple[float, float] | None,
 ) -> CoarseShift:
     """Coarse shift with the static pixels left out (masked NCC); lattice
     translations among its peaks are resolved as for the phase correlation."""
     corr = _masked_ncc(a, b, valid)
     rows2, cols2 = corr.shape
-    peak_rows, peak_cols = _local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
+    peak_rows, peak_cols = local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
     shifts = [
         (
             int(c) - cols2 if c >= cols2 // 2 else int(c),
@@ -498,16 +623,17 @@ def _masked_shift(
         )
         for r, c in zip(peak_rows, peak_cols, strict=True)
     ]
-    near = sorted(shifts, key=lambda s: math.hypot(s[0] - prior_px[0], s[1] - prior_px[1]))
+    target = prior_px if prior_px is not None else (0.0, 0.0)
+    near = sorted(shifts, key=lambda s: math.hypot(s[0] - target[0], s[1] - target[1]))
     pool = list(dict.fromkeys([shifts[0], *near[:LATTICE_CANDIDATES]]))
-    (dx, dy), lattice, ambiguous = _resolve(a, b, pool, prior_px)
+    choice = _choose(a, b, corr, pool[0], pool[1:], prior_px)
+    dx, dy = choice.shift
     r, c = dy % rows2, dx % cols2
     spread = float(corr[corr != 0].std()) if np.any(corr != 0) else 0.0
     z = float(corr[r, c]) / spread if spread > 0 else 0.0
     g_ref, g_cur = _gradient(reference), _gradient(current)
     g_corr = _masked_ncc(g_ref, g_cur, valid[:, 1:] & valid[:, :-1])
     g_spread = float(g_corr[g_corr != 0].std()) if np.any(g_corr != 0) else 0.0
-    g_z = float(g_corr[dy % rows2, dx % cols2]) / g_spread if g_spread > 0 else 0.0
-    return CoarseShift(
-        float(dx), float(dy), z, g_z, lattice, ambiguous, "masked", float(corr[r, c])
-    )
+    g_rows, g_cols = g_corr.shape  # the x gradient has a column fewer
+    g_z = float(g_corr[dy % g_rows, dx % g_cols]) / g_spread if g_spread > 0 else 0.0
+    return choice.coarse(z, g_z, "masked", float(corr[r, c]))

@@ -24,6 +24,7 @@ import os
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -97,7 +98,8 @@ class ReferenceSpectra:
     :func:`afmdrift.registration._spectra.normalise_reference`) and their
     magnitudes in the sub-pixel band. ``derived`` keeps what is computed
     from the reference once and reused for every frame measured against it
-    (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`)."""
+    (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`;
+    whether it repeats itself, :func:`afmdrift.registration._measure.reference_repeats`)."""
 
     grad: F32
     top: IArr
@@ -111,7 +113,7 @@ class ReferenceSpectra:
     #: Per block, the centre of its correlation weight ``(x, y)``, reference
     #: px (:func:`afmdrift.registration._spectra.weight_centroids`).
     weight_centres_px: F64
-    derived: dict[str, npt.NDArray[np.bool_]] = field(default_factory=dict, compare=False)
+    derived: dict[str, npt.NDArray[Any]] = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)

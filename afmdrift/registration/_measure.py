@@ -14,13 +14,20 @@ import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration._blocks import FrameStats, config_for_image
-from afmdrift.registration._coarse import CoarseShift, coarse_shift, overlap_slices
+from afmdrift.registration._coarse import (
+    CoarseShift,
+    coarse_shift,
+    format_shifts,
+    levelled,
+    overlap_slices,
+)
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
     InvalidFrameError,
     NearlyBlankError,
     RegistrationError,
 )
+from afmdrift.registration._lattice import repeat_vectors
 from afmdrift.registration._outliers import needed_blocks, select_blocks
 from afmdrift.registration._result import BlockField, DriftResult
 
@@ -159,7 +166,9 @@ def allow_nearly_blank(
     the coarse alignment disabled, the frame is refused."""
     if not enabled or reference is None:
         raise err
-    lock = coarse_shift(reference, current)
+    # The frames' borders are flat here (nearly blank): no taper is needed,
+    # and a taper lowers a sparse frame's z (64² rectangle: 42 → 15).
+    lock = coarse_shift(reference, current, taper=False)
     if not (lock.trusted and min(lock.peak_z, lock.gradient_z) >= BLANK_LOCK_Z):
         raise err
 
@@ -285,12 +294,15 @@ def _no_field(engine: BlockEngine, dtype: np.dtype[np.floating]) -> BlockField:
 class Registration:
     """What :func:`register` found: the result, the window corners used in the
     current frame (``top``, ``left``: its spectra can become the next
-    reference) and the coarse alignment, when one was made."""
+    reference) and the coarse alignment, when one was made (and its
+    untapered alternative, when that was tried in vain)."""
 
     result: DriftResult
     top: npt.NDArray[np.intp]
     left: npt.NDArray[np.intp]
     coarse: CoarseShift | None
+    #: The whole-frame coarse alignment tried after the tapered one failed.
+    alternative: CoarseShift | None = None
 
 
 def register(
@@ -314,8 +326,11 @@ def register(
        the coarse alignment :func:`coarse_shift` (``config.coarse``) does,
        within ±``coarse_search_px`` (less on a lattice: never as far as the
        next lattice translation); an untrusted one leaves zero and the
-       full search. Shifts the images cannot tell apart and that are equally
-       near the prior are refused as ambiguous.
+       full search. When the reference repeats itself (a lattice,
+       :func:`reference_repeats`), the coarse alignment decides the lattice
+       translation with ``expected_px`` too (by content, else the one
+       nearest it). Lattice translations that neither the content nor the
+       expected drift decide between are refused as ambiguous, naming them.
     2. **Blocks**, refined once around their median (:func:`measure_blocks`),
        and combined (:func:`combine`).
     3. **Retry.** A result that came out invalid is measured once more around
@@ -329,12 +344,40 @@ def register(
     cfg = engine.config
     dtype = result_dtype(heights)
     coarse: CoarseShift | None = None
+    alternative: CoarseShift | None = None
     search: float | None = None
     prior: tuple[float, float] = (0.0, 0.0)
     how = "none"
     fresh = check is not None
     if expected_px is not None:
         prior, how = expected_px, source
+        if cfg.coarse and ref_heights is not None and reference_repeats(ref, ref_heights):
+            # A periodic sample: blocks searching ±max_shift_px around the
+            # expected drift lock onto whichever lattice translation their
+            # own peaks favour (a given prior 3 px from the truth once gave a
+            # valid result a period off). The lattice decision of the coarse
+            # alignment picks the translation (by content, else the one
+            # nearest the expectation), and the blocks search around it only.
+            if check is not None:
+                check(engine.prepare(heights, out=grad)[1])
+                fresh = False
+            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
+            if coarse.ambiguous:
+                result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
+                result = replace(
+                    result, prior_px=prior, prior=f"{source}; {coarse.describe()}",
+                    lattice_px=coarse.candidates_px,
+                )  # fmt: skip
+                empty = np.zeros(0, dtype=np.intp)
+                return Registration(result, empty, empty, coarse)
+            if coarse.lattice_by and coarse.trusted:
+                prior, search = coarse.prior_px, _coarse_search(cfg, coarse)
+                how = f"{source}, lattice translation by the coarse alignment ({coarse.describe()})"
+            else:
+                # No lattice decision to go by: the blocks search only up to
+                # half a period around the expected drift.
+                search = _lattice_search(cfg, ref)
+                how = f"{source}; search within half the reference's period"
     elif cfg.coarse and ref_heights is not None:
         if check is not None:
             # The coarse alignment needs the frame checked first.
@@ -342,13 +385,8 @@ def register(
             fresh = False
         coarse = coarse_shift(ref_heights, heights)
         if coarse.ambiguous:
-            reason = (
-                f"ambiguous: the images cannot tell apart shifts that differ by "
-                f"{_vectors(coarse.lattice_px)} px (a periodic sample), and two are "
-                "equally near the prior; give the expected drift (prior_px)"
-            )
-            result = invalid_result(_no_field(engine, dtype), reason)
-            result = replace(result, prior=coarse.describe(), lattice_px=coarse.lattice_px)
+            result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
+            result = replace(result, prior=coarse.describe(), lattice_px=coarse.candidates_px)
             empty = np.zeros(0, dtype=np.intp)
             return Registration(result, empty, empty, coarse)
         if coarse.trusted:
@@ -379,7 +417,7 @@ def register(
     lattice = coarse.lattice_px if coarse is not None and search is not None else ()
     if not result.valid and cfg.coarse and ref_heights is not None and search is None:
         if coarse is None or expected_px is not None:
-            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px or (0.0, 0.0))
+            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
         if coarse.trusted:
             retry, top2, left2 = measure_blocks(
                 engine, ref, grad, prior_px=coarse.prior_px, search_px=_coarse_search(cfg, coarse)
@@ -388,8 +426,32 @@ def register(
             if again.valid:
                 result, top, left, prior = again, top2, left2, coarse.prior_px
                 how, lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
+    elif (
+        not result.valid
+        and ref_heights is not None
+        and coarse is not None
+        and coarse.trusted
+        and coarse.tapered
+    ):
+        # The taper keeps the frame edges out of the correlation, but also an
+        # overlap that lies in the tapered border (shifts of most of the
+        # frame both ways); the correlation of the whole frames is the other
+        # candidate, and the blocks (or the overlap, measure_drift) decide.
+        plain = coarse_shift(ref_heights, heights, prior_px=expected_px, taper=False)
+        if plain.trusted and plain.prior_px != coarse.prior_px:
+            alternative = plain
+            retry, top2, left2 = measure_blocks(
+                engine, ref, grad, prior_px=plain.prior_px, search_px=_coarse_search(cfg, plain)
+            )
+            again = combine(
+                retry, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype, textured=textured
+            )
+            if again.valid:
+                result, top, left, prior = again, top2, left2, plain.prior_px
+                how, lattice = f"coarse retry ({plain.describe()})", plain.lattice_px
+                coarse, alternative = plain, None
     result = replace(result, prior_px=prior, prior=how, lattice_px=lattice)
-    return Registration(result, top, left, coarse)
+    return Registration(result, top, left, coarse, alternative)
 
 
 #: A block has texture when its reference content's variance is at least this
@@ -450,14 +512,38 @@ def textured_blocks(engine: BlockEngine, ref: ReferenceSpectra) -> npt.NDArray[n
     return out
 
 
+def reference_repeats(ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floating]) -> bool:
+    """Whether the reference repeats itself (a lattice: :func:`repeat_vectors`
+    of its levelled heights finds a vector), computed once per reference and
+    kept with it, with its vectors (``derived["repeats"]``)."""
+    cached = ref.derived.get("repeats")
+    if cached is None:
+        cached = repeat_vectors(levelled(np.asarray(ref_heights)))
+        ref.derived["repeats"] = cached
+    return len(cached) > 0
+
+
+def _lattice_search(cfg: RegistrationConfig, ref: ReferenceSpectra) -> float:
+    """Block search half-width that cannot reach the next lattice translation
+    of the reference (:func:`reference_repeats` found its vectors)."""
+    vectors = ref.derived["repeats"]
+    shortest = float(np.min(np.max(np.abs(vectors), axis=1)))
+    return min(cfg.coarse_search_px, max(1.0, math.ceil(shortest / 2) - 1))
+
+
 def _coarse_search(cfg: RegistrationConfig, coarse: CoarseShift) -> float:
     """Block search half-width around a trusted coarse prior."""
     limit = coarse.search_limit_px()
     return cfg.coarse_search_px if limit is None else min(cfg.coarse_search_px, limit)
 
 
-def _vectors(vectors: tuple[tuple[float, float], ...]) -> str:
-    return ", ".join(f"({a:+g}, {b:+g})" for a, b in vectors[:4])
+def ambiguous_reason(coarse: CoarseShift) -> str:
+    """Why a pair whose lattice translations tie is refused, naming them."""
+    return (
+        f"ambiguous: the images cannot tell apart the shifts {format_shifts(coarse.candidates_px)}"
+        " px (lattice translations of a periodic sample: the content fits each as well), "
+        "and no expected drift decides; give it (prior_px)"
+    )
 
 
 def _take_engine(shape: tuple[int, int], config: RegistrationConfig) -> BlockEngine:
@@ -503,6 +589,8 @@ def measure_drift(
     prior_px : (float, float), optional
         Expected drift ``(dx, dy)`` in px. Windows in ``current`` are moved by
         its rounded value, so drifts up to ``prior ± max shift`` are measured.
+        On a periodic sample it decides between lattice translations that
+        the content cannot tell apart (the one nearest it is measured).
         Default: the whole-image coarse alignment :func:`coarse_shift` when
         ``config.coarse`` and its peak is trusted (the block search is then
         narrowed to ±``config.coarse_search_px``), else zero.
@@ -510,7 +598,9 @@ def measure_drift(
     Returns
     -------
     DriftResult
-        ``valid`` False (with ``reason``) when too few blocks agree.
+        ``valid`` False (with ``reason``) when too few blocks agree, or when
+        lattice translations tie and no prior decides (``reason`` starting
+        "ambiguous", the tied shifts in ``lattice_px``).
 
     Raises
     ------
@@ -549,20 +639,22 @@ def measure_drift(
             engine, ref_spec, g_cur, cur, ref_heights=ref, expected_px=given,
             source="given", pixel_size_nm=pixel,
         )  # fmt: skip
-        coarse = found.coarse
-        if (
-            not found.result.valid
-            and coarse is not None
-            and coarse.trusted
-            and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
-            < cfg.min_valid_blocks
-        ):
-            small = _measure_overlap(ref, cur, coarse, base, pixel)
-            if small is not None:
-                return small
+        refused: DriftResult | None = None
+        for coarse in (found.coarse, found.alternative):
+            if (
+                not found.result.valid
+                and coarse is not None
+                and coarse.trusted
+                and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
+                < cfg.min_valid_blocks
+            ):
+                small = _measure_overlap(ref, cur, coarse, base, pixel)
+                if small is not None and small.valid:
+                    return small
+                refused = refused or small
     finally:
         _give_engine(engine)
-    return found.result
+    return refused or found.result
 
 
 def _measure_overlap(

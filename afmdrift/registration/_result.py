@@ -123,8 +123,10 @@ class DriftResult:
         Where that came from: ``given``, ``predicted``, ``none``, or the
         coarse alignment with its scores (:meth:`CoarseShift.describe`).
     lattice_px : tuple of (float, float)
-        Other shifts the images cannot tell apart (a periodic sample), as
-        offsets from the result; the one nearest the prior was taken.
+        A valid result: other shifts the images cannot tell apart (lattice
+        translations of a periodic sample), as offsets from the result; the
+        one nearest the prior was taken. A result refused as ambiguous: the
+        tied shifts themselves (px), nearest zero (or the prior) first.
     """
 
     dx_px: float

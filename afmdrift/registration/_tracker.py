@@ -59,6 +59,7 @@ from afmdrift.registration._measure import (
     check_pixel_size,
     check_prior,
     invalid_result,
+    reference_repeats,
     register,
 )
 from afmdrift.registration._result import DriftResult
@@ -255,7 +256,8 @@ class DriftTracker:
         is returned) for the first frame, for a frame the checks refuse (the
         update refuses it), for heights that are not a float array (each
         call converts them anew), and where the coarse alignment must come
-        first (no motion known yet). Call :meth:`finish_ahead` before leaving the
+        first (no motion known yet, or a reference that repeats itself, whose
+        lattice translation it decides). Call :meth:`finish_ahead` before leaving the
         tracker alone for long: it completes the pass on the calling thread
         too, so that no worker runs on.
         """
@@ -277,6 +279,12 @@ class DriftTracker:
         expected = self._expected(moved)[1]
         if expected is None:
             return False
+        if (
+            self.config.coarse
+            and self._ref_heights is not None
+            and reference_repeats(ref, self._ref_heights)
+        ):
+            return False  # a lattice: the coarse alignment decides the translation first
         grad = self._gradient_buffer(engine)
         return engine.measure_ahead(
             ref,
@@ -509,6 +517,11 @@ class DriftTracker:
                 self._ref = engine.current_as_reference(grad, top, left)
             else:
                 self._ref = engine.reference(grad)
+            if "repeats" in ref.derived:
+                # A sample does not turn into a lattice (or out of one) from a
+                # frame to the next: the stream's first reference decides it,
+                # so that consecutive mode does not pay the search per frame.
+                self._ref.derived["repeats"] = ref.derived["repeats"]
             self._ref_index = index
             self._ref_pos = (self._ref_pos[0] + rel[0], self._ref_pos[1] + rel[1])
             self._rel = (0.0, 0.0)

@@ -5,7 +5,9 @@ Runtime code (the service) never imports this package.
 * Textures (periodic, nearly band-limited, heights in nm):
   :func:`particle_texture` (gold-colloid-like bumps on a flat substrate),
   :func:`terrace_texture` (graphite-like terraces with monatomic steps),
-  :func:`rough_texture` (Gaussian random rough surface), and
+  :func:`rough_texture` (Gaussian random rough surface),
+  :func:`lattice_texture` (a periodic sample: an oblique lattice of dots,
+  perfect or with defects), and
   :class:`Particles` for scenes whose particles tests move or add.
 * Exact shifts: :func:`fourier_shift` (periodic, sub-pixel; exact after
   :func:`band_limit`, which every texture applies) and
@@ -32,6 +34,7 @@ from afmdrift.testing._images import (
     add_plane,
     band_limit,
     fourier_shift,
+    lattice_texture,
     particle_texture,
     rough_texture,
     shifted_crop,
@@ -49,6 +52,7 @@ __all__ = [
     "band_limit",
     "fourier_shift",
     "generate_drift_log",
+    "lattice_texture",
     "particle_texture",
     "rough_texture",
     "shifted_crop",

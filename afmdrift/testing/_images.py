@@ -27,6 +27,7 @@ __all__ = [
     "add_plane",
     "band_limit",
     "fourier_shift",
+    "lattice_texture",
     "particle_texture",
     "rough_texture",
     "shifted_crop",
@@ -334,6 +335,66 @@ def particle_texture(
         correlation_length_nm=2.0 * pixel_size_nm,
     )
     return band_limit(parts.render(shape)) + substrate
+
+
+def lattice_texture(
+    shape: tuple[int, int],
+    *,
+    rng: np.random.Generator,
+    period_px: float = 10.3,
+    angle_deg: float = 11.0,
+    dot_fwhm_px: float = 3.5,
+    height_nm: float = 1.0,
+    vacancy_fraction: float = 0.0,
+    jitter_px: float = 0.0,
+) -> FloatArray:
+    """A periodic sample: an oblique lattice of round dots (a crystal surface,
+    a grating of posts), periodic over the canvas so that every shift of it is
+    exact.
+
+    The lattice is given by two reciprocal vectors of length ``1/period_px``
+    (cycles per px), the first at ``angle_deg`` from the y axis and the second
+    65° from it (an oblique lattice, like the real NanoScope frame's with its
+    period of about 10 px along one axis), each rounded to whole cycles over
+    the canvas so that the lattice tiles it. A dot of ``height_nm`` sits at
+    every lattice point; ``vacancy_fraction`` of them are missing and every
+    dot is displaced by Gaussian ``jitter_px`` (defects, which let the
+    content tell lattice translations apart; a perfect lattice has none, and
+    its translations cannot be told apart by any method).
+    """
+    rows, cols = _check_shape(shape)
+    if not period_px >= 2:
+        raise ValueError(f"period_px must be at least 2, got {period_px}")
+    if not 0 <= vacancy_fraction < 1:
+        raise ValueError(f"vacancy_fraction must be in [0, 1), got {vacancy_fraction}")
+    # integer cycles over the canvas (kx · cols, ky · rows) of each reciprocal vector
+    cycles = []
+    for deg in (angle_deg, angle_deg + 65.0):
+        t = np.deg2rad(deg)
+        cycles.append((round(np.sin(t) * cols / period_px), round(-np.cos(t) * rows / period_px)))
+    recip = np.array([[m / cols, n / rows] for m, n in cycles])  # rows: G1, G2 (x, y)
+    det = round(cycles[0][0] * cycles[1][1] - cycles[0][1] * cycles[1][0])
+    if det == 0:
+        raise ValueError(f"period_px {period_px} and angle {angle_deg} give no 2-D lattice")
+    basis = np.linalg.inv(recip)  # columns: the lattice vectors a1, a2 (x, y)
+    # The canvas holds |det| lattice points; walk integer combinations until
+    # every one (modulo the canvas) is found.
+    reach = abs(det) + 1
+    i, j = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1))
+    pts = basis @ np.vstack([i.ravel(), j.ravel()])
+    xy = np.round(np.column_stack([pts[0], pts[1]]), 6) % (cols, rows)
+    xy = np.unique(np.round(xy, 6) % (cols, rows), axis=0)
+    keep = rng.random(len(xy)) >= vacancy_fraction
+    xy = xy[keep] + rng.normal(0.0, jitter_px, (int(keep.sum()), 2)) * (jitter_px > 0)
+    dots = Particles(
+        x_px=xy[:, 0] % cols,
+        y_px=xy[:, 1] % rows,
+        height_nm=np.full(len(xy), height_nm),
+        fwhm_px=dot_fwhm_px,
+    )
+    h = band_limit(dots.render((rows, cols)))
+    h -= h.mean()
+    return h
 
 
 def add_noise(image: npt.ArrayLike, *, snr: float, rng: np.random.Generator) -> FloatArray:
