@@ -28,7 +28,6 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import argparse
 import contextlib
-import json
 import subprocess
 import sys
 import tempfile
@@ -40,6 +39,7 @@ import numpy as np
 import psutil
 
 from afmdrift.testing import TextureShifter, rough_texture
+from afmdrift.testing._dask import LoopbackDaskCluster
 
 EXE = [sys.executable, "-m", "afmdrift"]
 
@@ -58,67 +58,6 @@ def movie(path: Path, frames: int, seed: int, size: int = 512) -> Path:
     out.flush()
     del out
     return path
-
-
-class Cluster:
-    """A dask scheduler and ``n`` workers (one thread each) on loopback."""
-
-    def __init__(self, n: int, root: Path) -> None:
-        self.file = root / f"scheduler-{n}.json"
-        self.procs = [
-            subprocess.Popen(
-                [
-                    sys.executable,
-                    "-m",
-                    "distributed.cli.dask_scheduler",
-                    "--host",
-                    "127.0.0.1",
-                    "--port",
-                    "0",
-                    "--no-dashboard",
-                    "--scheduler-file",
-                    str(self.file),
-                ],
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
-            )
-        ]
-        while not (self.file.is_file() and self.file.stat().st_size):
-            time.sleep(0.1)
-        self.address = json.loads(self.file.read_text())["address"]
-        for _ in range(n):
-            self.procs.append(
-                subprocess.Popen(
-                    [
-                        sys.executable,
-                        "-m",
-                        "distributed.cli.dask_worker",
-                        self.address,
-                        "--host",
-                        "127.0.0.1",
-                        "--nworkers",
-                        "1",
-                        "--nthreads",
-                        "1",
-                        "--no-dashboard",
-                    ],
-                    stdout=subprocess.DEVNULL,
-                    stderr=subprocess.DEVNULL,
-                )
-            )
-        from distributed import Client
-
-        with Client(self.address, timeout="60s") as client:
-            client.wait_for_workers(n, timeout=120)
-
-    def workers(self) -> list[psutil.Process]:
-        return [psutil.Process(p.pid) for p in self.procs[1:]]
-
-    def close(self) -> None:
-        for p in self.procs:
-            p.terminate()
-        for p in self.procs:
-            p.wait(timeout=30)
 
 
 def batch(args: list[str], cwd: Path) -> float:
@@ -171,15 +110,12 @@ def main() -> None:
 
         fps: dict[int, float] = {}
         for n in (1, 2):
-            cluster = Cluster(n, root)
-            try:
+            with LoopbackDaskCluster(n) as cluster:
                 for k in range(n):  # every worker compiles its kernels first
                     batch([str(warm / "w.npy"), "--out", str(root / f"w{n}{k}"), *common,
                            "--scheduler", cluster.address], root)  # fmt: skip
                 wall = batch([str(arc), "--out", str(root / f"c{n}"), *common,
                               "--scheduler", cluster.address], root)  # fmt: skip
-            finally:
-                cluster.close()
             fps[n] = frames / wall
             print(f"running cluster, {n} worker(s): {wall:.2f} s, {fps[n]:.0f} frames/s "
                   f"({a.recordings} x {a.frames} frames of 512²)")  # fmt: skip
@@ -196,20 +132,18 @@ def main() -> None:
               f"batch/serial {whole / serial:.2f} (target <= 1)")  # fmt: skip
 
         big = movie(root / "long.npy", a.long_frames, seed=123)
-        cluster = Cluster(1, root)
-        try:
+        with LoopbackDaskCluster(1) as cluster:
             batch([str(warm / "w.npy"), "--out", str(root / "wl"), *common,
                    "--scheduler", cluster.address], root)  # fmt: skip
-            base = anon_mb(cluster.workers()[0])
+            workers = [psutil.Process(pid) for pid in cluster.worker_pids]
+            base = anon_mb(workers[0])
             stop, peak = threading.Event(), []  # type: ignore[var-annotated]
-            watcher = threading.Thread(target=peak_mb, args=(cluster.workers(), stop, peak))
+            watcher = threading.Thread(target=peak_mb, args=(workers, stop, peak))
             watcher.start()
             wall = batch([str(big), "--out", str(root / "long"), *common,
                           "--scheduler", cluster.address], root)  # fmt: skip
             stop.set()
             watcher.join()
-        finally:
-            cluster.close()
         size_mb = big.stat().st_size / 2**20
         print(f"largest file: {size_mb:.0f} MB ({a.long_frames} frames of 512² float32) in "
               f"{wall:.1f} s; worker's anonymous resident memory {base:.0f} MB idle, "

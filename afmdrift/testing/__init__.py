@@ -18,6 +18,9 @@ Runtime code (the service) never imports this package.
 * Drift logs from a second generator, different on purpose from the
   simulator (noise processes, effect shapes, parameter ranges):
   :func:`generate_drift_log`, :func:`write_drift_log`.
+* A Dask cluster of real processes on loopback for ``afmdrift batch
+  --scheduler``: :class:`afmdrift.testing._dask.LoopbackDaskCluster`
+  (imported from its module, so this package does not load Dask).
 """
 
 from afmdrift.testing._driftgen import (
