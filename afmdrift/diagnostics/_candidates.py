@@ -74,7 +74,7 @@ from afmdrift.diagnostics._regression import (
     partial_out,
     residual_basis,
 )
-from afmdrift.model import EffectTerm, GenericTerm, History
+from afmdrift.model import EffectTerm, GenericTerm, History, windowed_design
 
 __all__ = [
     "CandidateResult",
@@ -143,6 +143,9 @@ class Thresholds:
 class ModelDesign:
     """The model's basis at the observation times, per axis.
 
+    ``t_s`` (n,) are the positions' times and ``samples`` (n, m) the times
+    each position averages over (its scan window, :func:`~afmdrift.model.scan_samples`).
+
     ``builder(params)`` returns the level basis (x, y), each (n, K_a), for
     the model's nonlinear parameters ``params`` (term → name → value);
     ``params`` are the fitted ones; ``grids`` lists (term, parameter, grid)
@@ -152,6 +155,7 @@ class ModelDesign:
     """
 
     t_s: FloatArray
+    samples: FloatArray
     y: FloatArray
     scan_sign: FloatArray
     phi: FloatArray
@@ -231,11 +235,15 @@ class CandidateResult:
 
 
 def _cand_block(
-    term: EffectTerm, t_s: FloatArray, history: History, sign: FloatArray, params: dict[str, float]
+    term: EffectTerm,
+    samples: FloatArray,
+    history: History,
+    sign: FloatArray,
+    params: dict[str, float],
 ) -> tuple[FloatArray, FloatArray]:
     return (
-        term.design(t_s, history, scan_sign=sign, params=params, axis=0),
-        term.design(t_s, history, scan_sign=sign, params=params, axis=1),
+        windowed_design(term, samples, history, scan_sign=sign, params=params, axis=0),
+        windowed_design(term, samples, history, scan_sign=sign, params=params, axis=1),
     )
 
 
@@ -311,7 +319,7 @@ def _scan(
     """Per θ_C: partialled candidate columns and per-axis RSS."""
     out = []
     for params in grid:
-        blocks = _cand_block(term, design.t_s, history, design.scan_sign, params)
+        blocks = _cand_block(term, design.samples, history, design.scan_sign, params)
         zc, rss1 = [], []
         for a in (0, 1):
             raw = design.qd(np.asarray(blocks[a], dtype=np.float64), a)
@@ -488,7 +496,7 @@ def _fit_with_candidate(
     basis = b0
     if design.grids:
         best_params = scan[int(np.argmin(_totals(scan)))][0]
-        blocks = _cand_block(term, design.t_s, history, design.scan_sign, best_params)
+        blocks = _cand_block(term, design.samples, history, design.scan_sign, best_params)
         raw = [design.qd(np.asarray(blocks[a], dtype=np.float64), a) for a in (0, 1)]
         basis = optimise_model(design, raw)
         scan = _scan(term, design, history, basis, grid)
@@ -564,7 +572,7 @@ def _named_params(
     Frisch–Waugh–Lovell equal to the full quasi-differenced regression's);
     keys are ``<coefficient>_x``/``_y`` and ``model.<term>.<parameter>``.
     """
-    blocks = _cand_block(term, design_c.t_s, history, design_c.scan_sign, params)
+    blocks = _cand_block(term, design_c.samples, history, design_c.scan_sign, params)
     named: dict[str, float] = dict(params)
     units = term.coefficient_units
     for a, axis in enumerate("xy"):
@@ -593,7 +601,7 @@ def _level_phi(
 ) -> FloatArray:
     """:func:`ml_phi` of the model (θ_M = ``params``) with the candidate added."""
     xm = design.builder(params)
-    xc = _cand_block(term, design.t_s, history, design.scan_sign, cand_params)
+    xc = _cand_block(term, design.samples, history, design.scan_sign, cand_params)
     return ml_phi(
         design.y,
         [np.hstack([xm[a], np.asarray(xc[a], dtype=np.float64)]) for a in (0, 1)],
@@ -621,7 +629,7 @@ def _blocked_cv(
     it. Returns (base, candidate, evaluable); not evaluable when some fold's
     training data carries none of a column that its test block uses.
     """
-    t, sign = design.t_s, design.scan_sign
+    t, sign = design.samples, design.scan_sign
     ytil_base = [design.qd(design.y[:, a], a) for a in (0, 1)]
     ytil = [design_c.qd(design.y[:, a], a) for a in (0, 1)]
     m = ytil[0].size

@@ -20,7 +20,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.errors import InputError
-from afmdrift.model import History, HistoryFeed, Observation
+from afmdrift.model import History, HistoryFeed, Observation, scan_samples
 from afmdrift.records import ChannelSample, Event, ScanDirection
 from afmdrift.runs import DB_NAME, RunStore
 from afmdrift.session import read_session
@@ -70,6 +70,10 @@ class RunData:
         The run's predictor state after its last fed frame.
     curves : dict or None
         Published offset curves d(t) by frame number (JSON form).
+    window_s : ndarray or None, shape (n, 2)
+        Scan window ``(t_start_s, t_end_s)`` each position averages over (a
+        whole frame's position is the mean of p over its lines); None or NaN
+        rows: point measurements at ``t_s``.
     """
 
     frame: npt.NDArray[np.int64]
@@ -90,6 +94,7 @@ class RunData:
     run_model: dict[str, Any] | None = None
     predictor_state: dict[str, Any] | None = None
     curves: dict[int, dict[str, Any]] | None = None
+    window_s: FloatArray | None = None
 
     @classmethod
     def from_arrays(
@@ -150,6 +155,9 @@ class RunData:
         """The frames that fed the model, as model observations (in time order)."""
         out = []
         for k in np.flatnonzero(self.fed):
+            window = None
+            if self.window_s is not None and np.all(np.isfinite(self.window_s[k])):
+                window = (float(self.window_s[k, 0]), float(self.window_s[k, 1]))
             out.append(
                 Observation(
                     t_s=float(self.t_s[k]),
@@ -158,9 +166,17 @@ class RunData:
                     sigma_nm=float(self.sigma_nm[k]),
                     direction=ScanDirection.UP if self.scan_sign[k] > 0 else ScanDirection.DOWN,
                     frame=int(self.frame[k]),
+                    window_s=window,
                 )
             )
         return out
+
+    def samples(self, index: npt.ArrayLike | None = None) -> FloatArray:
+        """Times at which a model is averaged to describe each position (n, m)
+        (:func:`~afmdrift.model.scan_samples`), of the rows ``index`` (default: all)."""
+        rows = np.arange(self.n) if index is None else np.asarray(index)
+        window = None if self.window_s is None else self.window_s[rows]
+        return scan_samples(self.t_s[rows], window)
 
     def history(self, *, until_s: float | None = None) -> History:
         """Channels and events logged up to ``until_s`` (default: all)."""

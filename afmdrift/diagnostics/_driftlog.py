@@ -36,4 +36,5 @@ def load_drift_log(path: str | Path) -> RunData:
         truth_nm=None if truth is None else truth[:, 1:3].copy(),
         session_dir=None,
         run_dir=Path(path),
+        window_s=log.frame_times.copy(),
     )

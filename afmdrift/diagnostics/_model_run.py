@@ -33,15 +33,18 @@ FloatArray = npt.NDArray[np.float64]
 class ModelRun:
     """One online run of a physics model over the measured frames.
 
-    ``t_s`` (m,), ``frames`` (m,), ``measured_nm`` (m, 2), ``predicted_nm``
-    (m, 2) and ``errors_nm`` (m, 2) are per fed frame (NaN where no
-    prediction was made yet); ``predictor`` is the model after the last
-    frame; ``truth_errors_nm`` (q, 2) the continuous prediction error against
-    the true drift at ``truth_t_s`` (q,) between frames, when truth exists.
+    ``samples`` (m, k) are the times each position averages over (its scan
+    window, :meth:`RunData.samples`); ``t_s`` (m,), ``frames`` (m,),
+    ``measured_nm`` (m, 2), ``predicted_nm`` (m, 2) and ``errors_nm`` (m, 2)
+    are per fed frame (NaN where no prediction was made yet); ``predictor``
+    is the model after the last frame; ``truth_errors_nm`` (q, 2) the
+    continuous prediction error against the true drift at ``truth_t_s`` (q,)
+    between frames, when truth exists.
     """
 
     effects: list[str]
     t_s: FloatArray
+    samples: FloatArray
     frames: npt.NDArray[np.int64]
     scan_sign: FloatArray
     measured_nm: FloatArray
@@ -99,6 +102,7 @@ def run_model(data: RunData, physics: PhysicsConfig, *, truth: bool = True) -> M
     return ModelRun(
         effects=list(physics.terms),
         t_s=data.t_s[fed],
+        samples=data.samples(fed),
         frames=data.frame[fed],
         scan_sign=data.scan_sign[fed],
         measured_nm=measured,
@@ -155,6 +159,7 @@ def run_from_store(data: RunData, physics: PhysicsConfig) -> ModelRun | None:
     return ModelRun(
         effects=list(physics.terms),
         t_s=data.t_s[fed],
+        samples=data.samples(fed),
         frames=data.frame[fed],
         scan_sign=data.scan_sign[fed],
         measured_nm=measured,
@@ -191,7 +196,7 @@ def model_design(run: ModelRun) -> ModelDesign:
     predictions (:func:`~afmdrift.diagnostics._regression.ml_phi`).
     """
     p = run.predictor
-    t = run.t_s
+    t = run.samples
     active = list(p.active)
     known = {term.name: term for term in p.terms}
 
@@ -199,7 +204,7 @@ def model_design(run: ModelRun) -> ModelDesign:
         out = []
         for a in (0, 1):
             blocks = p.design_blocks(t, run.history, run.scan_sign, a, active=active, params=params)
-            out.append(np.hstack([b for _, b in blocks]) if blocks else np.zeros((t.size, 0)))
+            out.append(np.hstack([b for _, b in blocks]) if blocks else np.zeros((t.shape[0], 0)))
         return out[0], out[1]
 
     fitted = {k: dict(v) for k, v in p.params.items()}
@@ -208,7 +213,8 @@ def model_design(run: ModelRun) -> ModelDesign:
         (name, prm.name, prm.grid()) for name in active for prm in known[name].nonlinear_params
     ]
     return ModelDesign(
-        t_s=t,
+        t_s=run.t_s,
+        samples=t,
         y=run.measured_nm,
         scan_sign=run.scan_sign,
         phi=phi,

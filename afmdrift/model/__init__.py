@@ -16,6 +16,7 @@ from afmdrift.model._base import (
     Prediction,
     Predictor,
     events_of_kind,
+    scan_samples,
 )
 from afmdrift.model._baselines import ConstantVelocityPredictor, LastValuePredictor
 from afmdrift.model._effects import (
@@ -27,6 +28,7 @@ from afmdrift.model._effects import (
     play_gaps,
     step_through_play,
     warm_up_effects,
+    windowed_design,
 )
 from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
 from afmdrift.model._families import (
@@ -125,6 +127,7 @@ __all__ = [
     "play_gaps",
     "reconstruct_offset",
     "resolve_terms",
+    "scan_samples",
     "sinc_curve",
     "sinc_reconstruct",
     "solve_wls",
@@ -132,6 +135,7 @@ __all__ = [
     "term_class",
     "truth_frame_mean",
     "warm_up_effects",
+    "windowed_design",
 ]
 
 

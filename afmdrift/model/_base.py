@@ -25,7 +25,42 @@ __all__ = [
     "Prediction",
     "Predictor",
     "events_of_kind",
+    "scan_samples",
 ]
+
+#: Sample times per scan window of a measurement that averages over one (the
+#: midpoint rule: a 128 s frame is sampled every 8 s, finer than a lab's
+#: sensor log, so a channel's changes within the scan are followed).
+WINDOW_SAMPLES = 16
+
+
+def scan_samples(
+    t_s: npt.ArrayLike, window_s: npt.ArrayLike | None = None, *, k: int = WINDOW_SAMPLES
+) -> npt.NDArray[np.float64]:
+    """The times at which a model is evaluated to predict each measurement, shape (n, m).
+
+    A raster frame's drift position is not p at one instant: each line is
+    scanned at its own time, and registration averages the lines, so the
+    position is the mean of p over the frame's scan window. ``window_s``
+    (n, 2) gives ``(t_start_s, t_end_s)`` per measurement; rows with a finite
+    window of positive length are sampled at the ``k`` midpoints of equal
+    parts of it, the others (point measurements, NaN windows) at ``t_s``.
+    Without any window the result is ``t_s`` as one column (m = 1).
+    """
+    t = np.asarray(t_s, dtype=np.float64).reshape(-1)
+    if window_s is None:
+        return t[:, None].copy()
+    w = np.asarray(window_s, dtype=np.float64).reshape(-1, 2)
+    if w.shape[0] != t.size:
+        raise ValueError(f"{w.shape[0]} scan windows for {t.size} times")
+    span = w[:, 1] - w[:, 0]
+    windowed = np.isfinite(span) & (span > 0)
+    if not np.any(windowed):
+        return t[:, None].copy()
+    frac = (np.arange(k, dtype=np.float64) + 0.5) / k
+    out = np.repeat(t[:, None], k, axis=1)
+    out[windowed] = w[windowed, :1] + span[windowed, None] * frac[None, :]
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -51,6 +86,10 @@ class Observation:
         frames of the reference's direction, so the drift itself
         (:meth:`Predictor.predict_drift`) is the position such a frame would
         show; unknown, it is the midpoint between up and down frames.
+    window_s : (float, float) or None
+        Scan window ``(t_start_s, t_end_s)`` the position averages over (a
+        whole frame's position is the mean of p over the lines it scanned,
+        :func:`scan_samples`); ``None``: a measurement at the instant ``t_s``.
     """
 
     t_s: float
@@ -60,6 +99,12 @@ class Observation:
     direction: ScanDirection = ScanDirection.UP
     frame: int = -1
     reference_direction: ScanDirection | None = None
+    window_s: tuple[float, float] | None = None
+
+    def samples(self) -> npt.NDArray[np.float64]:
+        """Times at which p is averaged to predict this measurement, shape (m,)."""
+        window = None if self.window_s is None else [self.window_s]
+        return np.asarray(scan_samples([self.t_s], window)[0], dtype=np.float64)
 
 
 def events_of_kind(
@@ -203,6 +248,21 @@ class Predictor(abc.ABC):
     @abc.abstractmethod
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore the state produced by :meth:`state_dict`."""
+
+    def predict_observation(
+        self, obs: Observation, history: History
+    ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+        """What ``obs`` is predicted to measure: mean (2,) and σ (2,).
+
+        The mean of :meth:`predict` over the measurement's scan window
+        (:meth:`Observation.samples`), σ the mean of the σ there (an upper
+        bound of the σ of the mean). The one-step error of every predictor is
+        scored against this, in the service and in ``evaluate``.
+        """
+        pred = self.predict(obs.samples(), history)
+        mean = np.asarray(pred.mean_nm, dtype=np.float64).reshape(-1, 2).mean(axis=0)
+        sigma = np.asarray(pred.sigma_nm, dtype=np.float64).reshape(-1, 2).mean(axis=0)
+        return mean, sigma
 
     def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         """Predict the sample position itself, without measurement artefacts.

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.model._base import History, Observation, Prediction, Predictor
+from afmdrift.model._base import History, Observation, Prediction, Predictor, scan_samples
 from afmdrift.records import ScanDirection
 
 __all__ = ["ConstantVelocityPredictor", "LastValuePredictor", "ObservationLog"]
@@ -39,6 +39,8 @@ class ObservationLog:
     #: +1/−1: scan direction of the session reference the positions are
     #: measured against (the latest observation that named one); None: unknown.
     ref_sign: float | None = None
+    #: Scan window each position averages over, (NaN, NaN) for a point.
+    windows: list[tuple[float, float]] = field(default_factory=list)
 
     def append(self, obs: Observation, error: tuple[float, float] | None = None) -> None:
         if not (math.isfinite(obs.t_s) and math.isfinite(obs.x_nm) and math.isfinite(obs.y_nm)):
@@ -53,6 +55,11 @@ class ObservationLog:
         self.sigma_nm.append(float(obs.sigma_nm) if math.isfinite(obs.sigma_nm) else 0.0)
         self.scan_sign.append(1.0 if obs.direction is ScanDirection.UP else -1.0)
         self.errors.append(error if error is not None else (math.nan, math.nan))
+        self.windows.append(
+            (math.nan, math.nan)
+            if obs.window_s is None
+            else (float(obs.window_s[0]), float(obs.window_s[1]))
+        )
         if obs.reference_direction is not None:
             self.ref_sign = 1.0 if obs.reference_direction is ScanDirection.UP else -1.0
 
@@ -64,6 +71,14 @@ class ObservationLog:
 
     def xy(self) -> FloatArray:
         return np.asarray(self.xy_nm, dtype=np.float64).reshape(-1, 2)
+
+    def samples(self) -> FloatArray:
+        """Times at which a model is averaged to fit each position, (n, m)
+        (:func:`~afmdrift.model._base.scan_samples`)."""
+        w = np.asarray(self.windows, dtype=np.float64).reshape(-1, 2)
+        if w.shape[0] != len(self.t_s):  # a log restored from before windows
+            w = np.full((len(self.t_s), 2), np.nan)
+        return scan_samples(self.t(), w)
 
     def step_s(self) -> float:
         """Median spacing between observations (the frame period), s."""
@@ -100,6 +115,7 @@ class ObservationLog:
             "scan_sign": list(self.scan_sign),
             "errors": [[_json_float(a), _json_float(b)] for a, b in self.errors],
             "ref_sign": self.ref_sign,
+            "windows": [[_json_float(a), _json_float(b)] for a, b in self.windows],
         }
 
     @classmethod
@@ -111,6 +127,7 @@ class ObservationLog:
             scan_sign=[float(v) for v in d["scan_sign"]],
             errors=[(_from_json_float(a), _from_json_float(b)) for a, b in d["errors"]],
             ref_sign=None if d.get("ref_sign") is None else float(d["ref_sign"]),
+            windows=[(_from_json_float(a), _from_json_float(b)) for a, b in d.get("windows", [])],
         )
 
 
@@ -139,7 +156,7 @@ class _LoggingPredictor(Predictor):
     def _one_step_error(self, obs: Observation, history: History) -> tuple[float, float] | None:
         if len(self.log) < self.min_points_to_predict:
             return None
-        pred = self.predict([obs.t_s], history).mean_nm[0]
+        pred, _ = self.predict_observation(obs, history)
         return (obs.x_nm - float(pred[0]), obs.y_nm - float(pred[1]))
 
     def observed(self) -> tuple[FloatArray, FloatArray]:

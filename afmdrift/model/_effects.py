@@ -57,10 +57,16 @@ __all__ = [
     "offset_through_play",
     "play_gaps",
     "step_through_play",
+    "windowed_design",
 ]
 
 
 FloatArray = npt.NDArray[np.float64]
+
+#: Search range of ``tau_s`` of a response to a logged channel (``thermal_lag``
+#: and the generic ``channel:`` terms), s; the lower end is no lag, so a lagged
+#: term also describes a direct response.
+CHANNEL_TAU_RANGE_S = (1.0, 20000.0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -139,6 +145,34 @@ class EffectTerm(abc.ABC):
             {n: float(v) for n, v in zip(names, combo, strict=True)}
             for combo in itertools.product(*grids)
         ]
+
+
+def windowed_design(
+    term: EffectTerm,
+    times: FloatArray,
+    history: History,
+    *,
+    scan_sign: FloatArray,
+    params: Mapping[str, float],
+    axis: int,
+) -> FloatArray:
+    """``term``'s basis for measurements that average over their scan windows.
+
+    ``times`` is (n,) for point measurements or (n, m) sample times per
+    measurement (:func:`~afmdrift.model._base.scan_samples`); a row's basis is
+    the mean of :meth:`EffectTerm.design` over its m samples, so a frame is
+    described by the mean of p over the lines it scanned. Every model fit and
+    every diagnose candidate builds its columns here.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    sign = np.asarray(scan_sign, dtype=np.float64)
+    if t.ndim == 1 or t.shape[1] == 1:
+        return term.design(t.reshape(-1), history, scan_sign=sign, params=params, axis=axis)
+    n, m = t.shape
+    block = term.design(
+        t.reshape(-1), history, scan_sign=np.repeat(sign, m), params=params, axis=axis
+    )
+    return np.asarray(block.reshape(n, m, -1).mean(axis=1), dtype=np.float64)
 
 
 def _channel_missing(history: History, name: str) -> str | None:
@@ -319,7 +353,8 @@ class ThermalLag(LaggedChannel):
     """
 
     name = "thermal_lag"
-    nonlinear_params = (NonlinearParam("tau_s", 60.0, 20000.0, 1200.0, grid_points=15),)
+    nonlinear_params = (NonlinearParam("tau_s", *CHANNEL_TAU_RANGE_S, 1200.0, grid_points=25),)
+    no_lag_s = CHANNEL_TAU_RANGE_S[0]
     coefficient_units = ("k_nm_per_K",)
     channel = "temperature_c"
 

@@ -63,7 +63,8 @@ class MeasuredSeries:
     model), ``sigma_nm`` its uncertainty, ``t_end_s`` frame completion times,
     ``measure_ms`` the pipeline's time per frame, ``reference_direction`` the
     scan direction of the session reference the positions are measured
-    against (None: unknown).
+    against (None: unknown), ``window_s`` (n, 2) the scan window each position
+    averages over where it is a whole frame's (None or NaN rows: points).
     """
 
     t_s: FloatArray
@@ -74,6 +75,24 @@ class MeasuredSeries:
     measure_ms: FloatArray
     valid_blocks: list[int] = field(default_factory=list)
     reference_direction: ScanDirection | None = None
+    window_s: FloatArray | None = None
+
+    def observation(self, i: int) -> Observation:
+        """Entry ``i`` as the model observation it feeds."""
+        sigma = float(self.sigma_nm[i])
+        window = None
+        if self.window_s is not None and np.all(np.isfinite(self.window_s[i])):
+            window = (float(self.window_s[i, 0]), float(self.window_s[i, 1]))
+        return Observation(
+            t_s=float(self.t_s[i]),
+            x_nm=float(self.xy_nm[i, 0]),
+            y_nm=float(self.xy_nm[i, 1]),
+            sigma_nm=sigma if math.isfinite(sigma) else 0.0,
+            direction=self.directions[i],
+            frame=i,
+            reference_direction=self.reference_direction,
+            window_s=window,
+        )
 
 
 def _stats(e: FloatArray) -> dict[str, Any]:
@@ -186,23 +205,15 @@ def _run_one(
         t_done = float(series.t_end_s[i])
         feed.advance(t_done)
         history = feed.history
+        obs = series.observation(int(i))
         if k >= skip:
             t0 = time.perf_counter()
-            pred = predictor.predict([t_i], history).mean_nm[0]
+            pred, _ = predictor.predict_observation(obs, history)
             t_predict[k] = (time.perf_counter() - t0) * 1e3
             err_meas[k] = pred - series.xy_nm[i]
             if truth_t is not None:
                 drift = predictor.predict_drift([t_i], history).mean_nm[0]
                 err_truth[k] = drift - frame_truth[i]
-        obs = Observation(
-            t_s=t_i,
-            x_nm=float(series.xy_nm[i, 0]),
-            y_nm=float(series.xy_nm[i, 1]),
-            sigma_nm=float(series.sigma_nm[i]) if math.isfinite(series.sigma_nm[i]) else 0.0,
-            direction=series.directions[i],
-            frame=int(i),
-            reference_direction=series.reference_direction,
-        )
         t0 = time.perf_counter()
         predictor.update(obs, history)
         t_update[k] = (time.perf_counter() - t0) * 1e3

@@ -56,6 +56,7 @@ import numpy.typing as npt
 from afmdrift.errors import ConfigError
 from afmdrift.model._base import History
 from afmdrift.model._effects import (
+    CHANNEL_TAU_RANGE_S,
     EffectTerm,
     LaggedChannel,
     NonlinearParam,
@@ -73,8 +74,6 @@ __all__ = [
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Default search range of ``tau_s`` of a channel response, s; the lower end is no lag.
-CHANNEL_TAU_RANGE_S = (1.0, 20000.0)
 #: Default ``tau_s`` range of the ``settle`` event response, s.
 SETTLE_TAU_RANGE_S = (30.0, 20000.0)
 #: Default ``t0_s`` range of the ``log`` event response, s.

@@ -46,7 +46,7 @@ import numpy.typing as npt
 from afmdrift.config import NNConfig, PhysicsConfig
 from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
-from afmdrift.model._effects import EffectTerm, warm_up_effects
+from afmdrift.model._effects import EffectTerm, warm_up_effects, windowed_design
 from afmdrift.model._terms import resolve_terms
 
 __all__ = [
@@ -215,17 +215,20 @@ class PhysicsPredictor(_LoggingPredictor):
         active: Sequence[str] | None = None,
         params: dict[str, dict[str, float]] | None = None,
     ) -> list[tuple[str, FloatArray]]:
-        """(name, basis block) of each active term, led by ``intercept`` if needed."""
+        """(name, basis block) of each active term, led by ``intercept`` if needed.
+
+        ``t_s`` is (n,) for points or (n, m) sample times of scan windows
+        (:func:`~afmdrift.model._effects.windowed_design`)."""
         names = self.active if active is None else active
         prm = self.params if params is None else params
         blocks: list[tuple[str, FloatArray]] = []
         if self._needs_intercept(names):
-            blocks.append(("intercept", np.ones((t_s.size, 1))))
+            blocks.append(("intercept", np.ones((t_s.shape[0], 1))))
         for name in names:
-            term = self._term(name)
-            blocks.append(
-                (name, term.design(t_s, history, scan_sign=scan_sign, params=prm[name], axis=axis))
+            block = windowed_design(
+                self._term(name), t_s, history, scan_sign=scan_sign, params=prm[name], axis=axis
             )
+            blocks.append((name, block))
         return blocks
 
     def _needs_intercept(self, names: Sequence[str]) -> bool:
@@ -245,7 +248,7 @@ class PhysicsPredictor(_LoggingPredictor):
         return np.asarray(w, dtype=np.float64)
 
     def _choose_active(self, history: History, t: FloatArray, sign: FloatArray) -> list[str]:
-        n = t.size
+        n = t.shape[0]
         chosen: list[str] = []
         columns = 0
         for term in self.terms:
@@ -258,8 +261,8 @@ class PhysicsPredictor(_LoggingPredictor):
             k = 0
             constant = False
             for axis in (0, 1):
-                block = term.design(
-                    t, history, scan_sign=sign, params=self.params[term.name], axis=axis
+                block = windowed_design(
+                    term, t, history, scan_sign=sign, params=self.params[term.name], axis=axis
                 )
                 nonzero = np.any(np.abs(block) > 1e-12, axis=0)
                 k = max(k, int(np.count_nonzero(nonzero)))
@@ -283,16 +286,18 @@ class PhysicsPredictor(_LoggingPredictor):
         # HS-AFM frame rates); older ones are down-weighted by memory_s anyway.
         k0 = max(len(self.log) - self.config.max_points, 0)
         t = self.log.t()[k0:]
+        # Each position is fitted as the mean of p over its scan window.
+        ts = self.log.samples()[k0:]
         xy = self.log.xy()[k0:]
         sign = np.asarray(self.log.scan_sign[k0:], dtype=np.float64)
         w = self._weights()[k0:]
-        active = self._choose_active(history, t, sign)
+        active = self._choose_active(history, ts, sign)
         params = {k: dict(v) for k, v in self.params.items()}
         nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]
         if nonlinear and t.size >= 3:
             # Blocks of every term at the current θ; a scan only rebuilds its own term.
             blocks = [
-                dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
+                dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
                 for axis in (0, 1)
             ]
             for pass_no in range(self.config.refine_passes):
@@ -304,8 +309,13 @@ class PhysicsPredictor(_LoggingPredictor):
                         params[term.name][pname] = float(10.0**log_v)
                         total = 0.0
                         for axis in (0, 1):
-                            blocks[axis][term.name] = term.design(
-                                t, history, scan_sign=sign, params=params[term.name], axis=axis
+                            blocks[axis][term.name] = windowed_design(
+                                term,
+                                ts,
+                                history,
+                                scan_sign=sign,
+                                params=params[term.name],
+                                axis=axis,
                             )
                             x = np.hstack(list(blocks[axis].values()))
                             total += weighted_rss(x, xy[:, axis], w)
@@ -333,7 +343,7 @@ class PhysicsPredictor(_LoggingPredictor):
                     obj(best_log)
         self.params = params
         blocks_all = [
-            dict(self.design_blocks(t, history, sign, axis, active=active, params=params))
+            dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
             for axis in (0, 1)
         ]
         self.active = active

@@ -50,7 +50,8 @@ def series_from_records(records: list[FrameRecord]) -> MeasuredSeries:
 
 def series_from_drift_log(log: DriftLog) -> MeasuredSeries:
     """The observations of a drift log (its positions as measured elsewhere; a
-    frame without one fed nothing), for ``afmdrift evaluate DIR``."""
+    frame without one fed nothing; a frame's position averages over its scan
+    window), for ``afmdrift evaluate DIR``."""
     known = [d for d, ok in zip(log.directions, np.isfinite(log.xy_nm[:, 0]), strict=True) if ok]
     return MeasuredSeries(
         t_s=log.t_s.copy(),
@@ -61,6 +62,7 @@ def series_from_drift_log(log: DriftLog) -> MeasuredSeries:
         measure_ms=np.zeros(len(log)),
         valid_blocks=[-1] * len(log),
         reference_direction=known[0] if known else None,
+        window_s=log.frame_times.copy(),
     )
 
 
