@@ -24,6 +24,7 @@ from afmdrift.model import (
     load_term_class,
     make_term,
     parse_term_spec,
+    scan_samples,
 )
 from afmdrift.model._effects import (
     log_creep_sum,
@@ -652,3 +653,57 @@ def test_first_order_lag_matches_its_recursion_exactly(n: int) -> None:
         a = float(np.exp(-1.0 / tau))
         expected, _ = lfilter([1.0 - a], [1.0, -a], values, zi=np.array([a * values[0]]))
         np.testing.assert_array_equal(_first_order_lag(values, a), expected)
+
+
+def test_scan_samples_cover_each_window_and_leave_points_alone() -> None:
+    t = np.array([64.0, 320.0, 500.0])
+    windows = np.array([[0.0, 128.0], [256.0, 384.0], [np.nan, np.nan]])
+    s = scan_samples(t, windows, k=4)
+    assert s.shape == (3, 4)
+    np.testing.assert_allclose(s[0], [16.0, 48.0, 80.0, 112.0])
+    np.testing.assert_allclose(s[1].mean(), 320.0)
+    np.testing.assert_array_equal(s[2], 500.0)
+    assert scan_samples(t).shape == (3, 1)
+
+
+def test_a_frame_position_is_fitted_and_predicted_as_the_mean_over_its_scan() -> None:
+    """A direct thermal response to a temperature that jitters within each
+    2-min scan: the frame's position (the mean over its lines) differs from p
+    at mid-scan by nanometres. With the scan windows, the model's one-step
+    error is the measurement noise; taken as points, it is several times that."""
+    rng = np.random.default_rng(5)
+    tc = np.arange(0.0, 112 * PERIOD_S + 600.0, 10.0)
+    temp = 22.0 + np.cumsum(rng.normal(0.0, 0.015, tc.size))
+    history = History()
+    for a, b in zip(tc, temp, strict=True):
+        history.add_channels(ChannelSample(float(a), {"temperature_c": float(b)}))
+    k_nm_per_k = np.array([-110.0, 40.0])
+
+    def p(t: np.ndarray) -> np.ndarray:
+        dt = np.interp(t, tc, temp) - temp[0]
+        return 0.5 * t[:, None] / 3600.0 + dt[:, None] * k_nm_per_k[None, :]
+
+    errors = {}
+    for windowed in (True, False):
+        model = PhysicsPredictor(PhysicsConfig(terms=["trend", "thermal"], residual="none"))
+        err = []
+        for i in range(112):
+            t0 = i * PERIOD_S
+            lines = t0 + (np.arange(512) + 0.5) * 0.25
+            xy = p(lines).mean(axis=0) + rng.normal(0.0, 0.05, 2)
+            obs = Observation(
+                t0 + 64.0,
+                float(xy[0]),
+                float(xy[1]),
+                0.05,
+                ScanDirection.UP,
+                i,
+                window_s=(t0, t0 + 128.0) if windowed else None,
+            )
+            if i >= 20:
+                pred, _ = model.predict_observation(obs, history)
+                err.append(np.asarray([obs.x_nm, obs.y_nm]) - pred)
+            model.update(obs, history)
+        errors[windowed] = np.sqrt(np.mean(np.square(err), axis=0))
+    assert np.all(errors[True] < 0.15), errors
+    assert errors[False][0] > 3 * errors[True][0], errors
