@@ -21,7 +21,8 @@ chosen apart from the simulator's:
   thermal path (1–2 h).
 * **Timing**: a frame every 240 s scanned in 120 s, 7.5 h.
 
-Positions are the true drift at mid-scan, relative to frame 0, plus
+Positions are the mean of the true drift over each frame's scan window (as
+registration of a raster frame measures it), relative to frame 0, plus
 measurement noise (σ 0.05–0.15 nm) and, with ``scan_direction``, the bias of
 each frame's direction. ``answer.json`` says what the drift is made of, as in
 ``../shared/validation/drift-logs``. The controls (``none``) hold a trend
@@ -257,7 +258,10 @@ def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> Generat
     else:
         directions = ["up"] * n
         bias = np.zeros(2)
-    truth_mid = np.column_stack([np.interp(mid, t, drift[:, a]) for a in (0, 1)])
+    # A frame's position is the mean of p over the lines it scanned (64 line
+    # samples per frame), as registration of a raster frame measures it.
+    lines = windows[:, :1] + scan_s * (np.arange(64) + 0.5)[None, :] / 64.0
+    truth_mid = np.column_stack([np.interp(lines, t, drift[:, a]).mean(axis=1) for a in (0, 1)])
     sign = np.array([0.5 if d == "up" else -0.5 for d in directions])
     sigma = float(rng.uniform(0.05, 0.15))
     measured = truth_mid - truth_mid[0] + np.outer(sign - sign[0], bias)
