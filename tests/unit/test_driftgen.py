@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from afmdrift.session import read_drift_log
-from afmdrift.testing import DRIFTGEN_EFFECTS, generate_drift_log, write_drift_log
+from afmdrift.testing import DRIFTGEN_EFFECTS, GeneratedLog, generate_drift_log, write_drift_log
 
 
 @pytest.mark.parametrize("effect", DRIFTGEN_EFFECTS)
@@ -36,9 +36,17 @@ def test_the_generator_is_deterministic_and_seeds_differ() -> None:
     assert not np.allclose(a.xy_nm, c.xy_nm)
 
 
+def _scan_means(gen: GeneratedLog) -> np.ndarray:
+    """The true drift averaged over each frame's scan window."""
+    lines = np.linspace(gen.frame_times[:, :1], gen.frame_times[:, 1:], 200, axis=1)[..., 0]
+    return np.column_stack(
+        [np.interp(lines, gen.truth_t_s, gen.truth_nm[:, a]).mean(axis=1) for a in (0, 1)]
+    )
+
+
 def test_positions_follow_the_truth_within_the_measurement_noise() -> None:
     gen = generate_drift_log("thermal_lag", 5)
-    truth = np.column_stack([np.interp(gen.t_s, gen.truth_t_s, gen.truth_nm[:, a]) for a in (0, 1)])
+    truth = _scan_means(gen)
     err = gen.xy_nm[1:] - truth[1:]
     assert np.std(err) == pytest.approx(gen.sigma_nm, rel=0.3)
     assert np.ptp(truth[:, 0]) > 10 * gen.sigma_nm  # a drift worth measuring
@@ -48,7 +56,7 @@ def test_a_scan_direction_log_has_runs_of_both_directions_and_a_bias() -> None:
     gen = generate_drift_log("scan_direction", 4)
     assert {"up", "down"} <= set(gen.directions)
     up = np.array([d == "up" for d in gen.directions])
-    truth = np.column_stack([np.interp(gen.t_s, gen.truth_t_s, gen.truth_nm[:, a]) for a in (0, 1)])
+    truth = _scan_means(gen)
     bias = (gen.xy_nm - truth)[up].mean(axis=0) - (gen.xy_nm - truth)[~up].mean(axis=0)
     assert np.hypot(*bias) > 0.9  # at least 1 nm between the directions, less the noise
 
