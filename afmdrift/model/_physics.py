@@ -48,6 +48,7 @@ from afmdrift.model._base import History, Observation, OffsetPlay, Prediction
 from afmdrift.model._baselines import ObservationLog, _LoggingPredictor, as_times
 from afmdrift.model._effects import EffectTerm, warm_up_effects, windowed_design
 from afmdrift.model._terms import resolve_terms
+from afmdrift.records import ScanDirection
 
 __all__ = [
     "FitResult",
@@ -382,7 +383,12 @@ class PhysicsPredictor(_LoggingPredictor):
 
     # ---------------------------------------------------------------- predict
     def model_at(
-        self, t_s: npt.ArrayLike, history: History, *, drift_only: bool = False
+        self,
+        t_s: npt.ArrayLike,
+        history: History,
+        *,
+        drift_only: bool = False,
+        scan_sign: float | None = None,
     ) -> tuple[FloatArray, FloatArray]:
         """Deterministic part (terms only) and its parametric σ at ``t_s``, each (n, 2).
 
@@ -391,10 +397,15 @@ class PhysicsPredictor(_LoggingPredictor):
         ``scan_direction``) take their value in a frame scanned like the
         session reference, against which positions are measured (there the
         artefact cancels, so that frame shows the drift itself); with the
-        reference's direction unknown they are left out.
+        reference's direction unknown they are left out. ``scan_sign`` (+1 up,
+        −1 down) is the direction of the frame scanned at ``t_s`` where it is
+        known; otherwise it is extrapolated from the last frames.
         """
         t = as_times(t_s)
-        sign = future_scan_sign(t, self.log.t(), np.asarray(self.log.scan_sign))
+        if scan_sign is None:
+            sign = future_scan_sign(t, self.log.t(), np.asarray(self.log.scan_sign))
+        else:
+            sign = np.full(t.size, float(scan_sign))
         ref_sign = self.log.ref_sign
         mean = np.zeros((t.size, 2))
         var = np.zeros((t.size, 2))
@@ -446,17 +457,35 @@ class PhysicsPredictor(_LoggingPredictor):
     def predict(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         return self._predict(t_s, history, drift_only=False)
 
+    def predict_observation(
+        self, obs: Observation, history: History
+    ) -> tuple[FloatArray, FloatArray]:
+        """As :meth:`Predictor.predict_observation`, in the frame's own scan
+        direction (known once the frame is scanned), not one extrapolated
+        from the frames before it."""
+        self._require_data()
+        sign = 1.0 if obs.direction is ScanDirection.UP else -1.0
+        pred = self._predict(obs.samples(), history, drift_only=False, scan_sign=sign)
+        return pred.mean_nm.mean(axis=0), pred.sigma_nm.mean(axis=0)
+
     def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         """The sample position, without the scan-direction bias of the measurements."""
         return self._predict(t_s, history, drift_only=True)
 
-    def _predict(self, t_s: npt.ArrayLike, history: History, *, drift_only: bool) -> Prediction:
+    def _predict(
+        self,
+        t_s: npt.ArrayLike,
+        history: History,
+        *,
+        drift_only: bool,
+        scan_sign: float | None = None,
+    ) -> Prediction:
         self._require_data()
         t = as_times(t_s)
         if not self.fits:
             xy = self.log.xy()
             return Prediction(t, np.repeat(xy[-1:], t.size, axis=0), np.ones((t.size, 2)))
-        mean, sd = self.model_at(t, history, drift_only=drift_only)
+        mean, sd = self.model_at(t, history, drift_only=drift_only, scan_sign=scan_sign)
         mean = mean + self._residual_at(t, history)
         res_sd = np.where(np.isfinite(self.residual_sd), self.residual_sd, 0.0)
         sigma = np.sqrt(sd**2 + res_sd[None, :] ** 2)

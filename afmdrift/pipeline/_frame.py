@@ -318,7 +318,7 @@ class FramePipeline:
         next call will be given) started once this frame is registered."""
         started = time.time() if detected_wall_s is None else detected_wall_s
         batch = self.feed.advance(frame.t_end_s)
-        pred = self._predict(frame.t_mid_s)
+        pred = self._predict(frame)
         held = hold is not None
         try:
             pos = self.positions.locate(
@@ -402,17 +402,17 @@ class FramePipeline:
 
     # ------------------------------------------------------------------ model
 
-    def _predict(self, t_s: float) -> tuple[npt.NDArray[np.float64], float]:
-        """Prediction of p at ``t_s`` from the current model (NaN before any data)."""
+    def _predict(self, frame: Frame) -> tuple[npt.NDArray[np.float64], float]:
+        """Prediction of the frame's mid-scan p, in its own scan direction, from
+        the current model (NaN before any data)."""
         if self.n_fed == 0:
             return np.full(2, np.nan), math.nan
+        at = Observation(frame.t_mid_s, 0.0, 0.0, 0.0, direction=frame.direction)
         try:
-            pred = self.predictor.predict([t_s], self.history)
+            mean, sig = self.predictor.predict_observation(at, self.history)
         except (ValueError, ArithmeticError) as err:
-            log.warning("prediction at t=%.3f s failed: %s", t_s, err)
+            log.warning("prediction at t=%.3f s failed: %s", frame.t_mid_s, err)
             return np.full(2, np.nan), math.nan
-        mean = np.asarray(pred.mean_nm, dtype=np.float64).reshape(-1, 2)[0]
-        sig = np.asarray(pred.sigma_nm, dtype=np.float64).reshape(-1, 2)[0]
         return mean, float(np.hypot(sig[0], sig[1]) / math.sqrt(2.0))
 
     def _build_curve(self, t_now_s: float) -> OffsetCurve | None:

@@ -707,3 +707,28 @@ def test_a_frame_position_is_fitted_and_predicted_as_the_mean_over_its_scan() ->
         errors[windowed] = np.sqrt(np.mean(np.square(err), axis=0))
     assert np.all(errors[True] < 0.15), errors
     assert errors[False][0] > 3 * errors[True][0], errors
+
+
+def test_one_step_prediction_takes_the_frame_s_own_scan_direction() -> None:
+    """Directions in irregular runs (not alternating): the prediction of a
+    frame must carry the bias of the direction it was scanned in, which is
+    known when it is measured, not one extrapolated from the last frames."""
+    rng = np.random.default_rng(2)
+    n = 80
+    runs = np.repeat(rng.integers(0, 2, size=n // 3 + 1), 3)[:n]
+    dirs = [ScanDirection.UP if r else ScanDirection.DOWN for r in runs]
+    t = PERIOD_S * np.arange(n) + 64.0
+    bias = np.array([3.0, -2.0])
+    sign = np.array([0.5 if d is ScanDirection.UP else -0.5 for d in dirs])
+    xy = 0.8 * t[:, None] / 3600.0 + sign[:, None] * bias[None, :]
+    xy += rng.normal(0.0, 0.05, xy.shape)
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "scan_direction"], residual="none"))
+    err = []
+    for i in range(n):
+        obs = Observation(float(t[i]), float(xy[i, 0]), float(xy[i, 1]), 0.05, dirs[i], i)
+        if i >= 20:
+            pred, _ = model.predict_observation(obs, History())
+            err.append(xy[i] - pred)
+        model.update(obs, History())
+    rms = np.sqrt(np.mean(np.square(err), axis=0))
+    assert np.all(rms < 0.15), rms
