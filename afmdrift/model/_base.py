@@ -16,6 +16,7 @@ from typing import Any, ClassVar
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.model._denoise import SmoothedChannel, smooth_channel
 from afmdrift.records import ChannelSample, Event, EventKind, ScanDirection
 
 __all__ = [
@@ -140,6 +141,9 @@ class History:
 
     Channels are interpolated linearly inside the log and held at the last
     value beyond it (a model predicting ahead does not know the future).
+    :meth:`channel_at` gives the values as logged, :meth:`sensed_at` the
+    quantity the sensor measures, its read-out noise removed (what the
+    channel terms of the physics model respond to).
     """
 
     channel_t_s: list[float] = field(default_factory=list)
@@ -148,6 +152,10 @@ class History:
     # Arrays of (log length, finite times, finite values) per channel, rebuilt
     # when the log grows: channel_at is called many times per frame.
     _arrays: dict[str, tuple[int, npt.NDArray[np.float64], npt.NDArray[np.float64]]] = field(
+        default_factory=dict, init=False, repr=False, compare=False
+    )
+    # Per channel: (log length, the log with its read-out noise removed).
+    _sensed: dict[str, tuple[int, SmoothedChannel]] = field(
         default_factory=dict, init=False, repr=False, compare=False
     )
     # Per event kind: (log state, times, (n, 2) x/y) for the design matrices of
@@ -204,6 +212,29 @@ class History:
         if tk.size == 0:
             return np.full(np.shape(t_s), np.nan)
         return np.interp(np.asarray(t_s, dtype=np.float64), tk, vk)
+
+    def sensed(self, name: str) -> SmoothedChannel:
+        """Channel ``name`` with its read-out noise removed, at its finite samples.
+
+        The state-space cubic smoothing spline of :mod:`afmdrift.model._denoise`
+        (signal-to-noise ratio by maximum likelihood) over everything logged so
+        far; recomputed when the log grows.
+        """
+        if name not in self.channels:
+            raise KeyError(f"no channel {name!r} logged (have: {sorted(self.channels)})")
+        n = len(self.channel_t_s)
+        cached = self._sensed.get(name)
+        if cached is None or cached[0] != n:
+            cached = (n, smooth_channel(self.channel_t_s, self.channels[name]))
+            self._sensed[name] = cached
+        return cached[1]
+
+    def sensed_at(self, name: str, t_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
+        """:meth:`sensed` at ``t_s`` (linear inside the log, held outside)."""
+        smoothed = self.sensed(name)
+        if smoothed.t_s.size == 0:
+            return np.full(np.shape(t_s), np.nan)
+        return np.interp(np.asarray(t_s, dtype=np.float64), smoothed.t_s, smoothed.value)
 
     def events_before(self, t_s: float) -> Sequence[Event]:
         k = bisect.bisect_right(self.events, t_s, key=lambda ev: ev.t_s)

@@ -212,7 +212,11 @@ class Trend(EffectTerm):
 
 
 class _ChannelProportional(EffectTerm):
-    """p(t) = k·(C(t) − C₀) for a logged channel C (C₀ its first logged value)."""
+    """p(t) = k·(C(t) − C₀) for a logged channel C (C₀ its first logged value).
+
+    C is the quantity the sensor measures, its read-out noise removed
+    (:meth:`History.sensed_at`): the drift follows the quantity, not the noise.
+    """
 
     channel: ClassVar[str]
 
@@ -228,7 +232,7 @@ class _ChannelProportional(EffectTerm):
         params: Mapping[str, float],
         axis: int,
     ) -> FloatArray:
-        v = history.channel_at(self.channel, t_s) - _first_finite(history, self.channel)
+        v = history.sensed_at(self.channel, t_s) - _first_finite(history, self.channel)
         return v[:, None]
 
 
@@ -260,14 +264,14 @@ class Humidity(_ChannelProportional):
 class LaggedChannel(EffectTerm):
     """Response to a logged channel through a first-order lag (shared code).
 
-    The driven quantity C_s follows the logged channel C through a
-    first-order low-pass, τ·dC_s/dt = C − C_s, with C_s(t₀) = C(t₀) at the
-    first log entry; p(t) = k·(C_s(t) − C₀), C₀ the first logged value.
-    Beyond the log, C is held at its last value and C_s keeps relaxing
-    towards it. A τ at or below :attr:`no_lag_s` is no lag at all
-    (p = k·(C − C₀)): at frame periods of minutes a lag shorter than the
-    channel's sampling cannot be told from none. Subclasses set
-    :attr:`channel` and the ``tau_s`` search range.
+    The driven quantity C_s follows the channel C through a first-order
+    low-pass, τ·dC_s/dt = C − C_s, with C_s(t₀) = C(t₀) at the first log
+    entry; p(t) = k·(C_s(t) − C₀), C₀ the first logged value. C is the
+    logged channel with its read-out noise removed
+    (:meth:`History.sensed_at`). Beyond the log, C is held at its last value
+    and C_s keeps relaxing towards it. A τ at or below :attr:`no_lag_s` is no
+    lag at all (p = k·(C − C₀)). Subclasses set :attr:`channel` and the
+    ``tau_s`` search range.
     """
 
     channel: ClassVar[str]
@@ -285,7 +289,7 @@ class LaggedChannel(EffectTerm):
         """Low-passed channel C_s(t) − C₀ at ``t_s`` (channel units)."""
         if tau_s <= self.no_lag_s:
             return np.asarray(
-                history.channel_at(self.channel, t_s) - _first_finite(history, self.channel),
+                history.sensed_at(self.channel, t_s) - _first_finite(history, self.channel),
                 dtype=np.float64,
             )
         tg, yg = self._filtered(history, tau_s)
@@ -298,7 +302,7 @@ class LaggedChannel(EffectTerm):
         return out
 
     def _resampled(self, history: History) -> tuple[FloatArray, FloatArray]:
-        """Logged channel − C₀ on a uniform grid (cached per log length)."""
+        """Channel (read-out noise removed) − C₀ on a uniform grid (cached per log length)."""
         key = len(history.channel_t_s)
         if self._grid is not None and self._grid[0] == key:
             return self._grid[1], self._grid[2]
@@ -310,7 +314,7 @@ class LaggedChannel(EffectTerm):
             # At most 20000 points; the smallest τ searched spans many of them.
             step = max(span / 20000.0, float(np.median(np.diff(t))))
             grid = np.arange(t[0], t[-1] + 0.5 * step, step)
-        values = history.channel_at(self.channel, grid) - _first_finite(history, self.channel)
+        values = history.sensed_at(self.channel, grid) - _first_finite(history, self.channel)
         self._grid = (key, grid, values)
         self._cache.clear()
         return grid, values
@@ -348,8 +352,9 @@ class ThermalLag(LaggedChannel):
     first-order low-pass, τ·dT_s/dt = T − T_s, with T_s(t₀) = T(t₀) at the
     first log entry; p(t) = k·(T_s(t) − T₀). Parameters: k in nm/K (as for
     ``thermal``) and the thermal time constant ``tau_s`` in s (how long the
-    scanner takes to follow the room or stage sensor). Beyond the log, T is
-    held at its last value and T_s keeps relaxing towards it.
+    scanner takes to follow the room or stage sensor); τ ≤ 1 s is no lag, so
+    the term holds ``thermal`` as its limit. Beyond the log, T is held at its
+    last value and T_s keeps relaxing towards it.
     """
 
     name = "thermal_lag"

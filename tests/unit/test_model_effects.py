@@ -407,19 +407,16 @@ def test_channel_term_spec_recovers_lag_and_gain_of_any_channel() -> None:
 
 
 def test_channel_term_without_lag_is_the_direct_response() -> None:
-    """τ at the bottom of the grid (1 s) is computed as no lag: p = g·(C − C₀) exactly."""
+    """τ at the bottom of the grid (1 s) is computed as no lag: p = g·(C − C₀) exactly,
+    C the channel read through its noise (a clean channel, as here, unchanged)."""
     tc = np.arange(0.0, 4000.0, 10.0)
     c = np.sin(tc / 300.0)
     term = parse_term_spec("channel:laser_power_mw")()
     t = np.array([5.0, 1234.0, 3000.0])
-    col = term.design(
-        t,
-        _channel_history(tc, "laser_power_mw", c),
-        scan_sign=np.ones(3),
-        params={"tau_s": 1.0},
-        axis=0,
-    )
-    np.testing.assert_allclose(col[:, 0], np.interp(t, tc, c) - c[0])
+    history = _channel_history(tc, "laser_power_mw", c)
+    col = term.design(t, history, scan_sign=np.ones(3), params={"tau_s": 1.0}, axis=0)
+    np.testing.assert_array_equal(col[:, 0], history.sensed_at("laser_power_mw", t) - c[0])
+    np.testing.assert_allclose(col[:, 0], np.interp(t, tc, c) - c[0], atol=1e-5)
     assert term.coefficient_units == ("gain_nm_per_mw",)
 
 
