@@ -139,11 +139,10 @@ class OffsetPlay:
 class History:
     """Append-only log of channel samples and events that models read.
 
-    Channels are interpolated linearly inside the log and held at the last
-    value beyond it (a model predicting ahead does not know the future).
-    :meth:`channel_at` gives the values as logged, :meth:`sensed_at` the
-    quantity the sensor measures, its read-out noise removed (what the
-    channel terms of the physics model respond to).
+    :meth:`channel_at` gives the values as logged, interpolated linearly inside
+    the log and held at the last value beyond it. :meth:`sensed_at` gives the
+    quantity the sensor measures, its read-out noise removed, and beyond the
+    log its forecast (what the channel terms of the physics model respond to).
     """
 
     channel_t_s: list[float] = field(default_factory=list)
@@ -230,11 +229,9 @@ class History:
         return cached[1]
 
     def sensed_at(self, name: str, t_s: npt.ArrayLike) -> npt.NDArray[np.float64]:
-        """:meth:`sensed` at ``t_s`` (linear inside the log, held outside)."""
-        smoothed = self.sensed(name)
-        if smoothed.t_s.size == 0:
-            return np.full(np.shape(t_s), np.nan)
-        return np.interp(np.asarray(t_s, dtype=np.float64), smoothed.t_s, smoothed.value)
+        """:meth:`sensed` at ``t_s``: linear inside the log, held before it,
+        forecast along the quantity's slope at the last sample after it."""
+        return self.sensed(name).at(t_s)
 
     def events_before(self, t_s: float) -> Sequence[Event]:
         k = bisect.bisect_right(self.events, t_s, key=lambda ev: ev.t_s)

@@ -20,8 +20,11 @@ likelihood, prediction-error decomposition; time in units of the median
 sampling interval), on a coarse log grid, then refined by golden-section
 search. The smoothed s (the Rauch–Tung–Striebel pass) uses every sample
 logged so far, so a time inside the log gets a two-sided estimate and the
-last sample the filtered one. A channel without read-out noise gets a large
-λ and comes back (nearly) unchanged.
+last sample the filtered one. Beyond the last sample the quantity is
+forecast as the model forecasts it, along the filtered slope there (a
+drift model asked about the next frame before its readings arrive). A
+channel without read-out noise gets a large λ and comes back (nearly)
+unchanged.
 """
 
 from __future__ import annotations
@@ -51,14 +54,28 @@ class SmoothedChannel:
     """A channel log with its read-out noise removed.
 
     ``t_s`` (n,) the finite samples' times, ``value`` (n,) the smoothed
-    channel there, ``noise_sd`` the estimated read-out noise (channel units),
-    ``log_ratio`` log10 of the estimated signal-to-noise ratio λ.
+    channel there, ``slope_per_s`` its rate of change at the last sample
+    (channel units per s), ``noise_sd`` the estimated read-out noise (channel
+    units), ``log_ratio`` log10 of the estimated signal-to-noise ratio λ.
     """
 
     t_s: FloatArray
     value: FloatArray
+    slope_per_s: float
     noise_sd: float
     log_ratio: float
+
+    def at(self, t_s: npt.ArrayLike) -> FloatArray:
+        """The quantity at ``t_s``: linear between samples, held before the
+        first, forecast along :attr:`slope_per_s` after the last."""
+        t = np.asarray(t_s, dtype=np.float64)
+        if self.t_s.size == 0:
+            return np.full(t.shape, np.nan)
+        out = np.interp(t, self.t_s, self.value)
+        ahead = t - self.t_s[-1]
+        return np.asarray(
+            np.where(ahead > 0, self.value[-1] + self.slope_per_s * ahead, out), dtype=np.float64
+        )
 
 
 @numba.njit(cache=True)
@@ -68,7 +85,7 @@ def _filter(
     """IRW + white noise Kalman filter with r = 1; optionally the RTS smoother.
 
     Returns (−2·concentrated log-likelihood, the ML estimate of r, the
-    smoothed level or an empty array).
+    smoothed level and slope (n, 2), or an empty array).
     """
     n = z.size
     xf = np.empty((n, 2))
@@ -107,10 +124,10 @@ def _filter(
     scale = max(ss / max(m, 1), 1e-300)
     nll = m * math.log(scale) + logdet
     if not smooth:
-        return nll, scale, np.empty(0)
-    out = np.empty(n)
+        return nll, scale, np.empty((0, 2))
+    out = np.empty((n, 2))
     s0, s1 = xf[n - 1, 0], xf[n - 1, 1]
-    out[n - 1] = s0
+    out[n - 1, 0], out[n - 1, 1] = s0, s1
     for i in range(n - 2, -1, -1):
         d = tau[i + 1] - tau[i]
         # J = Pf Fᵀ Pp⁻¹ (2×2), Pp of step i + 1.
@@ -131,7 +148,7 @@ def _filter(
         e1 = s1 - xp[i + 1, 1]
         s0 = xf[i, 0] + j00 * e0 + j01 * e1
         s1 = xf[i, 1] + j10 * e0 + j11 * e1
-        out[i] = s0
+        out[i, 0], out[i, 1] = s0, s1
     return nll, scale, out
 
 
@@ -149,7 +166,7 @@ def smooth_channel(t_s: npt.ArrayLike, values: npt.ArrayLike) -> SmoothedChannel
     -------
     SmoothedChannel
         At the finite samples. With fewer than four of them, or a constant
-        log, the values come back unchanged (``noise_sd`` 0).
+        log, the values come back unchanged (``noise_sd`` and slope 0).
     """
     t = np.asarray(t_s, dtype=np.float64)
     v = np.asarray(values, dtype=np.float64)
@@ -159,7 +176,7 @@ def smooth_channel(t_s: npt.ArrayLike, values: npt.ArrayLike) -> SmoothedChannel
     t, v = t[ok], v[ok]
     span = float(np.ptp(v)) if v.size else 0.0
     if v.size < 4 or span == 0.0:
-        return SmoothedChannel(t, v.copy(), 0.0, math.inf)
+        return SmoothedChannel(t, v.copy(), 0.0, 0.0, math.inf)
     steps = np.diff(t)
     unit = float(np.median(steps[steps > 0])) if np.any(steps > 0) else 1.0
     tau = (t - t[0]) / unit
@@ -191,5 +208,11 @@ def smooth_channel(t_s: npt.ArrayLike, values: npt.ArrayLike) -> SmoothedChannel
     log_ratio, f_best = (c, fc) if fc < fd else (d, fd)
     if values_nll[best] < f_best:
         log_ratio = float(grid[best])
-    _, r, level = _filter(tau, z, 10.0**log_ratio, p0, True)
-    return SmoothedChannel(t, v[0] + span * level, span * math.sqrt(r), float(log_ratio))
+    _, r, state = _filter(tau, z, 10.0**log_ratio, p0, True)
+    return SmoothedChannel(
+        t_s=t,
+        value=v[0] + span * state[:, 0],
+        slope_per_s=float(span * state[-1, 1] / unit),
+        noise_sd=span * math.sqrt(r),
+        log_ratio=float(log_ratio),
+    )

@@ -239,9 +239,10 @@ class _ChannelProportional(EffectTerm):
 class Thermal(_ChannelProportional):
     """Thermal expansion proportional to the logged temperature.
 
-    p(t) = k·(T(t) − T₀), T the logged ``temperature_c`` (held at its last
-    value beyond the log), T₀ its first logged value, k in nm/K: the expansion
-    coefficient times the thermal path length of the sample-scanner loop.
+    p(t) = k·(T(t) − T₀), T the logged ``temperature_c`` (read through its
+    noise and forecast beyond the log, :meth:`History.sensed_at`), T₀ its
+    first logged value, k in nm/K: the expansion coefficient times the
+    thermal path length of the sample-scanner loop.
     """
 
     name = "thermal"
@@ -268,9 +269,9 @@ class LaggedChannel(EffectTerm):
     low-pass, τ·dC_s/dt = C − C_s, with C_s(t₀) = C(t₀) at the first log
     entry; p(t) = k·(C_s(t) − C₀), C₀ the first logged value. C is the
     logged channel with its read-out noise removed
-    (:meth:`History.sensed_at`). Beyond the log, C is held at its last value
-    and C_s keeps relaxing towards it. A τ at or below :attr:`no_lag_s` is no
-    lag at all (p = k·(C − C₀)). Subclasses set :attr:`channel` and the
+    (:meth:`History.sensed_at`). Beyond the log, C is its forecast, a ramp
+    along the last slope, and C_s follows the ramp through the lag. A τ at or
+    below :attr:`no_lag_s` is no lag at all (p = k·(C − C₀)). Subclasses set :attr:`channel` and the
     ``tau_s`` search range.
     """
 
@@ -296,9 +297,13 @@ class LaggedChannel(EffectTerm):
         out = np.interp(t_s, tg, yg)
         beyond = t_s > tg[-1]
         if beyond.any():
-            t_last = float(self._resampled(history)[1][-1])
-            decay = np.exp(-(t_s[beyond] - tg[-1]) / tau_s)
-            out[beyond] = t_last + (yg[-1] - t_last) * decay
+            # The lag of the ramp C = c + s·u (u the time after the grid's end)
+            # from C_s = y there: C_s = c + s·(u − τ) + (y − c + s·τ)·exp(−u/τ).
+            c = float(self._resampled(history)[1][-1])
+            slope = history.sensed(self.channel).slope_per_s
+            u = t_s[beyond] - tg[-1]
+            decay = np.exp(-u / tau_s)
+            out[beyond] = c + slope * (u - tau_s) + (yg[-1] - c + slope * tau_s) * decay
         return out
 
     def _resampled(self, history: History) -> tuple[FloatArray, FloatArray]:
@@ -353,8 +358,9 @@ class ThermalLag(LaggedChannel):
     first log entry; p(t) = k·(T_s(t) − T₀). Parameters: k in nm/K (as for
     ``thermal``) and the thermal time constant ``tau_s`` in s (how long the
     scanner takes to follow the room or stage sensor); τ ≤ 1 s is no lag, so
-    the term holds ``thermal`` as its limit. Beyond the log, T is held at its
-    last value and T_s keeps relaxing towards it.
+    the term holds ``thermal`` as its limit. Beyond the log, T is its
+    forecast along the last slope (:meth:`History.sensed_at`), and T_s
+    follows it through the lag.
     """
 
     name = "thermal_lag"

@@ -74,3 +74,13 @@ def test_direct_thermal_response_predicted_through_sensor_noise() -> None:
     assert model.params["thermal_lag"]["tau_s"] < 30.0
     assert e.mean() < 0.3, e.mean()
     assert e.max() < 1.0, e.max()
+
+
+def test_forecast_beyond_the_log_follows_the_slope() -> None:
+    """Beyond the last reading the quantity goes on along its slope (the next
+    frame and the d(t) curve ahead), where the raw log is held flat."""
+    t = np.arange(0.0, 3600.0, STEP_S)
+    out = smooth_channel(t, 20.0 + 1e-4 * t)
+    assert out.slope_per_s == pytest.approx(1e-4, rel=1e-3)
+    assert out.at([t[-1] + 600.0])[0] == pytest.approx(20.0 + 1e-4 * (t[-1] + 600.0), abs=1e-4)
+    assert out.at([-100.0])[0] == pytest.approx(20.0, abs=1e-4)
