@@ -49,15 +49,17 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.errors import InputError
 from afmdrift.registration._blocks import FrameStats, config_for_image
-from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
-from afmdrift.registration._errors import NearlyBlankError, RegistrationError
-from afmdrift.registration._measure import (
-    REFINE_PX,
+from afmdrift.registration._checks import (
     allow_nearly_blank,
     check_frame,
     check_image,
     check_pixel_size,
     check_prior,
+)
+from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
+from afmdrift.registration._errors import NearlyBlankError, RegistrationError
+from afmdrift.registration._measure import (
+    REFINE_PX,
     invalid_result,
     reference_repeats,
     register,
