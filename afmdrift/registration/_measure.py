@@ -187,9 +187,13 @@ class _Pair:
     pixel_size_nm: tuple[float, float]
 
     def coarse(self, prior_px: tuple[float, float] | None, *, taper: bool = True) -> CoarseShift:
-        """The coarse alignment of the frame on the reference."""
+        """The coarse alignment of the frame on the reference (its lattice
+        vectors found once, :func:`_vectors`)."""
         assert self.ref_heights is not None
-        return coarse_shift(self.ref_heights, self.heights, prior_px=prior_px, taper=taper)
+        return coarse_shift(
+            self.ref_heights, self.heights, prior_px=prior_px, taper=taper,
+            ref_vectors=_vectors(self.ref, self.ref_heights),
+        )  # fmt: skip
 
     def combine(
         self, meas: BlockMeasurement, textured: npt.NDArray[np.bool_] | None
@@ -470,9 +474,24 @@ def reference_repeats(ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floatin
     kept with it, with its vectors (``derived["repeats"]``)."""
     cached = ref.derived.get("repeats")
     if cached is None:
-        cached = repeat_vectors(levelled(np.asarray(ref_heights)))
+        cached = _vectors(ref, ref_heights)
         ref.derived["repeats"] = cached
     return len(cached) > 0
+
+
+def _vectors(
+    ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floating]
+) -> npt.NDArray[np.float64]:
+    """:func:`repeat_vectors` of the levelled ``ref_heights``, kept with
+    ``ref`` for these very heights (``derived["vectors"]``, of
+    ``derived["vectors_of"]``): the coarse alignments of the frames measured
+    against it and :func:`reference_repeats` need them."""
+    if ref.derived.get("vectors_of") is ref_heights:
+        return ref.derived["vectors"]
+    vectors = repeat_vectors(levelled(np.asarray(ref_heights)))
+    ref.derived["vectors_of"] = ref_heights
+    ref.derived["vectors"] = vectors
+    return vectors
 
 
 def _lattice_search(cfg: RegistrationConfig, ref: ReferenceSpectra) -> float:
