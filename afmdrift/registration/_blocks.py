@@ -157,7 +157,7 @@ def choose_prefilter(heights: npt.NDArray[np.floating]) -> Gradient:
 
 class FrameStats(NamedTuple):
     """What the frame checks need of a gradient image (see
-    :func:`afmdrift.registration._measure.check_frame`).
+    :func:`afmdrift.registration._checks.check_frame`).
 
     Attributes
     ----------

@@ -431,6 +431,7 @@ def coarse_shift(
     prior_px: tuple[float, float] | None = None,
     static: BArr | None = None,
     taper: bool = True,
+    ref_vectors: F64 | None = None,
 ) -> CoarseShift:
     """Integer drift ``(dx, dy)`` in px from whole-image correlations.
 
@@ -462,19 +463,25 @@ def coarse_shift(
         Taper the frames' borders before the phase correlation
         (:func:`_taper`); when that finds no trusted shift, the whole frames
         are correlated. False: the whole frames only.
+    ref_vectors : ndarray, shape (k, 2), optional
+        The reference's lattice vectors, when the caller has them:
+        :func:`~afmdrift.registration._lattice.repeat_vectors` of
+        ``levelled(reference)``; default: found here.
 
     Returns
     -------
     CoarseShift
     """
     a, b = levelled(reference), levelled(current)
+    # every way below decides lattice translations with them: found once
+    vectors = repeat_vectors(a) if ref_vectors is None else ref_vectors
     if static is None:
         static = static_pixels(reference, current)
-    phase = _phase_shift(a, b, reference, current, prior_px, taper=taper)
+    phase = _phase_shift(a, b, reference, current, prior_px, vectors, taper=taper)
     if taper and not (phase.trusted or phase.ambiguous):
         # A shift whose overlap lies in the tapered border (350 px of a 450 px
         # frame, both ways) is found without the taper.
-        plain = _phase_shift(a, b, reference, current, prior_px, taper=False)
+        plain = _phase_shift(a, b, reference, current, prior_px, vectors, taper=False)
         if plain.trusted or plain.ambiguous:
             phase = plain
     if static is None:
@@ -486,7 +493,7 @@ def coarse_shift(
     # leaving them out would leave too little to correlate.
     if phase.trusted and max(abs(phase.dx_px), abs(phase.dy_px)) > 1:
         return phase
-    return _masked_shift(a, b, ~static, reference, current, prior_px)
+    return _masked_shift(a, b, ~static, reference, current, prior_px, vectors)
 
 
 def _phase_shift(
@@ -495,12 +502,13 @@ def _phase_shift(
     reference: npt.NDArray[np.floating],
     current: npt.NDArray[np.floating],
     prior_px: tuple[float, float] | None,
+    vectors: F64,
     *,
     taper: bool,
 ) -> CoarseShift:
     """Coarse shift from the phase correlation of the levelled images ``a``
     and ``b`` (see :func:`coarse_shift`), their borders tapered
-    (:func:`_taper`) or not."""
+    (:func:`_taper`) or not; ``vectors``: ``a``'s lattice vectors."""
     corr = _phase_correlation(_taper(a) if taper else a, _taper(b) if taper else b)
     zs = _z_surface(corr)
     n_rows, n_cols = corr.shape
@@ -517,7 +525,7 @@ def _phase_shift(
     pool = list(dict.fromkeys([minimal[0], *near[:LATTICE_CANDIDATES]]))
     top = _unwrap(a, b, *minimal[0])
     peaks = [_unwrap(a, b, *s) for s in pool[1:]]
-    lattice = _choose(a, b, corr, top, peaks, prior_px)
+    lattice = _choose(a, b, corr, top, peaks, prior_px, vectors)
     chosen = lattice.shift
     # The significance of the correlation is that of its highest peak; a
     # lattice translation of it is chosen by the content test, not by height.
@@ -572,14 +580,15 @@ def _choose(
     top: tuple[int, int],
     peaks: list[tuple[int, int]],
     prior_px: tuple[float, float] | None,
+    vectors: F64,
 ) -> _Choice:
     """The shift of the highest peak ``top`` of the correlation surface
     ``corr``, or, when the reference repeats itself, the lattice translation
     of it that the content (or, among those it cannot tell apart, the prior)
     picks (:func:`afmdrift.registration._lattice.decide`); ``peaks`` are the
     other high peaks, those among them at a lattice translation of ``top``
-    are candidates too."""
-    vectors = repeat_vectors(a)
+    are candidates too; ``vectors``: the lattice vectors of ``a``
+    (:func:`~afmdrift.registration._lattice.repeat_vectors`)."""
     if len(vectors) == 0:
         return _Choice(top)
     period = tuple((round(float(x), 2), round(float(y), 2)) for x, y in vectors[:PERIOD_VECTORS])
@@ -610,9 +619,11 @@ def _masked_shift(
     reference: npt.NDArray[np.floating],
     current: npt.NDArray[np.floating],
     prior_px: tuple[float, float] | None,
+    vectors: F64,
 ) -> CoarseShift:
     """Coarse shift with the static pixels left out (masked NCC); lattice
-    translations among its peaks are resolved as for the phase correlation."""
+    translations among its peaks are resolved as for the phase correlation
+    (``vectors``: ``a``'s lattice vectors)."""
     corr = _masked_ncc(a, b, valid)
     rows2, cols2 = corr.shape
     peak_rows, peak_cols = local_peaks(corr, LATTICE_PEAK_RATIO * float(corr.max()))
@@ -626,7 +637,7 @@ def _masked_shift(
     target = prior_px if prior_px is not None else (0.0, 0.0)
     near = sorted(shifts, key=lambda s: math.hypot(s[0] - target[0], s[1] - target[1]))
     pool = list(dict.fromkeys([shifts[0], *near[:LATTICE_CANDIDATES]]))
-    choice = _choose(a, b, corr, pool[0], pool[1:], prior_px)
+    choice = _choose(a, b, corr, pool[0], pool[1:], prior_px, vectors)
     dx, dy = choice.shift
     r, c = dy % rows2, dx % cols2
     spread = float(corr[corr != 0].std()) if np.any(corr != 0) else 0.0

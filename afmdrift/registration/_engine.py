@@ -99,7 +99,8 @@ class ReferenceSpectra:
     magnitudes in the sub-pixel band. ``derived`` keeps what is computed
     from the reference once and reused for every frame measured against it
     (the blocks with texture, :func:`afmdrift.registration._measure.textured_blocks`;
-    whether it repeats itself, :func:`afmdrift.registration._measure.reference_repeats`)."""
+    whether it repeats itself, :func:`afmdrift.registration._measure.reference_repeats`,
+    and the lattice vectors the coarse alignments against it decide with)."""
 
     grad: F32
     top: IArr

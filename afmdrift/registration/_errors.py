@@ -19,4 +19,4 @@ class InvalidFrameError(RegistrationError):
 class NearlyBlankError(InvalidFrameError):
     """A frame has almost no texture (few non-zero gradient pixels); it is
     measured only when the whole-image alignment locks onto it strongly
-    (:func:`afmdrift.registration._measure.allow_nearly_blank`)."""
+    (:func:`afmdrift.registration._checks.allow_nearly_blank`)."""

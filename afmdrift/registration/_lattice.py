@@ -153,21 +153,22 @@ def _autocorrelation(image: F64) -> F64:
     rows, cols = image.shape
     shape = (2 * rows, 2 * cols)
     a = image - image.mean()
+    # the transforms of the three images the correlations pair, each made once
+    f_ones, f_a, f_aa = (sfft.rfft2(x, s=shape) for x in (np.ones_like(a), a, a * a))
 
-    def corr(x: F64, y: F64) -> F64:
-        out: F64 = sfft.irfft2(np.conj(sfft.rfft2(x, s=shape)) * sfft.rfft2(y, s=shape), s=shape)
+    def corr(fx: npt.NDArray[np.complex128], fy: npt.NDArray[np.complex128]) -> F64:
+        out: F64 = sfft.irfft2(np.conj(fx) * fy, s=shape)
         return out
 
-    ones = np.ones_like(a)
-    n = np.maximum(np.round(corr(ones, ones)), 1.0)
-    s_fixed, s_moved = corr(a, ones), corr(ones, a)
-    q_fixed, q_moved = corr(a * a, ones), corr(ones, a * a)
+    n = np.maximum(np.round(corr(f_ones, f_ones)), 1.0)
+    s_fixed, s_moved = corr(f_a, f_ones), corr(f_ones, f_a)
+    q_fixed, q_moved = corr(f_aa, f_ones), corr(f_ones, f_aa)
     var_fixed = np.maximum(q_fixed - s_fixed**2 / n, 0.0)
     var_moved = np.maximum(q_moved - s_moved**2 / n, 0.0)
     den = np.sqrt(var_fixed * var_moved)
     out: F64 = np.zeros(shape)
     ok = den > 1e-12 * float(den.max())
-    np.divide(corr(a, a) - s_fixed * s_moved / n, den, out=out, where=ok)
+    np.divide(corr(f_a, f_a) - s_fixed * s_moved / n, den, out=out, where=ok)
     return out
 
 

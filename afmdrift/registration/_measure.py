@@ -1,4 +1,5 @@
-"""Frame-level drift: input checks, block combination and :func:`measure_drift`."""
+"""Frame-level drift: block combination, the one registration path
+(:func:`register`) and :func:`measure_drift`."""
 
 from __future__ import annotations
 
@@ -7,13 +8,21 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import RegistrationConfig
 from afmdrift.registration._blocks import FrameStats, config_for_image
+from afmdrift.registration._checks import (
+    MIN_IMAGE_PX,
+    allow_nearly_blank,
+    check_frame,
+    check_image,
+    check_pixel_size,
+    check_prior,
+)
 from afmdrift.registration._coarse import (
     CoarseShift,
     coarse_shift,
@@ -23,7 +32,6 @@ from afmdrift.registration._coarse import (
 )
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
-    InvalidFrameError,
     NearlyBlankError,
     RegistrationError,
 )
@@ -32,159 +40,19 @@ from afmdrift.registration._outliers import needed_blocks, select_blocks
 from afmdrift.registration._result import BlockField, DriftResult
 
 __all__ = [
-    "MIN_IMAGE_PX",
-    "MIN_TEXTURE_FRACTION",
     "REFINE_PX",
-    "check_frame",
-    "check_image",
-    "check_pixel_size",
-    "check_prior",
     "combine",
     "measure_blocks",
     "measure_drift",
     "warm_up",
 ]
 
-#: Smallest accepted image edge (px).
-MIN_IMAGE_PX = 64
-#: Smallest share of non-zero gradient pixels of a usable frame.
-MIN_TEXTURE_FRACTION = 0.02
 #: A second block pass is made when the drift is farther than this from the prior (px).
 REFINE_PX = 2.0
 
 _CACHE_SIZE = 4
 _cache_lock = threading.Lock()
 _engines: OrderedDict[tuple[tuple[int, int], RegistrationConfig], BlockEngine] = OrderedDict()
-
-
-def check_pixel_size(pixel_size_nm: float | tuple[float, float]) -> tuple[float, float]:
-    """Validate a pixel size (scalar or ``(x, y)``) and return ``(px, py)`` in nm."""
-    if isinstance(pixel_size_nm, (int, float, np.floating, np.integer)):
-        pair = (float(pixel_size_nm), float(pixel_size_nm))
-    else:
-        try:
-            px, py = pixel_size_nm
-            pair = (float(px), float(py))
-        except (TypeError, ValueError):
-            raise RegistrationError(
-                f"pixel_size_nm must be a number or an (x, y) pair, got {pixel_size_nm!r}"
-            ) from None
-    for name, v in zip(("x", "y"), pair, strict=True):
-        if not (math.isfinite(v) and v > 0):
-            raise RegistrationError(f"pixel_size_nm {name} must be finite and > 0, got {v!r}")
-    return pair
-
-
-def check_image(image: npt.ArrayLike, name: str) -> npt.NDArray[np.floating]:
-    """Validate a height image as an array; return it as a floating array (no
-    copy if possible). Its pixel values are checked with its gradient image,
-    by :func:`check_frame`.
-
-    Raises
-    ------
-    InvalidFrameError
-        Not 2-D, not real numeric, or smaller than 64 px.
-    """
-    arr = np.asarray(image)
-    if arr.dtype.kind not in "fiu":
-        raise InvalidFrameError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
-    if arr.ndim != 2:
-        raise InvalidFrameError(f"{name} must be 2-D (rows, cols), got shape {arr.shape}")
-    if min(arr.shape) < MIN_IMAGE_PX:
-        raise InvalidFrameError(
-            f"{name} is too small: shape {arr.shape}, need at least "
-            f"{MIN_IMAGE_PX}×{MIN_IMAGE_PX} px"
-        )
-    if arr.dtype.kind != "f":
-        arr = arr.astype(np.float64)
-    return arr
-
-
-def check_frame(
-    heights: npt.NDArray[np.floating],
-    grad: npt.NDArray[np.float32],
-    stats: FrameStats,
-    name: str,
-    *,
-    gradient: str,
-) -> None:
-    """Refuse a frame with nothing to register, given its gradient image
-    ``grad`` and the :class:`FrameStats` found with it
-    (:meth:`BlockEngine.prepare`). The heights themselves are only looked at
-    again to name what is wrong.
-
-    Raises
-    ------
-    InvalidFrameError
-        NaN/Inf pixels (or height differences beyond float32); a constant
-        frame, or a gradient image without texture (a plane); or, for the
-        gradient modes (``gradient`` not ``"none"``), fewer than
-        :data:`MIN_TEXTURE_FRACTION` of the gradient's pixels non-zero: a
-        near-blank frame, e.g. HS-AFM frame 27 of ``hsafm_sample_0.asd``
-        (9 height levels, 0.18 % non-zero x-gradient; good frames of that
-        movie 70–75 %), on which a few blocks once agreed on a confident
-        wrong drift of (−19.5, 11.2) px.
-    """
-    if not stats.finite or stats.uniform:
-        lo, hi = float(heights.min()), float(heights.max())
-        _check_values(heights, name, lo, hi)
-        if not stats.finite:
-            raise InvalidFrameError(
-                f"{name} has height differences beyond the float32 range (heights "
-                f"{lo:g} .. {hi:g} nm): not a height image in nm?"
-            )
-        raise InvalidFrameError(
-            f"{name} has no texture in its gradient image (a plane or constant): "
-            "nothing to register"
-        )
-    if gradient != "none":
-        fraction = stats.nonzero / grad.size
-        if fraction < MIN_TEXTURE_FRACTION:
-            raise NearlyBlankError(
-                f"{name} is nearly blank: only {100 * fraction:.2f} % of its gradient image "
-                f"is non-zero (need {100 * MIN_TEXTURE_FRACTION:g} %): nothing to register"
-            )
-
-
-#: A nearly blank frame is measured when the whole-image alignment locks onto it
-#: with at least this significance in both the levelled heights and the
-#: x-gradient (one 11×11 feature on a flat 129×128 frame: z 128; HS-AFM frame 27
-#: against its neighbours, scattered quantisation steps: z ≤ 4.1).
-BLANK_LOCK_Z = 20.0
-
-
-def allow_nearly_blank(
-    err: NearlyBlankError,
-    reference: npt.NDArray[np.floating] | None,
-    current: npt.NDArray[np.floating],
-    *,
-    enabled: bool = True,
-) -> None:
-    """Re-raise ``err`` unless the two frames lock strongly onto each other
-    (:data:`BLANK_LOCK_Z`): a few features on a flat background can be
-    registered, scattered isolated steps cannot. Without a reference or with
-    the coarse alignment disabled, the frame is refused."""
-    if not enabled or reference is None:
-        raise err
-    # The frames' borders are flat here (nearly blank): no taper is needed,
-    # and a taper lowers a sparse frame's z (64² rectangle: 42 → 15).
-    lock = coarse_shift(reference, current, taper=False)
-    if not (lock.trusted and min(lock.peak_z, lock.gradient_z) >= BLANK_LOCK_Z):
-        raise err
-
-
-def _check_values(arr: npt.NDArray[np.floating], name: str, lo: float, hi: float) -> None:
-    """Refuse NaN/Inf pixels or a constant image, given the image's minimum
-    ``lo`` and maximum ``hi`` (NaN or ±inf there when such pixels exist)."""
-    if not (math.isfinite(lo) and math.isfinite(hi)):
-        finite = np.isfinite(arr)
-        bad = int(arr.size - np.count_nonzero(finite))
-        r, c = np.argwhere(~finite)[0]
-        raise InvalidFrameError(
-            f"{name} has {bad} NaN/Inf pixel(s), first at [row {r}, col {c}] = {arr[r, c]}"
-        )
-    if lo == hi:
-        raise InvalidFrameError(f"{name} is constant (all pixels = {lo}): nothing to register")
 
 
 def combine(
@@ -305,6 +173,65 @@ class Registration:
     alternative: CoarseShift | None = None
 
 
+@dataclass(frozen=True, eq=False)
+class _Pair:
+    """What :func:`register` measures: the engine, the reference (its
+    spectra, and its heights for the coarse alignment), the current frame's
+    gradient buffer and heights, and the pixel size."""
+
+    engine: BlockEngine
+    ref: ReferenceSpectra
+    grad: npt.NDArray[np.float32]
+    heights: npt.NDArray[np.floating]
+    ref_heights: npt.NDArray[np.floating] | None
+    pixel_size_nm: tuple[float, float]
+
+    def coarse(self, prior_px: tuple[float, float] | None, *, taper: bool = True) -> CoarseShift:
+        """The coarse alignment of the frame on the reference (its lattice
+        vectors found once, :func:`_vectors`)."""
+        assert self.ref_heights is not None
+        return coarse_shift(
+            self.ref_heights, self.heights, prior_px=prior_px, taper=taper,
+            ref_vectors=_vectors(self.ref, self.ref_heights),
+        )  # fmt: skip
+
+    def combine(
+        self, meas: BlockMeasurement, textured: npt.NDArray[np.bool_] | None
+    ) -> DriftResult:
+        """:func:`combine` for this pair."""
+        return combine(
+            meas, engine=self.engine, pixel_size_nm=self.pixel_size_nm,
+            dtype=result_dtype(self.heights), textured=textured,
+        )  # fmt: skip
+
+
+@dataclass(eq=False)
+class _Attempt:
+    """Where :func:`register` stands: the prior the blocks were (or are to be)
+    searched around, the search half-width, how the prior came about, the
+    lattice translations the result stands among, the coarse alignments
+    made, and, once measured, the result and window corners."""
+
+    prior: tuple[float, float] = (0.0, 0.0)
+    search: float | None = None
+    how: str = "none"
+    coarse: CoarseShift | None = None
+    alternative: CoarseShift | None = None
+    #: Whether the frame's gradient image was made and checked already.
+    checked: bool = False
+    #: The pair refused before any block pass (ambiguous lattice translations).
+    refused: Registration | None = None
+    result: DriftResult | None = None
+    top: npt.NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    left: npt.NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    lattice: tuple[tuple[float, float], ...] = ()
+
+    def registration(self) -> Registration:
+        assert self.result is not None
+        result = replace(self.result, prior_px=self.prior, prior=self.how, lattice_px=self.lattice)
+        return Registration(result, self.top, self.left, self.coarse, self.alternative)
+
+
 def register(
     engine: BlockEngine,
     ref: ReferenceSpectra,
@@ -321,85 +248,38 @@ def register(
     and ``afmdrift measure``: prior → block pass → refine → combine, with the
     coarse alignment where nothing is expected or the first try fails.
 
-    1. **Prior.** ``expected_px`` (``source``: ``given`` by a caller,
-       ``predicted`` by the tracker) centres the block search. Without it,
-       the coarse alignment :func:`coarse_shift` (``config.coarse``) does,
-       within ±``coarse_search_px`` (less on a lattice: never as far as the
-       next lattice translation); an untrusted one leaves zero and the
-       full search. When the reference repeats itself (a lattice,
-       :func:`reference_repeats`), the coarse alignment decides the lattice
-       translation with ``expected_px`` too (by content, else the one
-       nearest it). Lattice translations that neither the content nor the
-       expected drift decide between are refused as ambiguous, naming them.
+    1. **Prior** (:func:`_choose_prior`). ``expected_px`` (``source``:
+       ``given`` by a caller, ``predicted`` by the tracker) centres the block
+       search. Without it, the coarse alignment :func:`coarse_shift`
+       (``config.coarse``) does, within ±``coarse_search_px`` (less on a
+       lattice: never as far as the next lattice translation); an untrusted
+       one leaves zero and the full search. When the reference repeats
+       itself (a lattice, :func:`reference_repeats`), the coarse alignment
+       decides the lattice translation with ``expected_px`` too (by content,
+       else the one nearest it). Lattice translations that neither the
+       content nor the expected drift decide between are refused as
+       ambiguous, naming them.
     2. **Blocks**, refined once around their median (:func:`measure_blocks`),
        and combined (:func:`combine`).
-    3. **Retry.** A result that came out invalid is measured once more around
-       the trusted coarse alignment (the lattice translation nearest the
-       expectation), when that differs from the first prior.
+    3. **Retry** (:func:`_retry`). A result that came out invalid is measured
+       once more around the trusted coarse alignment (the lattice translation
+       nearest the expectation), when that differs from the first prior.
 
     ``grad`` holds the current frame's gradient image, or, with ``check``,
     is filled from ``heights`` during the first block pass (see
     :meth:`BlockEngine.measure`) and checked by ``check``.
     """
-    cfg = engine.config
-    dtype = result_dtype(heights)
-    coarse: CoarseShift | None = None
-    alternative: CoarseShift | None = None
-    search: float | None = None
-    prior: tuple[float, float] = (0.0, 0.0)
-    how = "none"
-    fresh = check is not None
-    if expected_px is not None:
-        prior, how = expected_px, source
-        if cfg.coarse and ref_heights is not None and reference_repeats(ref, ref_heights):
-            # A periodic sample: blocks searching ±max_shift_px around the
-            # expected drift lock onto whichever lattice translation their
-            # own peaks favour (a given prior 3 px from the truth once gave a
-            # valid result a period off). The lattice decision of the coarse
-            # alignment picks the translation (by content, else the one
-            # nearest the expectation), and the blocks search around it only.
-            if check is not None:
-                check(engine.prepare(heights, out=grad)[1])
-                fresh = False
-            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
-            if coarse.ambiguous:
-                result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
-                result = replace(
-                    result, prior_px=prior, prior=f"{source}; {coarse.describe()}",
-                    lattice_px=coarse.candidates_px,
-                )  # fmt: skip
-                empty = np.zeros(0, dtype=np.intp)
-                return Registration(result, empty, empty, coarse)
-            if coarse.lattice_by and coarse.trusted:
-                prior, search = coarse.prior_px, _coarse_search(cfg, coarse)
-                how = f"{source}, lattice translation by the coarse alignment ({coarse.describe()})"
-            else:
-                # No lattice decision to go by: the blocks search only up to
-                # half a period around the expected drift.
-                search = _lattice_search(cfg, ref)
-                how = f"{source}; search within half the reference's period"
-    elif cfg.coarse and ref_heights is not None:
-        if check is not None:
-            # The coarse alignment needs the frame checked first.
-            check(engine.prepare(heights, out=grad)[1])
-            fresh = False
-        coarse = coarse_shift(ref_heights, heights)
-        if coarse.ambiguous:
-            result = invalid_result(_no_field(engine, dtype), ambiguous_reason(coarse))
-            result = replace(result, prior=coarse.describe(), lattice_px=coarse.candidates_px)
-            empty = np.zeros(0, dtype=np.intp)
-            return Registration(result, empty, empty, coarse)
-        if coarse.trusted:
-            prior, search = coarse.prior_px, _coarse_search(cfg, coarse)
-            how = f"coarse ({coarse.describe()})"
-        else:
-            how = f"coarse not used ({coarse.describe()})"
-    meas, top, left = measure_blocks(
+    pair = _Pair(engine, ref, grad, heights, ref_heights, pixel_size_nm)
+    at = _choose_prior(pair, expected_px=expected_px, source=source, check=check)
+    if at.refused is not None:
+        return at.refused
+    fresh = check is not None and not at.checked
+    meas, at.top, at.left = measure_blocks(
         engine,
         ref,
         grad,
-        prior_px=prior,
-        search_px=search,
+        prior_px=at.prior,
+        search_px=at.search,
         heights=heights if fresh else None,
         check=check if fresh else None,
     )
@@ -411,47 +291,123 @@ def register(
     # put up and down frames ±0.2 nm apart on quiet-lab-24h; the random peaks
     # of a bare substrate fall to the outlier rule.
     textured = textured_blocks(engine, ref)
-    result = combine(
-        meas, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype, textured=textured
-    )
-    lattice = coarse.lattice_px if coarse is not None and search is not None else ()
-    if not result.valid and cfg.coarse and ref_heights is not None and search is None:
+    at.result = pair.combine(meas, textured)
+    if at.coarse is not None and at.search is not None:
+        at.lattice = at.coarse.lattice_px
+    if not at.result.valid and ref_heights is not None:
+        _retry(at, pair, expected_px=expected_px, textured=textured)
+    return at.registration()
+
+
+def _choose_prior(
+    pair: _Pair,
+    *,
+    expected_px: tuple[float, float] | None,
+    source: str,
+    check: Callable[[FrameStats], None] | None,
+) -> _Attempt:
+    """Step 1 of :func:`register`: the prior and search of the block pass,
+    from ``expected_px`` (decided among lattice translations on a periodic
+    sample) or the coarse alignment. The coarse alignment needs the frame
+    checked first: with ``check``, its gradient image is made into the
+    pair's gradient buffer and checked then. A pair whose lattice
+    translations tie with nothing to decide comes back ``refused``."""
+    engine, ref = pair.engine, pair.ref
+    cfg = engine.config
+    at = _Attempt()
+    if expected_px is not None:
+        at.prior, at.how = expected_px, source
+    if not cfg.coarse or pair.ref_heights is None:
+        return at
+    if expected_px is not None and not reference_repeats(ref, pair.ref_heights):
+        return at
+    # Nothing expected, or a periodic sample: blocks searching ±max_shift_px
+    # around the expected drift lock onto whichever lattice translation their
+    # own peaks favour (a given prior 3 px from the truth once gave a valid
+    # result a period off). The lattice decision of the coarse alignment
+    # picks the translation (by content, else the one nearest the
+    # expectation), and the blocks search around it only.
+    if check is not None:
+        check(engine.prepare(pair.heights, out=pair.grad)[1])
+        at.checked = True
+    at.coarse = coarse = pair.coarse(expected_px)
+    if coarse.ambiguous:
+        result = invalid_result(
+            _no_field(engine, result_dtype(pair.heights)), ambiguous_reason(coarse)
+        )
+        result = replace(
+            result,
+            prior_px=expected_px,
+            prior=coarse.describe() if expected_px is None else f"{source}; {coarse.describe()}",
+            lattice_px=coarse.candidates_px,
+        )
+        empty = np.zeros(0, dtype=np.intp)
+        at.refused = Registration(result, empty, empty, coarse)
+    elif expected_px is not None and coarse.lattice_by and coarse.trusted:
+        at.prior, at.search = coarse.prior_px, _coarse_search(cfg, coarse)
+        at.how = f"{source}, lattice translation by the coarse alignment ({coarse.describe()})"
+    elif expected_px is not None:
+        # No lattice decision to go by: the blocks search only up to half a
+        # period around the expected drift.
+        at.search = _lattice_search(cfg, ref)
+        at.how = f"{source}; search within half the reference's period"
+    elif coarse.trusted:
+        at.prior, at.search = coarse.prior_px, _coarse_search(cfg, coarse)
+        at.how = f"coarse ({coarse.describe()})"
+    else:
+        at.how = f"coarse not used ({coarse.describe()})"
+    return at
+
+
+def _retry(
+    at: _Attempt,
+    pair: _Pair,
+    *,
+    expected_px: tuple[float, float] | None,
+    textured: npt.NDArray[np.bool_],
+) -> None:
+    """Step 3 of :func:`register`, for a result that came out invalid:
+    measure once more around the trusted coarse alignment (made now if the
+    prior did not come from it), or, when the blocks searched around a
+    tapered coarse alignment, around the alignment of the untapered frames;
+    ``at`` takes the second result if it is valid."""
+    coarse = at.coarse
+    if pair.engine.config.coarse and at.search is None:
         if coarse is None or expected_px is not None:
-            coarse = coarse_shift(ref_heights, heights, prior_px=expected_px)
+            coarse = at.coarse = pair.coarse(expected_px)
         if coarse.trusted:
-            retry, top2, left2 = measure_blocks(
-                engine, ref, grad, prior_px=coarse.prior_px, search_px=_coarse_search(cfg, coarse)
-            )
-            again = combine(retry, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype)
-            if again.valid:
-                result, top, left, prior = again, top2, left2, coarse.prior_px
-                how, lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
-    elif (
-        not result.valid
-        and ref_heights is not None
-        and coarse is not None
-        and coarse.trusted
-        and coarse.tapered
-    ):
-        # The taper keeps the frame edges out of the correlation, but also an
-        # overlap that lies in the tapered border (shifts of most of the
-        # frame both ways); the correlation of the whole frames is the other
-        # candidate, and the blocks (or the overlap, measure_drift) decide.
-        plain = coarse_shift(ref_heights, heights, prior_px=expected_px, taper=False)
-        if plain.trusted and plain.prior_px != coarse.prior_px:
-            alternative = plain
-            retry, top2, left2 = measure_blocks(
-                engine, ref, grad, prior_px=plain.prior_px, search_px=_coarse_search(cfg, plain)
-            )
-            again = combine(
-                retry, engine=engine, pixel_size_nm=pixel_size_nm, dtype=dtype, textured=textured
-            )
-            if again.valid:
-                result, top, left, prior = again, top2, left2, plain.prior_px
-                how, lattice = f"coarse retry ({plain.describe()})", plain.lattice_px
-                coarse, alternative = plain, None
-    result = replace(result, prior_px=prior, prior=how, lattice_px=lattice)
-    return Registration(result, top, left, coarse, alternative)
+            _measure_around(at, pair, coarse, None)
+        return
+    if coarse is None or not (coarse.trusted and coarse.tapered):
+        return
+    # The taper keeps the frame edges out of the correlation, but also an
+    # overlap that lies in the tapered border (shifts of most of the frame
+    # both ways); the correlation of the whole frames is the other candidate,
+    # and the blocks (or the overlap, measure_drift) decide.
+    plain = pair.coarse(expected_px, taper=False)
+    if plain.trusted and plain.prior_px != coarse.prior_px:
+        at.alternative = plain
+        if _measure_around(at, pair, plain, textured):
+            at.coarse, at.alternative = plain, None
+
+
+def _measure_around(
+    at: _Attempt, pair: _Pair, coarse: CoarseShift, textured: npt.NDArray[np.bool_] | None
+) -> bool:
+    """The blocks measured around the trusted ``coarse`` alignment and
+    combined (``textured``: see :func:`combine`); taken into ``at`` and True
+    when the result is valid."""
+    engine = pair.engine
+    retry, top, left = measure_blocks(
+        engine, pair.ref, pair.grad, prior_px=coarse.prior_px,
+        search_px=_coarse_search(engine.config, coarse),
+    )  # fmt: skip
+    again = pair.combine(retry, textured)
+    if not again.valid:
+        return False
+    at.result, at.top, at.left, at.prior = again, top, left, coarse.prior_px
+    at.how, at.lattice = f"coarse retry ({coarse.describe()})", coarse.lattice_px
+    return True
 
 
 #: A block has texture when its reference content's variance is at least this
@@ -518,9 +474,24 @@ def reference_repeats(ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floatin
     kept with it, with its vectors (``derived["repeats"]``)."""
     cached = ref.derived.get("repeats")
     if cached is None:
-        cached = repeat_vectors(levelled(np.asarray(ref_heights)))
+        cached = _vectors(ref, ref_heights)
         ref.derived["repeats"] = cached
     return len(cached) > 0
+
+
+def _vectors(
+    ref: ReferenceSpectra, ref_heights: npt.NDArray[np.floating]
+) -> npt.NDArray[np.float64]:
+    """:func:`repeat_vectors` of the levelled ``ref_heights``, kept with
+    ``ref`` for these very heights (``derived["vectors"]``, of
+    ``derived["vectors_of"]``): the coarse alignments of the frames measured
+    against it and :func:`reference_repeats` need them."""
+    if ref.derived.get("vectors_of") is ref_heights:
+        return ref.derived["vectors"]
+    vectors = repeat_vectors(levelled(np.asarray(ref_heights)))
+    ref.derived["vectors_of"] = ref_heights
+    ref.derived["vectors"] = vectors
+    return vectors
 
 
 def _lattice_search(cfg: RegistrationConfig, ref: ReferenceSpectra) -> float:
@@ -695,19 +666,6 @@ def _measure_overlap(
         prior_px=(float(dx), float(dy)),
         prior=how,
     )
-
-
-def check_prior(prior_px: tuple[float, float] | None) -> tuple[float, float] | None:
-    """Validate an expected drift ``(dx, dy)`` in px."""
-    if prior_px is None:
-        return None
-    try:
-        prior = (float(prior_px[0]), float(prior_px[1]))
-    except (TypeError, ValueError, IndexError):
-        raise RegistrationError(f"prior_px must be an (dx, dy) pair, got {prior_px!r}") from None
-    if not all(math.isfinite(v) for v in prior):
-        raise RegistrationError(f"prior_px must be finite, got {prior_px!r}")
-    return prior
 
 
 def measure_blocks(

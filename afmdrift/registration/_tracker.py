@@ -49,15 +49,17 @@ import numpy.typing as npt
 from afmdrift.config import RegistrationConfig
 from afmdrift.errors import InputError
 from afmdrift.registration._blocks import FrameStats, config_for_image
-from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
-from afmdrift.registration._errors import NearlyBlankError, RegistrationError
-from afmdrift.registration._measure import (
-    REFINE_PX,
+from afmdrift.registration._checks import (
     allow_nearly_blank,
     check_frame,
     check_image,
     check_pixel_size,
     check_prior,
+)
+from afmdrift.registration._engine import BlockEngine, ReferenceSpectra
+from afmdrift.registration._errors import NearlyBlankError, RegistrationError
+from afmdrift.registration._measure import (
+    REFINE_PX,
     invalid_result,
     reference_repeats,
     register,
@@ -166,6 +168,10 @@ class DriftTracker:
         # a held frame: (index, its measurement against the current reference)
         # and how far it landed from the prediction
         self._held: tuple[int, tuple[float, float], tuple[float, float]] | None = None
+        # the frame given to measure_ahead and its heights as measured (a
+        # plain view of an array subclass, such as a memory-mapped stack's
+        # frame), so that the update for it measures the same object
+        self._ahead_heights: tuple[Any, npt.NDArray[np.floating]] | None = None
 
     @property
     def frames_seen(self) -> int:
@@ -218,6 +224,7 @@ class DriftTracker:
             frame; the tracker state is unchanged.
         """
         heights = self._heights(image)
+        self._ahead_heights = None
         shape = (int(heights.shape[0]), int(heights.shape[1]))
         if (
             self._ref is not None
@@ -255,7 +262,9 @@ class DriftTracker:
         without it; any other call drops the pass. Nothing is started (False
         is returned) for the first frame, for a frame the checks refuse (the
         update refuses it), for heights that are not a float array (each
-        call converts them anew), and where the coarse alignment must come
+        call converts them anew; a float array subclass, such as a frame of
+        a memory-mapped stack, is measured as a plain view of it, the same
+        for both calls), and where the coarse alignment must come
         first (no motion known yet, or a reference that repeats itself, whose
         lattice translation it decides). Call :meth:`finish_ahead` before leaving the
         tracker alone for long: it completes the pass on the calling thread
@@ -270,7 +279,7 @@ class DriftTracker:
         except InputError:
             return False
         given = image.heights_nm if hasattr(image, "heights_nm") else image
-        if heights is not given:
+        if heights is not given and heights.base is not given:
             # converted (not a float array): the update converts it anew, and
             # a pass on this copy would never be the one it asks for
             return False
@@ -286,13 +295,15 @@ class DriftTracker:
         ):
             return False  # a lattice: the coarse alignment decides the translation first
         grad = self._gradient_buffer(engine)
-        return engine.measure_ahead(
+        started = engine.measure_ahead(
             ref,
             grad,
             prior_px=expected,
             heights=heights,
             check=functools.partial(self._check, heights, grad),
         )
+        self._ahead_heights = (given, heights) if started else None
+        return started
 
     def finish_ahead(self) -> None:
         """Complete a pass started by :meth:`measure_ahead` (on the calling
@@ -349,6 +360,9 @@ class DriftTracker:
                     f"{self.pixel_size_nm} nm"
                 )
             image = image.heights_nm
+        ahead = self._ahead_heights
+        if ahead is not None and ahead[0] is image:
+            return ahead[1]  # checked by measure_ahead, a view of this very array
         return check_image(image, "frame")  # its values: see update
 
     def _check(

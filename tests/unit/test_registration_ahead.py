@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from afmdrift.config import AfmdriftConfig
-from afmdrift.registration import DriftTracker, RegistrationConfig, _subpixel
+from afmdrift.registration import DriftTracker, RegistrationConfig, TrackStep, _subpixel
 from afmdrift.registration._blocks import config_for_image
 from afmdrift.registration._constants import SubpixelConstants
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement
@@ -37,6 +37,15 @@ def _same(a: BlockMeasurement, b: BlockMeasurement) -> None:
     for name in ("vectors_px", "confidence", "mse", "measured", "placed", "in_overlap"):
         assert getattr(a, name).tobytes() == getattr(b, name).tobytes(), name
     assert a.n_measured == b.n_measured
+
+
+def _same_step(a: TrackStep | None, b: TrackStep | None) -> None:
+    if a is None or b is None:
+        assert a is None
+        assert b is None
+        return
+    assert a.position_px == b.position_px
+    assert a.measurement.field.vectors_px.tobytes() == b.measurement.field.vectors_px.tobytes()
 
 
 def _engine_and_reference(frames: list[np.ndarray]) -> tuple[BlockEngine, object]:
@@ -144,6 +153,38 @@ def test_heights_each_update_converts_anew_are_not_started_ahead() -> None:
     assert step.accepted
 
 
+def test_memory_mapped_frames_are_started_ahead_regression_never_overlapped(
+    tmp_path: Path,
+) -> None:
+    """Guards against the memory-mapped stack of ``afmdrift measure
+    STACK.npy`` never running a pass ahead: each call viewed an ``np.memmap``
+    frame as a new plain array, so no pass was started (and none would have
+    matched its update)."""
+    frames = _frames(5)
+    path = tmp_path / "stack.npy"
+    np.save(path, np.stack(frames).astype(np.float32))
+    mapped = np.load(path, mmap_mode="r")
+    cfg = RegistrationConfig(threads=2)
+    plain = DriftTracker(pixel_size_nm=2.0, config=cfg)
+    ahead = DriftTracker(pixel_size_nm=2.0, config=cfg)
+    started = fresh = 0
+    for k in range(len(frames)):
+        a = plain.update(np.array(mapped[k]))
+        engine = ahead._engine
+        pending = None if engine is None else engine._ahead
+        b = ahead.update(mapped[k])
+        if pending is not None:
+            # the update measured the very pass started for it
+            fresh += pending.result is None
+        if 0 < k < len(frames) - 1:
+            started += ahead.measure_ahead(mapped[k + 1])
+            ahead.finish_ahead()
+        _same_step(a, b)
+    # every frame after the first measured one (which the coarse alignment starts)
+    assert started == len(frames) - 2
+    assert fresh == 0
+
+
 def test_tracker_steps_are_bit_for_bit_the_same_with_passes_started_ahead() -> None:
     frames = _frames(12, shape=(300, 280), seed=2)
     cfg = RegistrationConfig(threads=2)
@@ -155,12 +196,7 @@ def test_tracker_steps_are_bit_for_bit_the_same_with_passes_started_ahead() -> N
         b = ahead.update(frame)
         if k + 1 < len(frames):
             started += ahead.measure_ahead(frames[k + 1])
-        if a is None or b is None:
-            assert a is None
-            assert b is None
-            continue
-        assert a.position_px == b.position_px
-        assert a.measurement.field.vectors_px.tobytes() == b.measurement.field.vectors_px.tobytes()
+        _same_step(a, b)
     # the first frame after the reference starts from the coarse alignment:
     # no pass is started ahead for it (nor for the reference)
     assert started == len(frames) - 2
