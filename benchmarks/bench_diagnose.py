@@ -49,8 +49,9 @@ DRIVERS = {
     "stage_thermometer": "stage_c",
     "stage_move": "stage_move",
 }
-#: A slow second thermal path is also named right by the library's lagged thermal term.
-ALSO_RIGHT = {"thermal_two": {"thermal_lag"}}
+#: A slow second thermal path is also named right by the library's lagged thermal
+#: term; a warm-up by the library's warm-up with two time constants.
+ALSO_RIGHT = {"thermal_two": {"thermal_lag"}, "warmup": {"warmup_two"}}
 
 
 @dataclass(frozen=True)
@@ -78,7 +79,7 @@ class Row:
             return self.driver == DRIVERS[self.hidden] or self.named in ALSO_RIGHT.get(
                 self.hidden, set()
             )
-        return self.named == self.hidden
+        return self.named == self.hidden or self.named in ALSO_RIGHT.get(self.hidden, set())
 
     @property
     def drop(self) -> float | None:

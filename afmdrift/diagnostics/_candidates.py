@@ -117,6 +117,10 @@ class Thresholds:
         event), so a few per cent of misfit elsewhere in the model (a
         measurement artefact after an offset move, say) is within its reach:
         it must earn its place by a gain a user would act on.
+    min_effect : float
+        Effect size first: the fractional drop of the online re-run one-step
+        RMS error a candidate must reach to be reported as missing at all (a
+        gain a user would act on), whatever its statistical evidence.
     named_margin_aicc : float
         A significant library (named) effect ranks above a significant
         generic term (``channel:``, ``event:``) unless the generic term's
@@ -132,6 +136,7 @@ class Thresholds:
     folds: int = 5
     no_cv_factor: float = 3.0
     generic_min_drop: float = 0.10
+    min_effect: float = 0.10
     named_margin_aicc: float = 10.0
 
     def min_drop(self, *, generic: bool) -> float:
@@ -207,6 +212,9 @@ class CandidateResult:
     rmse_after_kind: str | None = None
     in_sample_ok: bool = False
     prequential_drop: float | None = None
+    p_online: float = math.nan
+    p_online_holm: float = math.nan
+    alike: list[str] = field(default_factory=list)
     profile: list[tuple[float, float]] = field(default_factory=list)
     av: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
 
@@ -228,6 +236,10 @@ class CandidateResult:
                 if d >= 0
                 else f", online re-run one-step error {-100 * d:.0f}% higher"
             )
+            if math.isfinite(self.p_online):
+                online += (
+                    f" (Diebold-Mariano p = {self.p_online:.2g}, Holm {self.p_online_holm:.2g})"
+                )
         return (
             f"ΔAICc = {self.delta_aicc:.1f}, HAC Wald χ²({self.df}) = {self.wald:.1f} "
             f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}{online}"

@@ -36,7 +36,12 @@ from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import DiagnoseOptions, Diagnosis
 from afmdrift.diagnostics._finding import error_patterns, finding_text, with_jump_caution
 from afmdrift.diagnostics._model_run import ModelRun, model_design, run_from_store, run_model
-from afmdrift.diagnostics._ranking import candidate_evidence, rank_candidates, verify_online
+from afmdrift.diagnostics._ranking import (
+    candidate_evidence,
+    mark_indistinguishable,
+    rank_candidates,
+    verify_online,
+)
 from afmdrift.diagnostics._stats import (
     error_summary,
     find_episodes,
@@ -92,10 +97,12 @@ def diagnose(
     design = model_design(run)
     results, n_tests = candidate_evidence(design, run.history, known, physics, options)
     runs = verify_online(
-        results, data, physics, burn=burn, rmse0_nm=summary["rmse_nm"], options=options
-    )
+        results, data, physics, base=run, burn=burn, rmse0_nm=summary["rmse_nm"],
+        options=options,
+    )  # fmt: skip
     step_s = float(np.median(np.diff(run.t_s))) if run.t_s.size > 1 else math.inf
     rank_candidates(results, options.thresholds, frame_period_s=step_s)
+    mark_indistinguishable(results, runs, run, burn, options.thresholds.alpha)
     top = results[0] if results and results[0].significant else None
     after: ModelRun | None = None
     after_summary = None

@@ -35,19 +35,20 @@ class DiagnoseOptions:
         Significance rule of the candidate tests.
     verify : int
         How many testable candidates with the highest ΔAICc are re-run online
-        with the term added, besides the significant ones (their
-        ``rmse_after_nm`` is then measured, not estimated).
+        with the term added whatever their ΔAICc; beyond them, every testable
+        candidate with a positive ΔAICc is (their ``rmse_after_nm`` is then
+        measured, not estimated). Only a re-run candidate can be reported as
+        missing (effect size first).
     max_verify : int
-        At most this many online re-runs in all (the significant candidates
-        with the highest ΔAICc first): with the generic families several
-        terms can explain the same residual, and each re-run costs a full
-        online fit.
+        At most this many online re-runs in all (the highest ΔAICc first):
+        each re-run costs a full online fit, and the Diebold-Mariano p-values
+        are corrected for their number.
     """
 
     burn_in_frames: int = 10
     thresholds: Thresholds = field(default_factory=Thresholds)
     verify: int = 2
-    max_verify: int = 5
+    max_verify: int = 10
 
 
 @dataclass(slots=True)
@@ -154,6 +155,9 @@ class Diagnosis:
                     "prequential_drop": None
                     if c.prequential_drop is None
                     else _num(c.prequential_drop),
+                    "p_online": _num(c.p_online),
+                    "p_online_holm": _num(c.p_online_holm),
+                    "indistinguishable_from": list(c.alike),
                     "params": {**c.driver, **{k: _num(v) for k, v in c.params.items()}},
                     "rmse_after_nm": None if c.rmse_after_nm is None else _num(c.rmse_after_nm),
                     "rmse_after_kind": c.rmse_after_kind,
@@ -169,6 +173,7 @@ class Diagnosis:
                 "folds": self.thresholds.folds,
                 "no_cv_factor": self.thresholds.no_cv_factor,
                 "generic_min_drop": self.thresholds.generic_min_drop,
+                "min_effect": self.thresholds.min_effect,
                 "named_margin_aicc": self.thresholds.named_margin_aicc,
             },
             "finding": self.finding,

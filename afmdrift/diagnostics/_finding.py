@@ -183,10 +183,11 @@ def finding_text(
 ) -> tuple[str, list[str] | None]:
     th = options.thresholds
     rule = (
-        f"ΔAICc > {th.min_delta_aicc:g}, HAC Wald p < {th.alpha:g} after Bonferroni over "
-        f"{n_tests} tests, blocked-CV or online re-run error at least "
-        f"{100 * th.min_cv_drop:.0f}% lower ({100 * th.generic_min_drop:.0f}% for a generic "
-        "term), online re-run not worse"
+        f"online re-run one-step error at least {100 * th.min_effect:.0f}% lower, and either "
+        f"ΔAICc > {th.min_delta_aicc:g} with HAC Wald p < {th.alpha:g} after Bonferroni over "
+        f"{n_tests} tests and a blocked-CV error at least {100 * th.min_cv_drop:.0f}% lower "
+        f"({100 * th.generic_min_drop:.0f}% for a generic term), or a Diebold-Mariano "
+        f"p < {th.alpha:g} of the re-run, Holm-adjusted over the re-runs"
     )
     if top is None:
         testable = [c for c in results if c.testable]
@@ -197,21 +198,46 @@ def finding_text(
             else ""
         )
         return (
-            f"No missing effect found: none of the {len(testable) - n_generic} testable "
+            f"Nothing is missing that these data can show: none of the "
+            f"{len(testable) - n_generic} testable "
             f"library effects not in the model and none of the {n_generic} generic terms "
             f"(every logged channel and event kind) passes the test ({rule}).{best}",
             None,
         )
     terms = [*physics.terms, top.effect]
+    alike = _alike_text(top, results)
     if top.driver:
-        return _generic_finding(top, results, terms, summary, after_summary), terms
+        return _generic_finding(top, results, terms, summary, after_summary) + alike, terms
     doc = (type(_term_instance(top.effect, physics)).__doc__ or "").strip().splitlines()[0]
     change = _error_change(summary, after_summary)
     return (
         f"Missing effect: {top.effect} ({doc.rstrip('.')}). Fitted: {_format_params(top)}. "
-        f"Evidence: {top.evidence()}.{change} To add it, put in your configuration file: "
-        f"[model.physics] terms = [{', '.join(repr(t).replace(chr(39), chr(34)) for t in terms)}]",
+        f"Evidence: {top.evidence()}.{change}{alike} To add it, put in your configuration "
+        f"file: [model.physics] terms = "
+        f"[{', '.join(repr(t).replace(chr(39), chr(34)) for t in terms)}]",
         terms,
+    )
+
+
+def _alike_text(top: CandidateResult, results: list[CandidateResult]) -> str:
+    """What the finding cannot tell its top candidate from, and what would."""
+    if not top.alike:
+        return ""
+    others = [c for c in results if c.effect in top.alike]
+    names = ", ".join(c.effect for c in others)
+    lead = "the library effect is named first; " if not top.driver else ""
+    kinds = {c.driver.get("event_kind") for c in [top, *others] if c.driver.get("event_kind")}
+    channels = {c.channel for c in [top, *others] if c.channel}
+    apart = ["a longer record"]
+    event_named = not top.driver and top.effect in ("warmup", "creep", "hysteresis", "tip_change")
+    if kinds or event_named:
+        apart.append("more of the events that drive them (a second power cycle, more moves)")
+    if channels:
+        apart.append("a second sensor, or a period in which the channel changes alone")
+    return (
+        f" On these data it cannot be told apart from {names} (their online re-run errors "
+        f"do not differ significantly); {lead}what would tell them apart: "
+        f"{', or '.join(apart)}."
     )
 
 

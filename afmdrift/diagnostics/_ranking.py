@@ -24,9 +24,16 @@ from afmdrift.diagnostics._candidates import (
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import DiagnoseOptions
 from afmdrift.diagnostics._model_run import ModelRun, run_model
+from afmdrift.diagnostics._regression import forecast_comparison
 from afmdrift.model import EffectTerm, GenericTerm, History, term_class
 
-__all__ = ["MAX_CV_RATIO", "candidate_evidence", "rank_candidates", "verify_online"]
+__all__ = [
+    "MAX_CV_RATIO",
+    "candidate_evidence",
+    "mark_indistinguishable",
+    "rank_candidates",
+    "verify_online",
+]
 
 
 def candidate_evidence(
@@ -71,22 +78,34 @@ def verify_online(
     data: RunData,
     physics: PhysicsConfig,
     *,
+    base: ModelRun,
     burn: int,
     rmse0_nm: float,
     options: DiagnoseOptions,
 ) -> dict[str, tuple[ModelRun, dict[str, float]]]:
-    """Re-run the model online with the leading and the significant candidates added.
+    """Re-run the model online with candidates added, and decide on the re-runs.
 
-    Sets each candidate's ``rmse_after_nm`` (replayed, or estimated from the
-    blocked CV for those not re-run) and ``prequential_drop``; a candidate
-    whose in-sample evidence passes becomes significant when its re-run error
-    drops enough, and a candidate whose re-run error rises is not significant.
-    At most ``options.max_verify`` re-runs, by ΔAICc; then every named
-    candidate whose in-sample evidence passes and whose ΔAICc is within
-    :attr:`Thresholds.named_margin_aicc` of a significant generic term is
-    re-run too, so that a named effect is never outranked by its generic
-    twin (``event:power_on`` and ``warmup``) only because the twin had the
-    re-run. Returns the re-runs and their error summaries by effect.
+    Re-run (prequential check, Dawid 1984: each frame predicted before the
+    model sees it, like the service): the ``options.verify`` candidates with
+    the highest ΔAICc, every testable candidate with a positive ΔAICc, and
+    every named candidate whose in-sample evidence passes and whose ΔAICc is
+    within :attr:`Thresholds.named_margin_aicc` of a significant generic term
+    (so that a named effect is never outranked by its generic twin only
+    because the twin had the re-run); at most ``options.max_verify`` by
+    ΔAICc. Each re-run sets ``rmse_after_nm``, ``prequential_drop`` and the
+    Diebold-Mariano p-value of its one-step errors against the model's
+    (:func:`~afmdrift.diagnostics._regression.forecast_comparison`), adjusted
+    over the re-runs by Holm's method.
+
+    **Effect size first:** a candidate is significant only when its re-run
+    error is at least :attr:`Thresholds.min_effect` lower, and either its
+    in-sample evidence passes (ΔAICc, HAC Wald, blocked CV) or the
+    Diebold-Mariano test finds the re-run's improvement significant at
+    ``alpha`` (a smooth effect under a random-walk residual, such as a warm-up
+    with two time constants, has little power in quasi-differences but shows
+    in the predictions). Candidates not re-run are not significant; their
+    ``rmse_after_nm`` is estimated from the blocked CV. Returns the re-runs
+    and their error summaries by effect.
     """
     th = options.thresholds
     by_score = sorted(
@@ -96,8 +115,6 @@ def verify_online(
     runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
 
     def rerun(c: CandidateResult) -> None:
-        # Prequential check (Dawid 1984): the model with the term, re-run online,
-        # predicts every frame before seeing it, like the service.
         cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
         r = run_model(data, cfg)
         s = r.summary(burn)
@@ -106,16 +123,12 @@ def verify_online(
         c.rmse_after_kind = "replayed"
         if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
             c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
-            if c.in_sample_ok and c.prequential_drop >= th.min_drop(generic=bool(c.driver)):
-                c.significant = True
-            elif c.prequential_drop < 0:
-                # The model re-run online with the term predicts worse than
-                # without it: whatever the in-sample and CV evidence, this
-                # is not a term to recommend.
-                c.significant = False
+        c.p_online, _ = forecast_comparison(base.errors_nm[burn:], r.errors_nm[burn:])
 
     for i, c in enumerate(by_score):
-        if (i < options.verify or c.significant) and len(runs) < options.max_verify:
+        if len(runs) >= options.max_verify:
+            break
+        if i < options.verify or c.significant or c.delta_aicc > 0:
             rerun(c)
     generic = [c for c in by_score if c.significant and c.driver]
     for c in by_score:
@@ -123,9 +136,14 @@ def verify_online(
             continue
         if any(c.delta_aicc >= g.delta_aicc - th.named_margin_aicc for g in generic):
             rerun(c)
+    _holm([c for c in by_score if c.effect in runs])
     for c in by_score:
         if c.effect in runs:
+            drop = c.prequential_drop if c.prequential_drop is not None else -math.inf
+            online_ok = math.isfinite(c.p_online_holm) and c.p_online_holm < th.alpha
+            c.significant = drop >= th.min_effect and (c.in_sample_ok or online_ok)
             continue
+        c.significant = False
         if (
             c.cv_drop is not None
             and math.isfinite(rmse0_nm)
@@ -134,6 +152,46 @@ def verify_online(
             c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
             c.rmse_after_kind = "cv_estimate"
     return runs
+
+
+def _holm(rerun: list[CandidateResult]) -> None:
+    """Holm's step-down adjustment (Holm 1979) of the re-runs' Diebold-Mariano
+    p-values into ``p_online_holm``: the family-wise error over the re-runs
+    stays at the level, with more power than Bonferroni."""
+    ordered = sorted(rerun, key=lambda c: c.p_online if math.isfinite(c.p_online) else math.inf)
+    m = len(ordered)
+    running = 0.0
+    for j, c in enumerate(ordered):
+        if not math.isfinite(c.p_online):
+            c.p_online_holm = math.nan
+            continue
+        running = max(running, min(1.0, (m - j) * c.p_online))
+        c.p_online_holm = running
+
+
+def mark_indistinguishable(
+    results: list[CandidateResult],
+    runs: dict[str, tuple[ModelRun, dict[str, float]]],
+    base: ModelRun,
+    burn: int,
+    alpha: float,
+) -> None:
+    """Set the leading candidate's ``alike``: the other significant candidates
+    whose online re-run errors the data cannot tell from its own (neither
+    predicts significantly better at ``alpha``, Diebold-Mariano, one-sided
+    each way)."""
+    if not results or not results[0].significant or results[0].effect not in runs:
+        return
+    lead = results[0]
+    e_lead = runs[lead.effect][0].errors_nm[burn:]
+    for c in results[1:]:
+        if not c.significant or c.effect not in runs:
+            continue
+        e_c = runs[c.effect][0].errors_nm[burn:]
+        better, _ = forecast_comparison(e_lead, e_c)
+        worse, _ = forecast_comparison(e_c, e_lead)
+        if not (better < alpha or worse < alpha):
+            lead.alike.append(c.effect)
 
 
 #: No error estimate from blocked CV when the candidate's cross-validated error is
@@ -188,4 +246,35 @@ def rank_candidates(
     for i, c in enumerate(results):
         if c.significant and not c.driver and comparable(c):
             results.insert(0, results.pop(i))
-            return
+            break
+    _simplest_first(results, thresholds)
+
+
+def _n_params(c: CandidateResult) -> int:
+    """Free parameters of a candidate: its linear coefficients and its θ."""
+    return c.df + len(c.nonlinear)
+
+
+def _simplest_first(results: list[CandidateResult], thresholds: Thresholds) -> None:
+    """Parsimony among named effects: when the leading candidate is named and
+    a significant named effect with fewer parameters predicts as well (online
+    re-run error within :attr:`Thresholds.min_cv_drop`), the simpler one leads
+    (``warmup`` before ``warmup_two`` on a warm-up with one time constant)."""
+    if not results or not results[0].significant or results[0].driver:
+        return
+    lead = results[0]
+    if lead.rmse_after_nm is None or lead.rmse_after_kind != "replayed":
+        return
+    simpler = [
+        (i, c)
+        for i, c in enumerate(results[1:], start=1)
+        if c.significant
+        and not c.driver
+        and c.rmse_after_kind == "replayed"
+        and c.rmse_after_nm is not None
+        and c.rmse_after_nm <= (1.0 + thresholds.min_cv_drop) * lead.rmse_after_nm
+        and _n_params(c) < _n_params(lead)
+    ]
+    if simpler:
+        i, _ = min(simpler, key=lambda ic: (_n_params(ic[1]), ic[1].rmse_after_nm or 0.0))
+        results.insert(0, results.pop(i))

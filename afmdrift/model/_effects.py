@@ -487,15 +487,57 @@ class Warmup(EffectTerm):
         params: Mapping[str, float],
         axis: int,
     ) -> FloatArray:
-        on = history.of_kind(EventKind.POWER_ON)[0]
-        out = np.zeros_like(t_s)
-        if on.size == 0:
-            return out[:, None]
-        k = np.searchsorted(on, t_s, side="right") - 1
-        ok = k >= 0
-        dt = t_s[ok] - on[k[ok]]
-        out[ok] = 1.0 - np.exp(-dt / float(params["tau_w_s"]))
-        return out[:, None]
+        return _settling(t_s, history, float(params["tau_w_s"]))[:, None]
+
+
+def _settling(t_s: FloatArray, history: History, tau_s: float) -> FloatArray:
+    """1 − exp(−(t − t_on)/τ) after the most recent ``power_on`` before t, else 0."""
+    on = history.of_kind(EventKind.POWER_ON)[0]
+    out = np.zeros_like(t_s)
+    if on.size == 0:
+        return out
+    k = np.searchsorted(on, t_s, side="right") - 1
+    ok = k >= 0
+    out[ok] = 1.0 - np.exp(-(t_s[ok] - on[k[ok]]) / tau_s)
+    return out
+
+
+class WarmupTwo(EffectTerm):
+    """Thermal settling after power-on along a fast and a slow path.
+
+    p(t) = A₁·(1 − exp(−Δt/τ₁)) + A₂·(1 − exp(−Δt/τ₂)), Δt = t − t_on since the
+    most recent logged ``power_on``: the scanner tube settles within tens of
+    minutes (τ₁ ``tau_fast_s``, 120–3600 s), the stage and frame over hours
+    (τ₂ ``tau_slow_s``, 3600–40000 s); A₁, A₂ (nm) their excursions. A warm-up
+    that does not follow one exponential is named by this term; where one
+    exponential is enough, ``warmup`` (fewer parameters) is preferred.
+    """
+
+    name = "warmup_two"
+    nonlinear_params = (
+        NonlinearParam("tau_fast_s", 120.0, 3600.0, 1200.0, grid_points=10),
+        NonlinearParam("tau_slow_s", 3600.0, 40000.0, 9000.0, grid_points=10),
+    )
+    coefficient_units = ("amplitude_fast_nm", "amplitude_slow_nm")
+
+    def missing(self, history: History) -> str | None:
+        return Warmup().missing(history)
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        return np.column_stack(
+            [
+                _settling(t_s, history, float(params["tau_fast_s"])),
+                _settling(t_s, history, float(params["tau_slow_s"])),
+            ]
+        )
 
 
 class ScanDirectionBias(EffectTerm):
@@ -704,6 +746,7 @@ LIBRARY: dict[str, type[EffectTerm]] = {
         Humidity,
         Creep,
         Warmup,
+        WarmupTwo,
         ScanDirectionBias,
         Hysteresis,
         TipChange,

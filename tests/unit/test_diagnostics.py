@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from afmdrift.diagnostics import RunData, Thresholds, diagnose
-from afmdrift.diagnostics._regression import cv_folds
+from afmdrift.diagnostics import DiagnoseOptions, RunData, Thresholds, diagnose
+from afmdrift.diagnostics._regression import cv_folds, forecast_comparison
 from afmdrift.diagnostics._stats import (
     cusum,
     error_summary,
@@ -183,7 +183,7 @@ def test_no_false_alarm_when_the_model_is_complete() -> None:
     dg = diagnose(data, PhysicsConfig(terms=["trend", "thermal_lag"]))
     assert not any(c.significant for c in dg.candidates)
     assert dg.top is None
-    assert dg.finding.startswith("No missing effect found")
+    assert dg.finding.startswith("Nothing is missing that these data can show")
     assert dg.to_json()["config"] is None
 
 
@@ -423,3 +423,64 @@ def test_distractor_channel_and_events_raise_no_finding() -> None:
     assert {"channel:pressure_hpa", "event:door_open", "event:door_open:each"} <= testable
     assert dg.top is None, dg.finding
     assert dg.n_tests > 100
+
+
+def test_forecast_comparison_holds_its_level_on_equally_good_autocorrelated_errors() -> None:
+    """Two models with equally good, autocorrelated (AR(1), φ 0.7) and
+    correlated errors: the one-sided Diebold-Mariano p-value falls below 0.05
+    in about 5 % of records, not more (the HAC variance pays for the
+    autocorrelation; a plain t-test would not)."""
+    rng = np.random.default_rng(11)
+    rejections = 0
+    trials = 400
+    for _ in range(trials):
+        shocks = rng.normal(size=(3, 100, 2))
+        e = np.zeros_like(shocks)
+        for k in range(1, 100):
+            e[:, k] = 0.7 * e[:, k - 1] + shocks[:, k]
+        common = e[0]
+        p, m = forecast_comparison(common + e[1], common + e[2])
+        assert m == 100
+        rejections += p < 0.05
+    assert rejections / trials < 0.09, rejections
+
+
+def test_forecast_comparison_finds_a_real_improvement() -> None:
+    rng = np.random.default_rng(3)
+    base = rng.normal(0.0, 1.0, size=(100, 2))
+    better = 0.7 * base + rng.normal(0.0, 0.2, size=(100, 2))
+    p, _ = forecast_comparison(base, better)
+    assert p < 1e-3
+    p_back, _ = forecast_comparison(better, base)
+    assert p_back > 0.99
+
+
+def test_holm_adjustment_is_step_down_and_monotone() -> None:
+    from afmdrift.diagnostics._candidates import CandidateResult
+    from afmdrift.diagnostics._ranking import _holm
+
+    cs = [CandidateResult(effect=n, testable=True) for n in "abcd"]
+    for c, p in zip(cs, [0.004, 0.0012, 0.03, math.nan], strict=True):
+        c.p_online = p
+    _holm(cs)
+    assert cs[1].p_online_holm == pytest.approx(4 * 0.0012)
+    assert cs[0].p_online_holm == pytest.approx(3 * 0.004)
+    assert cs[2].p_online_holm == pytest.approx(2 * 0.03)
+    assert math.isnan(cs[3].p_online_holm)
+
+
+@pytest.mark.slow
+def test_a_missing_effect_must_cut_the_online_error_by_the_minimum_effect() -> None:
+    """The hidden humidity coupling is found; asked for an effect size no
+    candidate reaches, diagnose reports nothing missing and names the closest."""
+    data, _ = _synthetic(humidity_nm_per_pct=3.0, seed=11)
+    dg = diagnose(data, PhysicsConfig(), effects=["trend", "thermal_lag"])
+    assert dg.top is not None
+    assert dg.top.effect == "humidity"
+    drop = dg.top.prequential_drop
+    assert drop is not None
+    assert drop >= 0.10
+    strict = DiagnoseOptions(thresholds=Thresholds(min_effect=min(drop + 0.05, 0.99)))
+    dg2 = diagnose(data, PhysicsConfig(), effects=["trend", "thermal_lag"], options=strict)
+    assert dg2.top is None
+    assert "The closest candidate is humidity" in dg2.finding

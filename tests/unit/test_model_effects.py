@@ -73,6 +73,7 @@ def test_library_has_the_canonical_terms() -> None:
         "humidity",
         "creep",
         "warmup",
+        "warmup_two",
         "scan_direction",
         "hysteresis",
         "tip_change",
@@ -729,3 +730,18 @@ def test_one_step_prediction_takes_the_frame_s_own_scan_direction() -> None:
         model.update(obs, History())
     rms = np.sqrt(np.mean(np.square(err), axis=0))
     assert np.all(rms < 0.15), rms
+
+
+def test_warmup_two_recovers_a_fast_and_a_slow_time_constant() -> None:
+    history = History()
+    history.add_events([Event(t_s=0.0, kind=EventKind.POWER_ON)])
+    t = PERIOD_S * np.arange(112) + 64.0
+    rng = np.random.default_rng(4)
+    shape = np.column_stack([1 - np.exp(-t / 1500.0), 1 - np.exp(-t / 9000.0)])
+    xy = shape @ np.array([[20.0, -8.0], [40.0, 25.0]]) + 0.4 * t[:, None] / 3600.0
+    xy += rng.normal(0.0, 0.1, xy.shape)
+    model = PhysicsPredictor(PhysicsConfig(terms=["trend", "warmup_two"], residual="none"))
+    _feed(model, t, xy, history, sigma_nm=0.1)
+    p = model.params["warmup_two"]
+    assert p["tau_fast_s"] == pytest.approx(1500.0, rel=0.25)
+    assert p["tau_slow_s"] == pytest.approx(9000.0, rel=0.35)
