@@ -52,6 +52,10 @@ DRIVERS = {
 #: A slow second thermal path is also named right by the library's lagged thermal
 #: term; a warm-up by the library's warm-up with two time constants.
 ALSO_RIGHT = {"thermal_two": {"thermal_lag"}, "warmup": {"warmup_two"}}
+#: A library effect whose generator adds a lag the library term does not have
+#: (the second generator's humidity acts through a 10 min lag) is also named
+#: right by its driver, when the generic term predicts better than the named one.
+DRIVER_ALSO_RIGHT = {"humidity": "humidity_pct"}
 
 
 @dataclass(frozen=True)
@@ -79,6 +83,8 @@ class Row:
             return self.driver == DRIVERS[self.hidden] or self.named in ALSO_RIGHT.get(
                 self.hidden, set()
             )
+        if self.driver is not None and self.driver == DRIVER_ALSO_RIGHT.get(self.hidden):
+            return True
         return self.named == self.hidden or self.named in ALSO_RIGHT.get(self.hidden, set())
 
     @property

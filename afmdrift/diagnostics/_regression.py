@@ -104,12 +104,23 @@ def aicc(rss: Sequence[float], n: int, k: int) -> float:
 
 
 def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatArray]:
-    """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance)."""
+    """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance).
+
+    A rank-deficient ``z`` (a candidate column the model's basis already
+    spans, partialled to zero) is tested in its column space: the degrees of
+    freedom are its rank, not its column count.
+    """
     from statsmodels.regression.linear_model import OLS
 
     n, k = z.shape
     if k == 0 or n <= k + 1:
         return 0.0, 0, np.zeros(0)
+    u, sv, _ = np.linalg.svd(z, full_matrices=False)
+    rank = int(np.sum(sv > sv[0] * 1e-10)) if sv.size and sv[0] > 0 else 0
+    if rank == 0:
+        return 0.0, 0, np.zeros(0)
+    if rank < k:
+        z, k = u[:, :rank] * sv[:rank], rank
     fit = OLS(e0, z).fit()
     gamma = np.asarray(fit.params, dtype=np.float64)
     v_ols = np.asarray(fit.cov_params(), dtype=np.float64)

@@ -484,3 +484,18 @@ def test_a_missing_effect_must_cut_the_online_error_by_the_minimum_effect() -> N
     dg2 = diagnose(data, PhysicsConfig(), effects=["trend", "thermal_lag"], options=strict)
     assert dg2.top is None
     assert "The closest candidate is humidity" in dg2.finding
+
+
+def test_wald_test_of_a_rank_deficient_candidate_counts_its_rank() -> None:
+    """Two identical candidate columns are one degree of freedom, and no
+    statsmodels warning (warnings are errors here) escapes."""
+    from afmdrift.diagnostics._regression import _wald
+
+    rng = np.random.default_rng(0)
+    col = rng.normal(size=80)
+    e0 = 0.5 * col + rng.normal(size=80)
+    w, k, _ = _wald(np.column_stack([col, col]), e0, lags=3)
+    assert k == 1
+    w1, k1, _ = _wald(col[:, None], e0, lags=3)
+    assert k1 == 1
+    assert w == pytest.approx(w1, rel=1e-6)
