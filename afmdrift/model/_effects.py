@@ -110,6 +110,9 @@ class EffectTerm(abc.ABC):
     nonlinear_params: ClassVar[tuple[NonlinearParam, ...]] = ()
     #: True if one basis column is the constant 1 (the model then adds no intercept).
     provides_intercept: ClassVar[bool] = False
+    #: Fitted points on which a basis column must be non-zero before its
+    #: coefficient is fitted (else it is held at 0).
+    min_column_support: ClassVar[int] = 1
     #: Names of the linear coefficients with units, for reports.
     coefficient_units: ClassVar[tuple[str, ...]] = ()
     #: True if the term describes how frames measure the position (not where the

@@ -134,6 +134,9 @@ class EventResponse(GenericTerm):
     kind: ClassVar[str]
     shape: ClassVar[str]
     each: ClassVar[bool] = False
+    #: Before its third frame an event's column is small on one or two frames,
+    #: and its amplitude is held at 0 unless clearly determined (|β| ≥ 3σ).
+    min_column_support = 3
 
     def driver(self) -> dict[str, str]:
         return {"event_kind": self.kind, "shape": self.shape}

@@ -61,6 +61,7 @@ __all__ = [
 _log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
+BoolArray = npt.NDArray[np.bool_]
 
 
 @dataclass(frozen=True, slots=True)
@@ -232,6 +233,44 @@ class PhysicsPredictor(_LoggingPredictor):
             blocks.append((name, block))
         return blocks
 
+    def _supported(self, blocks: dict[str, FloatArray]) -> list[FloatArray]:
+        """The search's blocks with every column that is non-zero on fewer
+        than its term's :attr:`~afmdrift.model.EffectTerm.min_column_support`
+        fitted points set to zero, so that θ is not bent to fit noise with a
+        young column: a settling response to an event that has just happened
+        is a tiny column on one or two frames, and its amplitude there is noise
+        divided by a small number. The final fit keeps such a column where its
+        amplitude is clearly determined (:meth:`_weak_new_columns`)."""
+        out = []
+        for name, b in blocks.items():
+            need = 1 if name == "intercept" else self._term(name).min_column_support
+            if need > 1 and b.size:
+                few = np.count_nonzero(np.abs(b) > 1e-12, axis=0) < need
+                if few.any():
+                    b = np.where(few[None, :], 0.0, b)
+            out.append(b)
+        return out
+
+    def _weak_new_columns(self, blocks: dict[str, FloatArray], fit: FitResult) -> BoolArray:
+        """Columns (over the full design) still short of their term's
+        :attr:`~afmdrift.model.EffectTerm.min_column_support` whose coefficient
+        is not clearly determined (|β| < 3σ_β): held at 0 in the final fit.
+        Clean data determine a new event's response from its first frame;
+        noisy data wait until it shows."""
+        parts = []
+        for name, b in blocks.items():
+            need = 1 if name == "intercept" else self._term(name).min_column_support
+            few = np.count_nonzero(np.abs(b) > 1e-12, axis=0) < need
+            parts.append(few & np.any(np.abs(b) > 1e-12, axis=0))
+        young = np.concatenate(parts) if parts else np.zeros(0, dtype=bool)
+        if not young.any():
+            return young
+        coef = np.zeros(young.size)
+        se = np.full(young.size, np.inf)
+        coef[fit.keep] = fit.coef
+        se[fit.keep] = np.sqrt(np.maximum(np.diag(fit.cov), 0.0))
+        return young & ~(np.abs(coef) >= 3.0 * se)
+
     def _needs_intercept(self, names: Sequence[str]) -> bool:
         return not any(self._term(n).provides_intercept for n in names)
 
@@ -318,7 +357,7 @@ class PhysicsPredictor(_LoggingPredictor):
                                 params=params[term.name],
                                 axis=axis,
                             )
-                            x = np.hstack(list(blocks[axis].values()))
+                            x = np.hstack(self._supported(blocks[axis]))
                             total += weighted_rss(x, xy[:, axis], w)
                         return total
 
@@ -343,20 +382,20 @@ class PhysicsPredictor(_LoggingPredictor):
                         best_log = float(res.x)
                     obj(best_log)
         self.params = params
-        blocks_all = [
-            dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
-            for axis in (0, 1)
-        ]
         self.active = active
         self.add_intercept = self._needs_intercept(active)
         self.fits = []
         self.columns = []
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
-            blocks_final = list(blocks_all[axis].items())
-            self.columns.append([(name, int(b.shape[1])) for name, b in blocks_final])
-            x = np.hstack([b for _, b in blocks_final])
+            raw = dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
+            self.columns.append([(name, int(b.shape[1])) for name, b in raw.items()])
+            x = np.hstack(list(raw.values()))
             fit = solve_wls(x, xy[:, axis], w)
+            weak = self._weak_new_columns(raw, fit)
+            if weak.any():
+                x = np.where(weak[None, :], 0.0, x)
+                fit = solve_wls(x, xy[:, axis], w)
             self.fits.append(fit)
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
         self._fit_residual(t, residuals, history)
