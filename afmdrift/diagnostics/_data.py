@@ -155,9 +155,7 @@ class RunData:
         """The frames that fed the model, as model observations (in time order)."""
         out = []
         for k in np.flatnonzero(self.fed):
-            window = None
-            if self.window_s is not None and np.all(np.isfinite(self.window_s[k])):
-                window = (float(self.window_s[k, 0]), float(self.window_s[k, 1]))
+            window = Observation.window_of(None if self.window_s is None else self.window_s[k])
             out.append(
                 Observation(
                     t_s=float(self.t_s[k]),

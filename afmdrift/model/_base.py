@@ -102,6 +102,15 @@ class Observation:
     reference_direction: ScanDirection | None = None
     window_s: tuple[float, float] | None = None
 
+    @staticmethod
+    def window_of(row: npt.ArrayLike | None) -> tuple[float, float] | None:
+        """A scan window ``(t_start_s, t_end_s)`` from a table row, None where
+        the row is absent or not finite (a point measurement)."""
+        if row is None:
+            return None
+        w = np.asarray(row, dtype=np.float64).reshape(2)
+        return (float(w[0]), float(w[1])) if np.all(np.isfinite(w)) else None
+
     def samples(self) -> npt.NDArray[np.float64]:
         """Times at which p is averaged to predict this measurement, shape (m,)."""
         window = None if self.window_s is None else [self.window_s]
@@ -287,10 +296,17 @@ class Predictor(abc.ABC):
         bound of the σ of the mean). The one-step error of every predictor is
         scored against this, in the service and in ``evaluate``.
         """
-        pred = self.predict(obs.samples(), history)
+        pred = self.predict_scanned(obs.samples(), obs.direction, history)
         mean = np.asarray(pred.mean_nm, dtype=np.float64).reshape(-1, 2).mean(axis=0)
         sigma = np.asarray(pred.sigma_nm, dtype=np.float64).reshape(-1, 2).mean(axis=0)
         return mean, sigma
+
+    def predict_scanned(
+        self, t_s: npt.ArrayLike, direction: ScanDirection, history: History
+    ) -> Prediction:
+        """:meth:`predict` at ``t_s`` for a frame scanned in ``direction``
+        (known once it is scanned); the default ignores the direction."""
+        return self.predict(t_s, history)
 
     def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         """Predict the sample position itself, without measurement artefacts.

@@ -80,9 +80,7 @@ class MeasuredSeries:
     def observation(self, i: int) -> Observation:
         """Entry ``i`` as the model observation it feeds."""
         sigma = float(self.sigma_nm[i])
-        window = None
-        if self.window_s is not None and np.all(np.isfinite(self.window_s[i])):
-            window = (float(self.window_s[i, 0]), float(self.window_s[i, 1]))
+        window = Observation.window_of(None if self.window_s is None else self.window_s[i])
         return Observation(
             t_s=float(self.t_s[i]),
             x_nm=float(self.xy_nm[i, 0]),

@@ -241,14 +241,22 @@ class PhysicsPredictor(_LoggingPredictor):
         is a tiny column on one or two frames, and its amplitude there is noise
         divided by a small number. The final fit keeps such a column where its
         amplitude is clearly determined (:meth:`_weak_new_columns`)."""
+        return [
+            np.where(young[None, :], 0.0, b) if young.any() else b
+            for b, young in zip(blocks.values(), self._young_columns(blocks), strict=True)
+        ]
+
+    def _young_columns(self, blocks: dict[str, FloatArray]) -> list[BoolArray]:
+        """Per block, its columns non-zero on at least one but fewer than its
+        term's :attr:`~afmdrift.model.EffectTerm.min_column_support` points."""
         out = []
         for name, b in blocks.items():
             need = 1 if name == "intercept" else self._term(name).min_column_support
-            if need > 1 and b.size:
-                few = np.count_nonzero(np.abs(b) > 1e-12, axis=0) < need
-                if few.any():
-                    b = np.where(few[None, :], 0.0, b)
-            out.append(b)
+            if need <= 1:  # most terms: no count on the search's hot path
+                out.append(np.zeros(b.shape[1], dtype=bool))
+                continue
+            nonzero = np.count_nonzero(np.abs(b) > 1e-12, axis=0)
+            out.append((nonzero > 0) & (nonzero < need))
         return out
 
     def _weak_new_columns(self, blocks: dict[str, FloatArray], fit: FitResult) -> BoolArray:
@@ -257,11 +265,7 @@ class PhysicsPredictor(_LoggingPredictor):
         is not clearly determined (|β| < 3σ_β): held at 0 in the final fit.
         Clean data determine a new event's response from its first frame;
         noisy data wait until it shows."""
-        parts = []
-        for name, b in blocks.items():
-            need = 1 if name == "intercept" else self._term(name).min_column_support
-            few = np.count_nonzero(np.abs(b) > 1e-12, axis=0) < need
-            parts.append(few & np.any(np.abs(b) > 1e-12, axis=0))
+        parts = self._young_columns(blocks)
         young = np.concatenate(parts) if parts else np.zeros(0, dtype=bool)
         if not young.any():
             return young
@@ -496,16 +500,13 @@ class PhysicsPredictor(_LoggingPredictor):
     def predict(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         return self._predict(t_s, history, drift_only=False)
 
-    def predict_observation(
-        self, obs: Observation, history: History
-    ) -> tuple[FloatArray, FloatArray]:
-        """As :meth:`Predictor.predict_observation`, in the frame's own scan
-        direction (known once the frame is scanned), not one extrapolated
-        from the frames before it."""
-        self._require_data()
-        sign = 1.0 if obs.direction is ScanDirection.UP else -1.0
-        pred = self._predict(obs.samples(), history, drift_only=False, scan_sign=sign)
-        return pred.mean_nm.mean(axis=0), pred.sigma_nm.mean(axis=0)
+    def predict_scanned(
+        self, t_s: npt.ArrayLike, direction: ScanDirection, history: History
+    ) -> Prediction:
+        """:meth:`predict` in the frame's own scan direction, not one
+        extrapolated from the frames before it."""
+        sign = 1.0 if direction is ScanDirection.UP else -1.0
+        return self._predict(t_s, history, drift_only=False, scan_sign=sign)
 
     def predict_drift(self, t_s: npt.ArrayLike, history: History) -> Prediction:
         """The sample position, without the scan-direction bias of the measurements."""
