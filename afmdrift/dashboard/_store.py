@@ -16,6 +16,7 @@ import dataclasses
 import json
 import math
 import sqlite3
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -93,6 +94,7 @@ class RunReader:
                 "or afmdrift replay)"
             )
         uri = f"{self.path.resolve().as_uri()}?mode=ro"
+        self._lock = threading.RLock()
         try:
             self._db = sqlite3.connect(
                 uri, uri=True, timeout=_BUSY_TIMEOUT_S, check_same_thread=False
@@ -124,7 +126,8 @@ class RunReader:
             )
 
     def close(self) -> None:
-        self._db.close()
+        with self._lock:
+            self._db.close()
 
     def __enter__(self) -> RunReader:
         return self
@@ -141,7 +144,8 @@ class RunReader:
             The database cannot be read.
         """
         try:
-            return self._meta()
+            with self._lock:
+                return self._meta()
         except sqlite3.DatabaseError as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
 
@@ -150,7 +154,10 @@ class RunReader:
 
     def frame(self, seq: int) -> FrameRecord | None:
         """One frame record, or ``None``."""
-        row = self._db.execute(f"SELECT {_COLUMNS} FROM frames WHERE seq = ?", (seq,)).fetchone()
+        with self._lock:
+            row = self._db.execute(
+                f"SELECT {_COLUMNS} FROM frames WHERE seq = ?", (seq,)
+            ).fetchone()
         return None if row is None else record_from_row(row)
 
     def session_reference(self) -> FrameRecord | None:
@@ -162,9 +169,10 @@ class RunReader:
             The database cannot be read.
         """
         try:
-            row = self._db.execute(
-                f"SELECT {_COLUMNS} FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
-            ).fetchone()
+            with self._lock:
+                row = self._db.execute(
+                    f"SELECT {_COLUMNS} FROM frames WHERE reason = 'reference' ORDER BY seq LIMIT 1"
+                ).fetchone()
         except sqlite3.DatabaseError as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
         return None if row is None else record_from_row(row)
@@ -182,10 +190,12 @@ class RunReader:
             The database cannot be read.
         """
         try:
-            rows = self._db.execute(
-                "SELECT f.t_end_s, m.curve_json FROM model_state m JOIN frames f ON f.seq = m.seq "
-                "WHERE m.curve_json IS NOT NULL ORDER BY m.seq"
-            ).fetchall()
+            with self._lock:
+                rows = self._db.execute(
+                    "SELECT f.t_end_s, m.curve_json FROM model_state m "
+                    "JOIN frames f ON f.seq = m.seq "
+                    "WHERE m.curve_json IS NOT NULL ORDER BY m.seq"
+                ).fetchall()
         except sqlite3.DatabaseError as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
         out: list[tuple[float, dict[str, Any]]] = []
@@ -218,46 +228,58 @@ class RunReader:
             The database cannot be read (removed, corrupted).
         """
         try:
-            self._db.execute("BEGIN")
-            try:
-                if max_frames is None:
-                    cur = self._db.execute(
-                        f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq", (frame_seq,)
-                    )
-                    frames = [record_from_row(r) for r in cur]
-                else:
-                    cur = self._db.execute(
-                        f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq DESC LIMIT ?",
-                        (frame_seq, max_frames),
-                    )
-                    frames = [record_from_row(r) for r in cur][::-1]
-                channels = [
-                    (int(i), float(t), str(n), math.nan if v is None else float(v))
-                    for i, t, n, v in self._db.execute(
-                        "SELECT id, t_s, name, value FROM channels WHERE id > ? ORDER BY id",
-                        (channel_id,),
-                    )
-                ]
-                events = [
-                    (int(i), int(e), float(t), str(k), float(x), float(y))
-                    for i, e, t, k, x, y in self._db.execute(
-                        "SELECT id, epoch, t_s, kind, x_nm, y_nm FROM events WHERE id > ? "
-                        "ORDER BY id",
-                        (event_id,),
-                    )
-                ]
-                model = None
-                row = self._db.execute(
-                    "SELECT seq, predictor, state_json FROM model_state WHERE seq > ? "
-                    "ORDER BY seq DESC LIMIT 1",
-                    (model_seq,),
-                ).fetchone()
-                if row is not None:
-                    state = json.loads(row[2])
-                    model = (int(row[0]), str(row[1]), state if isinstance(state, dict) else {})
-                meta = self._meta()
-            finally:
-                self._db.execute("COMMIT")
+            with self._lock:
+                self._db.execute("BEGIN")
+                try:
+                    return self._rows_since(frame_seq, channel_id, event_id, model_seq, max_frames)
+                finally:
+                    self._db.execute("COMMIT")
         except (sqlite3.DatabaseError, json.JSONDecodeError) as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
-        return StoreRows(frames=frames, channels=channels, events=events, model=model, meta=meta)
+
+    def _rows_since(
+        self,
+        frame_seq: int,
+        channel_id: int,
+        event_id: int,
+        model_seq: int,
+        max_frames: int | None,
+    ) -> StoreRows:
+        """:meth:`read_since` inside its transaction, with the lock held."""
+        if max_frames is None:
+            cur = self._db.execute(
+                f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq", (frame_seq,)
+            )
+            frames = [record_from_row(r) for r in cur]
+        else:
+            cur = self._db.execute(
+                f"SELECT {_COLUMNS} FROM frames WHERE seq > ? ORDER BY seq DESC LIMIT ?",
+                (frame_seq, max_frames),
+            )
+            frames = [record_from_row(r) for r in cur][::-1]
+        channels = [
+            (int(i), float(t), str(n), math.nan if v is None else float(v))
+            for i, t, n, v in self._db.execute(
+                "SELECT id, t_s, name, value FROM channels WHERE id > ? ORDER BY id",
+                (channel_id,),
+            )
+        ]
+        events = [
+            (int(i), int(e), float(t), str(k), float(x), float(y))
+            for i, e, t, k, x, y in self._db.execute(
+                "SELECT id, epoch, t_s, kind, x_nm, y_nm FROM events WHERE id > ? ORDER BY id",
+                (event_id,),
+            )
+        ]
+        model = None
+        row = self._db.execute(
+            "SELECT seq, predictor, state_json FROM model_state WHERE seq > ? "
+            "ORDER BY seq DESC LIMIT 1",
+            (model_seq,),
+        ).fetchone()
+        if row is not None:
+            state = json.loads(row[2])
+            model = (int(row[0]), str(row[1]), state if isinstance(state, dict) else {})
+        return StoreRows(
+            frames=frames, channels=channels, events=events, model=model, meta=self._meta()
+        )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import json
 import math
 import os
@@ -254,6 +255,29 @@ def test_reader_reads_a_store_without_writing_it(tmp_path: Path) -> None:
         with pytest.raises(sqlite3.OperationalError, match="readonly"):
             reader._db.execute("DELETE FROM frames")
     assert (run / "run.sqlite").read_bytes() == before
+
+
+def test_reader_serves_threads_that_read_at_once(tmp_path: Path) -> None:
+    # The dashboard polls the store, rebuilds d(t) from the stored curves and
+    # draws the frame view in worker threads, all through one reader.
+    run = _store(tmp_path / "run", 20)
+    with RunReader(run) as reader:
+
+        def hammer(k: int) -> int:
+            n = 0
+            for _ in range(150):
+                if k % 3 == 0:
+                    n += len(reader.read_since().frames)
+                elif k % 3 == 1:
+                    reader.stored_curves()
+                    n += reader.session_reference() is not None
+                else:
+                    n += reader.frame(5) is not None
+            return n
+
+        with concurrent.futures.ThreadPoolExecutor(max_workers=6) as pool:
+            counts = list(pool.map(hammer, range(6)))
+    assert counts == [150 * 20, 150, 150] * 2
 
 
 @pytest.mark.parametrize(
