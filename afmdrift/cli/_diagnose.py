@@ -46,6 +46,12 @@ def register(sub: Any) -> None:
         default=10,
         help="first fed frames left out of the error statistics (default 10)",
     )
+    p.add_argument(
+        "--workers",
+        type=int,
+        help="processes for the candidates' online re-runs, side by side "
+        "(default: one per core this process may use; 1 runs them in this process)",
+    )
     p.set_defaults(handler=_diagnose)
 
 
@@ -54,8 +60,13 @@ def _diagnose(args: argparse.Namespace) -> int:
     from afmdrift.diagnostics import DiagnoseOptions, diagnose_path, diagnosis_text
     from afmdrift.errors import InputError
 
+    from afmdrift.runs import available_cores
+
     if args.burn_in < 0:
         raise InputError(f"--burn-in must be >= 0, got {args.burn_in}")
+    if args.workers is not None and args.workers < 1:
+        raise InputError(f"--workers must be >= 1, got {args.workers}")
+    workers = available_cores() if args.workers is None else args.workers
     config = load_config(args.config)
     effects = None
     if args.effects is not None:
@@ -66,7 +77,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         effects=effects,
         run_dir=args.run_dir,
         session_dir=args.session,
-        options=DiagnoseOptions(burn_in_frames=args.burn_in),
+        options=DiagnoseOptions(burn_in_frames=args.burn_in, workers=workers),
     )
     if args.report:
         from afmdrift.diagnostics import write_report

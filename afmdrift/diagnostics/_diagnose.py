@@ -17,7 +17,9 @@ and a physics model (a list of effect terms) and
    (:mod:`afmdrift.diagnostics._candidates`), ranks them, and for the top
    candidates re-runs the model online with the term added to measure the
    new one-step error ("add it and watch the error fall";
-   :mod:`afmdrift.diagnostics._ranking`);
+   :mod:`afmdrift.diagnostics._ranking`); the re-runs are independent and run
+   side by side (:class:`afmdrift.runs.TaskPool`: this machine's cores, or the
+   Dask cluster of ``afmdrift batch``);
 4. **says it**: the patterns of the errors and the finding in plain language
    (:mod:`afmdrift.diagnostics._finding`), in a :class:`Diagnosis`.
 
@@ -50,7 +52,8 @@ from afmdrift.diagnostics._stats import (
     up_down_difference,
 )
 from afmdrift.errors import ConfigError
-from afmdrift.model import EffectTerm, available_terms, resolve_terms
+from afmdrift.model import EffectTerm, available_terms, resolve_terms, warm_up_effects
+from afmdrift.runs import TaskPool
 
 __all__ = ["DiagnoseOptions", "Diagnosis", "diagnose"]
 
@@ -83,6 +86,19 @@ def diagnose(
     """
     options = options or DiagnoseOptions()
     physics, known = _chosen_physics(physics, effects)
+    # The re-runs' processes start now and import while the model runs here.
+    with TaskPool(options.workers, warm=warm_up_effects) as pool:
+        return _diagnose(data, physics, known, options, pool)
+
+
+def _diagnose(
+    data: RunData,
+    physics: PhysicsConfig,
+    known: dict[str, type[EffectTerm]],
+    options: DiagnoseOptions,
+    pool: TaskPool,
+) -> Diagnosis:
+    """:func:`diagnose` with its model and known terms chosen, re-runs on ``pool``."""
     run = run_from_store(data, physics) or run_model(data, physics)
     burn = min(options.burn_in_frames, max(run.t_s.size - 8, 0))
     summary = run.summary(burn)
@@ -98,7 +114,7 @@ def diagnose(
     results, n_tests = candidate_evidence(design, run.history, known, physics, options)
     runs = verify_online(
         results, data, physics, base=run, burn=burn, rmse0_nm=summary["rmse_nm"],
-        options=options,
+        options=options, pool=pool,
     )  # fmt: skip
     step_s = float(np.median(np.diff(run.t_s))) if run.t_s.size > 1 else math.inf
     rank_candidates(results, options.thresholds, frame_period_s=step_s)

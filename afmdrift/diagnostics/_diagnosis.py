@@ -43,12 +43,19 @@ class DiagnoseOptions:
         At most this many online re-runs in all (the highest ΔAICc first):
         each re-run costs a full online fit, and the Diebold-Mariano p-values
         are corrected for their number.
+    workers : int
+        Processes that run the online re-runs side by side on this machine
+        (:class:`~afmdrift.runs.TaskPool`; ``afmdrift diagnose`` uses every
+        core). Inside a Dask worker the cluster runs them instead. More than
+        one spawns processes: a script of your own must then keep its work
+        under ``if __name__ == "__main__":``. The result does not depend on it.
     """
 
     burn_in_frames: int = 10
     thresholds: Thresholds = field(default_factory=Thresholds)
     verify: int = 2
     max_verify: int = 10
+    workers: int = 1
 
 
 @dataclass(slots=True)

@@ -26,6 +26,7 @@ from afmdrift.diagnostics._diagnosis import DiagnoseOptions
 from afmdrift.diagnostics._model_run import ModelRun, run_model
 from afmdrift.diagnostics._regression import forecast_comparison
 from afmdrift.model import EffectTerm, GenericTerm, History, term_class
+from afmdrift.runs import TaskPool
 
 __all__ = [
     "MAX_CV_RATIO",
@@ -82,6 +83,7 @@ def verify_online(
     burn: int,
     rmse0_nm: float,
     options: DiagnoseOptions,
+    pool: TaskPool,
 ) -> dict[str, tuple[ModelRun, dict[str, float]]]:
     """Re-run the model online with candidates added, and decide on the re-runs.
 
@@ -92,8 +94,9 @@ def verify_online(
     within :attr:`Thresholds.named_margin_aicc` of a significant generic term
     (so that a named effect is never outranked by its generic twin only
     because the twin had the re-run); at most ``options.max_verify`` by
-    ΔAICc. Each re-run sets ``rmse_after_nm``, ``prequential_drop`` and the
-    Diebold-Mariano p-value of its one-step errors against the model's
+    ΔAICc. The re-runs are independent: ``pool`` runs them side by side
+    (:class:`~afmdrift.runs.TaskPool`). Each re-run sets ``rmse_after_nm``,
+    ``prequential_drop`` and the Diebold-Mariano p-value of its one-step errors against the model's
     (:func:`~afmdrift.diagnostics._regression.forecast_comparison`), adjusted
     over the re-runs by Holm's method.
 
@@ -112,11 +115,10 @@ def verify_online(
         (c for c in results if c.testable),
         key=lambda c: -(c.score if math.isfinite(c.score) else -math.inf),
     )
+    chosen = _to_rerun(by_score, options)
+    done = pool.map(rerun_with, [(data, physics, c.effect) for c in chosen])
     runs: dict[str, tuple[ModelRun, dict[str, float]]] = {}
-
-    def rerun(c: CandidateResult) -> None:
-        cfg = physics.model_copy(update={"terms": [*physics.terms, c.effect]})
-        r = run_model(data, cfg)
+    for c, r in zip(chosen, done, strict=True):
         s = r.summary(burn)
         runs[c.effect] = (r, s)
         c.rmse_after_nm = s["rmse_nm"]
@@ -124,18 +126,6 @@ def verify_online(
         if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
             c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
         c.p_online, _ = forecast_comparison(base.errors_nm[burn:], r.errors_nm[burn:])
-
-    for i, c in enumerate(by_score):
-        if len(runs) >= options.max_verify:
-            break
-        if i < options.verify or c.significant or c.delta_aicc > 0:
-            rerun(c)
-    generic = [c for c in by_score if c.significant and c.driver]
-    for c in by_score:
-        if c.driver or c.effect in runs or not c.in_sample_ok:
-            continue
-        if any(c.delta_aicc >= g.delta_aicc - th.named_margin_aicc for g in generic):
-            rerun(c)
     _holm([c for c in by_score if c.effect in runs])
     for c in by_score:
         if c.effect in runs:
@@ -152,6 +142,34 @@ def verify_online(
             c.rmse_after_nm = rmse0_nm * c.cv_rmse_nm / c.cv_rmse_base_nm
             c.rmse_after_kind = "cv_estimate"
     return runs
+
+
+def rerun_with(task: tuple[RunData, PhysicsConfig, str]) -> ModelRun:
+    """One online re-run of ``(data, physics, effect)``: the model of
+    ``physics`` with the term ``effect`` added, over ``data`` (a task of
+    :class:`~afmdrift.runs.TaskPool`, so module-level)."""
+    data, physics, effect = task
+    cfg = physics.model_copy(update={"terms": [*physics.terms, effect]})
+    return run_model(data, cfg)
+
+
+def _to_rerun(by_score: list[CandidateResult], options: DiagnoseOptions) -> list[CandidateResult]:
+    """The candidates :func:`verify_online` re-runs, from their in-sample evidence
+    alone (so the re-runs are independent and run side by side)."""
+    th = options.thresholds
+    chosen: list[CandidateResult] = []
+    for i, c in enumerate(by_score):
+        if len(chosen) >= options.max_verify:
+            break
+        if i < options.verify or c.significant or c.delta_aicc > 0:
+            chosen.append(c)
+    generic = [c for c in by_score if c.significant and c.driver]
+    for c in by_score:
+        if c.driver or c.effect in {d.effect for d in chosen} or not c.in_sample_ok:
+            continue
+        if any(c.delta_aicc >= g.delta_aicc - th.named_margin_aicc for g in generic):
+            chosen.append(c)
+    return chosen
 
 
 def _holm(rerun: list[CandidateResult]) -> None:

@@ -48,7 +48,7 @@ import abc
 import functools
 import math
 from collections.abc import Mapping
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 import numpy.typing as npt
@@ -95,6 +95,12 @@ class GenericTerm(EffectTerm):
 
     def _params(self, params: Mapping[str, float]) -> dict[str, float]:
         return {**self.fixed_params, **params}
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Its class is built from the spec at run time (parse_term_spec), so
+        # pickle cannot find it by name: a term travels as its spec and state
+        # (to the processes of diagnose's online re-runs, to Dask workers).
+        return (_term_from_spec, (self.name, dict(vars(self))))
 
 
 class ChannelResponse(GenericTerm, LaggedChannel):
@@ -198,6 +204,14 @@ def _range(spec: str, part: str, value: str) -> tuple[float, float]:
     if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
         raise ConfigError(f"term spec {spec!r}: {part!r} must be positive and finite with lo <= hi")
     return lo, hi
+
+
+def _term_from_spec(spec: str, state: dict[str, Any]) -> GenericTerm:
+    """A generic term of ``spec`` with the instance state ``state`` (unpickling)."""
+    cls = parse_term_spec(spec)
+    term = cls.__new__(cls)
+    vars(term).update(state)
+    return term
 
 
 @functools.lru_cache(maxsize=512)

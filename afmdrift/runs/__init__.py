@@ -7,7 +7,9 @@ the de-warped frames of ``afmdrift correct`` (:func:`correct_session`), the
 drift track of ``afmdrift measure`` and ``afmdrift batch``
 (:func:`track_stack`, :func:`track_session`), and the SQLite run store that
 the daemon, replay, the dashboard and the diagnostics read and write
-(:class:`RunStore`). The daemon (:mod:`afmdrift.service`) commits each new
+(:class:`RunStore`); and :class:`TaskPool`, which runs a command's independent
+tasks (diagnose's online re-runs) on this machine's cores or, inside a Dask
+worker, on its cluster. The daemon (:mod:`afmdrift.service`) commits each new
 frame with :func:`process_and_record`; a replayed recording goes through
 :meth:`~afmdrift.pipeline.FramePipeline.run` and :func:`record_outcome`, so
 both record exactly the same rows.
@@ -17,6 +19,7 @@ it so), so a Dask worker of ``afmdrift batch`` never loads the daemon.
 """
 
 from afmdrift.runs._correct import CorrectionSummary, correct_session
+from afmdrift.runs._parallel import TaskPool, available_cores
 from afmdrift.runs._csv import TRAJECTORY_COLUMNS, trajectory_rows, write_trajectory_csv
 from afmdrift.runs._record import process_and_record, record_outcome
 from afmdrift.runs._replay import ReplaySummary, replay_session
@@ -33,6 +36,8 @@ __all__ = [
     "ReplaySummary",
     "RunStore",
     "StoreError",
+    "TaskPool",
+    "available_cores",
     "correct_session",
     "measure_session",
     "process_and_record",

@@ -3,6 +3,7 @@ plugins load from a module path and from an entry point."""
 
 from __future__ import annotations
 
+import pickle
 import sys
 import textwrap
 from collections.abc import Mapping
@@ -773,3 +774,16 @@ def test_a_new_event_s_response_is_fitted_from_its_first_frames_when_the_data_sh
             worst = max(worst, float(np.max(np.abs(xy[i] - pred))))
         model.update(obs, history)
     assert worst < 2.5, worst
+
+
+@pytest.mark.parametrize(
+    "spec", ["channel:laser_power_mw", "event:stage_move:each:tau_s=900", "event:approach:log"]
+)
+def test_a_generic_term_travels_by_pickle_as_its_spec(spec: str) -> None:
+    # diagnose's online re-runs come back from other processes with their terms
+    term = parse_term_spec(spec)()
+    term.marker = 3  # type: ignore[attr-defined]
+    back = pickle.loads(pickle.dumps(term))
+    assert type(back) is type(term)
+    assert back.name == spec
+    assert back.marker == 3  # type: ignore[attr-defined]
