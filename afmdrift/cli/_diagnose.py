@@ -59,7 +59,6 @@ def _diagnose(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.diagnostics import DiagnoseOptions, diagnose_path, diagnosis_text
     from afmdrift.errors import InputError
-
     from afmdrift.runs import available_cores
 
     if args.burn_in < 0:

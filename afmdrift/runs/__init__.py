@@ -19,8 +19,8 @@ it so), so a Dask worker of ``afmdrift batch`` never loads the daemon.
 """
 
 from afmdrift.runs._correct import CorrectionSummary, correct_session
-from afmdrift.runs._parallel import TaskPool, available_cores
 from afmdrift.runs._csv import TRAJECTORY_COLUMNS, trajectory_rows, write_trajectory_csv
+from afmdrift.runs._parallel import TaskPool, available_cores
 from afmdrift.runs._record import process_and_record, record_outcome
 from afmdrift.runs._replay import ReplaySummary, replay_session
 from afmdrift.runs._schema import DB_NAME, STORE_SCHEMA_VERSION, StoreError
