@@ -14,6 +14,7 @@ import glob
 import logging
 import os
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, run_job, stems
-from afmdrift.batch._summary import plot_archive, write_summary
+from afmdrift.batch._summary import import_plotting, plot_archive, write_summary
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import ConfigError, InputError
 
@@ -133,6 +134,7 @@ def run_batch(
         show.line(f"{skipped} of {len(jobs)} recordings already done; skipping them")
     if todo:
         address = scheduler or os.environ.get(SCHEDULER_ENV) or None
+        threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
 
         def finished(k: int, result: Result) -> None:
             rows[k] = result
