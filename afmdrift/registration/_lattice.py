@@ -32,10 +32,11 @@ Steps (:func:`decide`):
    correlation length, so tiles are nearly independent), each tile levelled
    line by line and given its own least-squares shift within a fraction of
    a pixel (:func:`_tile_misfit`), the difference of their mean squared
-   residuals per tile;
-   tiles neither candidate fits (a changed area) are left out; a t test and
-   a sign test of the differences. On a perfect lattice with noise (both
-   candidates equally right) the statistics stay within ±3.1 (960
+   residuals per tile; tiles neither candidate fits (a changed area: above
+   the tiles' noise floor, found from their lower quantiles,
+   :func:`_fit_limit`) are left out; a t test and a sign test of the
+   differences. On a perfect lattice with noise (both candidates equally
+   right) the statistics stay within ±3.1 (960
    comparisons of SNR 5–10 pairs: cropped, circular, with line-correlated
    noise); the right translation of the real NanoScope frame beats its
    lattice neighbours at 11–26, a dot lattice with a tenth of its dots
