@@ -32,10 +32,11 @@ Steps (:func:`decide`):
    correlation length, so tiles are nearly independent), each tile levelled
    line by line and given its own least-squares shift within a fraction of
    a pixel (:func:`_tile_misfit`), the difference of their mean squared
-   residuals per tile;
-   tiles neither candidate fits (a changed area) are left out; a t test and
-   a sign test of the differences. On a perfect lattice with noise (both
-   candidates equally right) the statistics stay within ±3.1 (960
+   residuals per tile; tiles neither candidate fits (a changed area: above
+   the tiles' noise floor, found from their lower quantiles,
+   :func:`_fit_limit`) are left out; a t test and a sign test of the
+   differences. On a perfect lattice with noise (both candidates equally
+   right) the statistics stay within ±3.1 (960
    comparisons of SNR 5–10 pairs: cropped, circular, with line-correlated
    noise); the right translation of the real NanoScope frame beats its
    lattice neighbours at 11–26, a dot lattice with a tenth of its dots
@@ -53,6 +54,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 from typing import NamedTuple
 
 import numpy as np
@@ -98,9 +100,13 @@ PRIOR_MARGIN_PX = 2.0
 #: (px): larger than the residuals' correlation length on the textures tried
 #: (a 10-px lattice, particles), small enough for 80–150 tiles per frame.
 TILE_PX = 16
-#: Tiles whose better fit is more than this many robust deviations above the
-#: median tile's are changed content, and left out of the paired test.
+#: Tiles whose better fit is more than this many deviations above the noise
+#: floor of the tiles (:func:`_fit_limit`) are changed content, and left out
+#: of the paired test.
 CHANGED_MAD = 5.0
+#: Quantiles of the tiles' better fits to which the noise floor's normal is
+#: fitted: low ones, which changed tiles (only ever worse fits) do not reach.
+FLOOR_QUANTILES = (0.1, 0.3)
 #: Fewest tiles the paired test needs to decide anything.
 MIN_TILES = 16
 #: Margin (px) of the cut-outs that are Fourier-shifted, and of the overlap.
@@ -439,9 +445,7 @@ def paired_test(pair: Pair) -> PairedTest:
     # particle, a scratch) are left out, whichever is right: there the
     # difference of two large residuals is noise that would swamp the rest.
     fit = np.minimum(mse_best, mse_other)
-    centre = float(np.median(fit))
-    spread = max(1.4826 * float(np.median(np.abs(fit - centre))), 0.01 * centre)
-    diff = (mse_other - mse_best)[fit <= centre + CHANGED_MAD * spread]
+    diff = (mse_other - mse_best)[fit <= _fit_limit(fit)]
     n = int(diff.size)
     if n < 2:
         return NO_TEST
@@ -457,6 +461,28 @@ def paired_test(pair: Pair) -> PairedTest:
     )
     scale = 1.0 / pair.signal_var if pair.signal_var > 0 else 0.0
     return PairedTest(t, sign_z, mean * scale, float(np.median(diff)) * scale, n)
+
+
+def _fit_limit(fit: F64) -> float:
+    """Largest tile misfit ``fit`` (the better candidate's, per tile) that
+    still counts as a fit: :data:`CHANGED_MAD` deviations above the noise
+    floor of the tiles, a normal fitted to their :data:`FLOOR_QUANTILES`.
+
+    A change between the frames only ever raises a tile's misfit, so the
+    changed tiles (a tenth to a third of them when 12–25 % of the frame is
+    changed, for a change touches every tile it crosses) sit in the upper
+    tail, and the lower quantiles keep to the floor. On a lattice a changed
+    tile is fitted moderately by a candidate a period off, whose shift moves
+    the tile onto unchanged lattice elsewhere; a median and MAD of all tiles
+    would take those fits into the floor and its spread, and keep these
+    tiles, each a vote against the right candidate. The limit depends on the better
+    fit alone, whichever candidate gives it, so it keeps the tests'
+    symmetry under the null (two candidates equally right)."""
+    lo, hi = (float(q) for q in np.quantile(fit, FLOOR_QUANTILES))
+    z_lo, z_hi = (NormalDist().inv_cdf(q) for q in FLOOR_QUANTILES)
+    spread = (hi - lo) / (z_hi - z_lo)
+    centre = hi - z_hi * spread
+    return centre + CHANGED_MAD * max(spread, 0.01 * centre)
 
 
 def _tile_misfit(e: F64, gx: F64, gy: F64, tile: int, nr: int, nc: int) -> F64:

@@ -22,7 +22,7 @@ from _lattice_pairs import NANOSCOPE_PERIOD_PX, shifted_pairs
 from afmdrift.io import load_image
 from afmdrift.registration import DriftTracker, coarse_shift, measure_drift
 from afmdrift.registration._coarse import levelled
-from afmdrift.registration._lattice import Residuals, paired_test, repeat_vectors
+from afmdrift.registration._lattice import Residuals, _fit_limit, paired_test, repeat_vectors
 from afmdrift.testing import (
     TextureShifter,
     add_noise,
@@ -166,6 +166,28 @@ def test_paired_test_does_not_separate_equal_translations_and_does_separate_diff
             backward = paired_test(both.swapped())
             assert forward.wins is expect, (vacancy, v, forward)
             assert not backward.wins, (vacancy, v, backward)
+
+
+def test_fit_limit_keeps_to_the_noise_floor_when_a_third_of_the_tiles_changed() -> None:
+    """Regression (issue 29): changed tiles only raise the better fit, and on
+    a lattice a translation a period off fits them moderately (1.5–4 times
+    the floor on the NanoScope frame). With 30 of 90 tiles such, a median
+    and MAD of all tiles put the limit among them, so some counted as fits
+    and voted against the right candidate; the limit from the lower
+    quantiles keeps every floor tile and none of them, and without them it
+    is the plain floor plus five deviations."""
+    rng = np.random.default_rng(0)
+    floor = rng.normal(250.0, 25.0, 60)
+    changed = rng.uniform(400.0, 900.0, 30)
+    both = np.concatenate([floor, changed])
+    limit = _fit_limit(both)
+    assert np.all(floor <= limit)
+    assert not np.any(changed <= limit)
+    centre = float(np.median(both))
+    whole = centre + 5.0 * 1.4826 * float(np.median(np.abs(both - centre)))
+    assert np.count_nonzero(changed <= whole) >= 4
+    clean = rng.normal(250.0, 25.0, 5000)
+    assert _fit_limit(clean) == pytest.approx(250.0 + 5.0 * 25.0, rel=0.03)
 
 
 def test_lattice_movie_is_tracked_with_its_prior() -> None:
