@@ -266,18 +266,25 @@ def load_stack(
     """Read every frame of a file: an (N, rows, cols) ``.npy``/``.tif``/``.nc``
     stack, an ``.asd`` or ``.h5-jpk`` movie (a single-image file gives a list of one).
 
-    With ``stream``, the frames of a ``.npy`` stack of float32 or float64
-    heights in nm are views of a read-only memory map: a caller that goes
-    through them in turn holds a few frames, however long the stack, and
-    nothing is converted. A frame with non-finite heights is then refused
-    when it is measured rather than when the file is read. Other files are
-    read whole.
+    With ``stream``, the frames of a stack of float32 or float64 heights in
+    nm, stored uncompressed in one block in the machine's byte order (a
+    ``.npy`` stack; a ``.tif`` stack such as ``afmdrift correct`` writes), are
+    views of a read-only memory map: a caller that goes through them in turn
+    holds a few frames, however long the stack, and nothing is converted. A
+    frame with non-finite heights is then refused when it is measured rather
+    than when the file is read. Other files are read whole.
 
     Parameters and errors are those of :func:`load_image`.
     """
     pixel = _pixel_pair(pixel_size_nm)
-    if stream:
-        mapped = _map_npy(Path(path), pixel, height_unit)
+    in_nm = height_unit is None or length_unit_to_nm(height_unit, where="height_unit") == 1.0
+    if stream and in_nm:
+        suffix = Path(path).suffix.lower()
+        mapped = None
+        if suffix == ".npy":
+            mapped = _map_npy(Path(path), pixel)
+        elif suffix in (".tif", ".tiff"):
+            mapped = _map_tiff(Path(path), pixel)
         if mapped is not None:
             return mapped
     return _read_all(Path(path), pixel_size_nm=pixel, channel=channel, height_unit=height_unit)
@@ -309,23 +316,58 @@ def _check_size(path: Path, shape: tuple[int, ...]) -> None:
         )
 
 
-def _map_npy(
-    path: Path, pixel_size_nm: tuple[float, float] | None, height_unit: str | None
-) -> list[AfmImage] | None:
+def _map_npy(path: Path, pixel_size_nm: tuple[float, float] | None) -> list[AfmImage] | None:
     """The frames of a ``.npy`` stack as views of a read-only memory map, or
-    ``None`` when it must be read whole (another suffix, another dtype or
-    byte order, heights in another unit, a single image)."""
-    if path.suffix.lower() != ".npy" or not path.is_file():
-        return None
-    if height_unit is not None and length_unit_to_nm(height_unit, where="height_unit") != 1.0:
+    ``None`` when it must be read whole (another dtype or byte order, a
+    single image)."""
+    if not path.is_file():
         return None
     try:
         data = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as err:
         raise ImageFileError(f"{path}: not a readable .npy array ({err})") from None
+    if not isinstance(data, np.ndarray):
+        return None
+    return _frame_views(path, data, pixel_size_nm, "a .npy array")
+
+
+def _map_tiff(path: Path, pixel_size_nm: tuple[float, float] | None) -> list[AfmImage] | None:
+    """The frames of a TIFF stack stored uncompressed in one block, as views of
+    a read-only memory map (tifffile gives the block's offset), or ``None``
+    when it must be read whole (compressed, in strips, another dtype)."""
+    import tifffile
+
+    logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+    try:
+        with tifffile.TiffFile(path) as tif:
+            if not tif.series:
+                return None
+            series = tif.series[0]
+            offset = series.dataoffset
+            dtype = np.dtype(series.dtype).newbyteorder(tif.byteorder)
+            shape = tuple(int(v) for v in series.shape)
+            _check_imagej_count(tif, shape, path)
+            calibration = _tiff_pixel_size(tif, path)
+    except (tifffile.TiffFileError, ValueError, OSError, EOFError, KeyError, IndexError) as err:
+        raise ImageFileError(f"{path}: not a readable TIFF image ({err})") from None
+    if offset is None or len(shape) != 3 or not dtype.isnative:
+        return None
+    if offset + math.prod(shape) * dtype.itemsize > path.stat().st_size:
+        raise ImageFileError(f"{path}: TIFF image data end beyond the end of the file")
+    data = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape)
+    return _frame_views(path, data, pixel_size_nm or calibration, "a TIFF image")
+
+
+def _frame_views(
+    path: Path,
+    data: npt.NDArray[Any],
+    pixel_size_nm: tuple[float, float] | None,
+    what: str,
+) -> list[AfmImage] | None:
+    """Frames that are views of the mapped (N, rows, cols) stack ``data`` of
+    float heights in nm, or ``None`` for another dtype or layout."""
     if not (
-        isinstance(data, np.ndarray)
-        and data.ndim == 3
+        data.ndim == 3
         and min(data.shape) > 0
         and data.dtype in (np.dtype(np.float32), np.dtype(np.float64))
         and data.flags.c_contiguous
@@ -333,7 +375,7 @@ def _map_npy(
         return None
     if pixel_size_nm is None:
         raise MissingPixelSizeError(
-            f"{path}: a .npy array carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
+            f"{path}: {what} carries no pixel size; give pixel_size_nm (--pixel-size-nm)"
         )
     _check_size(path, data.shape)
     images = [
@@ -396,6 +438,7 @@ def _read_tiff(
             if not tif.series:
                 raise ImageFileError(f"{path}: TIFF file holds no image")
             _check_size(path, tuple(tif.series[0].shape))
+            _check_imagej_count(tif, tuple(tif.series[0].shape), path)
             data = np.asarray(tif.asarray(), dtype=np.float64)
             calibration = _tiff_pixel_size(tif, path)
             timing = _tiff_timing(tif.imagej_metadata or {}, path)
@@ -414,6 +457,17 @@ def _read_tiff(
             )
         ]
     return images
+
+
+def _check_imagej_count(tif: Any, shape: tuple[int, ...], path: Path) -> None:
+    """Refuse an ImageJ stack holding fewer images than its description declares
+    (a truncated file, which tifffile would read as its first image alone)."""
+    declared = (tif.imagej_metadata or {}).get("images")
+    held = math.prod(shape[:-2]) if len(shape) > 2 else 1
+    if isinstance(declared, int) and declared > held:
+        raise ImageFileError(
+            f"{path}: ImageJ TIFF declares {declared} images but holds {held} (truncated file?)"
+        )
 
 
 def _tiff_timing(imagej: dict[str, Any], path: Path) -> dict[str, Any]:
