@@ -90,7 +90,7 @@ def test_a_truncated_tiff_stack_is_refused_by_name(tmp_path: Path) -> None:
     path = _imagej_tif(tmp_path / "t.tif", _stack(n=8, shape=(64, 64)))
     raw = path.read_bytes()
     path.write_bytes(raw[: len(raw) // 2])
-    with pytest.raises(ImageFileError, match="t.tif"):
+    with pytest.raises(ImageFileError, match=r"t\.tif: ImageJ TIFF declares 8 images but holds 1"):
         load_stack(path, stream=True)
 
 
