@@ -1,6 +1,6 @@
 """Speed and memory of ``afmdrift batch``, the path users run on an archive.
 
-Run: ``.venv/bin/python benchmarks/bench_batch.py [--recordings N] [--frames M]``
+Run: ``.venv/bin/python benchmarks/bench_batch.py [--recordings N] [--frames M] [--repeats R]``
 
 One archive of ``N`` float32 ``.npy`` movies of ``M`` 512² frames (a rough
 texture drifting on a slow path), plus one long movie, the largest file.
@@ -14,7 +14,7 @@ Measured side by side in one run, nothing else running:
    the picture included: a fixed second or so per command), and the
    workers' own (the frames over the busiest worker's time on its
    recordings, from ``summary.csv``), which the command approaches as the
-   archive grows.
+   archive grows; medians of ``--repeats`` runs of the archive.
 2. **The whole command** as a user runs it with no cluster: ``afmdrift batch
    --workers 2`` (a LocalCluster started and stopped by the command), against
    ``afmdrift measure`` run on each recording in turn (the target: the batch
@@ -34,6 +34,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse
 import contextlib
 import csv
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -110,6 +111,7 @@ def main() -> None:
     ap.add_argument("--recordings", type=int, default=12)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--long-frames", type=int, default=600, help="the largest file's frames")
+    ap.add_argument("--repeats", type=int, default=3, help="runs of the archive per cluster")
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -126,16 +128,21 @@ def main() -> None:
         fps: dict[int, float] = {}
         busy: dict[int, float] = {}
         for n in (1, 2):
+            walls, busiest = [], []
             with LoopbackDaskCluster(n) as cluster:
                 for k in range(n):  # every worker compiles its kernels first
                     batch([str(warm / "w.npy"), "--out", str(root / f"w{n}{k}"), *common,
                            "--scheduler", cluster.address], root)  # fmt: skip
-                wall = batch([str(arc), "--out", str(root / f"c{n}"), *common,
-                              "--scheduler", cluster.address], root)  # fmt: skip
+                for r in range(a.repeats):  # a new --out each time: nothing is skipped
+                    out = root / f"c{n}-{r}"
+                    walls.append(batch([str(arc), "--out", str(out), *common,
+                                        "--scheduler", cluster.address], root))  # fmt: skip
+                    busiest.append(busiest_worker_s(out / "summary.csv"))
+            wall, busy[n] = statistics.median(walls), statistics.median(busiest)
             fps[n] = frames / wall
-            busy[n] = busiest_worker_s(root / f"c{n}" / "summary.csv")
-            print(f"running cluster, {n} worker(s): command {wall:.2f} s, {fps[n]:.0f} frames/s; "
-                  f"busiest worker {busy[n]:.2f} s, {frames / busy[n]:.0f} frames/s "
+            print(f"running cluster, {n} worker(s), median of {a.repeats}: command {wall:.2f} s "
+                  f"[{min(walls):.2f}-{max(walls):.2f}], {fps[n]:.0f} frames/s; busiest worker "
+                  f"{busy[n]:.2f} s, {frames / busy[n]:.0f} frames/s "
                   f"({a.recordings} x {a.frames} frames of 512²)")  # fmt: skip
         print(f"two workers / one: command {fps[2] / fps[1]:.2f}x, "
               f"workers {busy[1] / busy[2]:.2f}x (target >= 1.8)")  # fmt: skip
