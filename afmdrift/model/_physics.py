@@ -90,48 +90,33 @@ def weighted_rss(x: FloatArray, y: FloatArray, w: FloatArray) -> float:
 
 
 #: A direction of the (column-normalised) design whose singular value is below
-#: this fraction of the largest is ill-conditioned: two terms nearly alike
-#: (``thermal`` beside a channel response with a lag of seconds).
-ILL_CONDITIONED = 1e-3
-#: ... and its coefficient is undetermined when the data's projection on it is
-#: under this many residual standard deviations.
-UNDETERMINED_Z = 3.0
+#: this fraction of the largest is left out of the fit (:func:`_determined_lstsq`).
+ILL_CONDITIONED = 1e-2
 
 
 def _determined_lstsq(a: FloatArray, b: FloatArray) -> FloatArray:
-    """Least squares ``a·c ≈ b`` (columns of unit norm) without its undetermined directions.
+    """Least squares ``a·c ≈ b`` (columns of unit norm) without its ill-conditioned directions.
 
-    The ordinary solution through the SVD a = U·S·Vᵀ, except that a direction
-    i that is ill-conditioned (s_i < :data:`ILL_CONDITIONED`·s_max) and that
-    the data do not determine (|u_iᵀb| < :data:`UNDETERMINED_Z`·σ̂, σ̂ from the
-    ordinary fit's residuals) gets coefficient 0, as in the truncated SVD
-    (Hansen 1987, BIT 27:534). The ordinary coefficient there is noise over a
-    tiny s_i: two nearly equal columns with huge opposite coefficients, whose
-    prediction one frame later, where the columns part, is off by tens of nm.
-    Leaving it out changes the fit by less than 3σ̂ in all and keeps every
-    direction the data determine.
+    The truncated SVD (Hansen 1987, BIT 27:534): through a = U·S·Vᵀ, a
+    direction i with s_i < :data:`ILL_CONDITIONED`·s_max gets coefficient 0.
+    There the ordinary coefficient is u_iᵀb / s_i: terms nearly alike over
+    the frames fitted (``thermal`` beside a channel response with a lag of
+    seconds; an intercept, a trend and a channel that has drifted slowly so
+    far) get huge opposite coefficients, and the prediction one frame later,
+    where the columns part, is off by hundreds or thousands of nm. Leaving
+    the direction out keeps every direction the data determine well.
     """
     u, sv, vt = np.linalg.svd(a, full_matrices=False)
     if sv.size == 0:
         return np.zeros(a.shape[1])
-    ub = u.T @ b
-    kept = sv > 1e-10 * sv[0]
-    c = np.where(kept, ub / np.where(kept, sv, 1.0), 0.0)
-    coef: FloatArray = vt.T @ c
-    n, k = a.shape
-    if n > k:
-        r = b - a @ coef
-        weak = (sv < ILL_CONDITIONED * sv[0]) & (
-            np.abs(ub) < UNDETERMINED_Z * np.sqrt(r @ r / (n - k))
-        )
-        if weak.any():
-            coef = vt.T @ np.where(weak, 0.0, c)
+    kept = sv >= ILL_CONDITIONED * sv[0]
+    coef: FloatArray = vt.T @ np.where(kept, (u.T @ b) / np.where(kept, sv, 1.0), 0.0)
     return coef
 
 
 def solve_wls(x: FloatArray, y: FloatArray, w: FloatArray) -> FitResult:
     """Weighted least squares y ≈ X·β with weights ``w``, dropping zero columns
-    and the directions the data do not determine (:func:`_determined_lstsq`).
+    and the ill-conditioned directions (:func:`_determined_lstsq`).
 
     Parameters
     ----------
