@@ -231,3 +231,37 @@ def test_importing_the_model_package_does_not_import_torch() -> None:
     code = "import sys, afmdrift.model; print('torch' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_least_squares_equals_the_ordinary_fit_on_a_well_conditioned_design() -> None:
+    from afmdrift.model import solve_wls
+
+    rng = np.random.default_rng(5)
+    t = np.linspace(0.0, 1.0, 40)
+    x = np.column_stack([np.ones_like(t), t, np.sin(6 * t)])
+    y = x @ np.array([2.0, -3.0, 0.5]) + rng.normal(0.0, 0.05, t.size)
+    w = np.full(t.size, 4.0)
+    fit = solve_wls(x, y, w)
+    ols, *_ = np.linalg.lstsq(x, y, rcond=None)
+    np.testing.assert_allclose(fit.coef, ols, rtol=1e-9, atol=1e-12)
+
+
+def test_least_squares_leaves_out_a_direction_two_near_alike_columns_span() -> None:
+    # A channel that has drifted almost linearly so far, beside a trend: the
+    # ordinary fit gives huge opposite coefficients; a frame later, where the
+    # channel bends, its prediction would be far off.
+    from afmdrift.model import solve_wls
+
+    rng = np.random.default_rng(7)
+    t = np.linspace(0.0, 1.0, 14)
+    channel = 0.037 - 0.002 * t + 1e-7 * np.sin(40 * t)
+    x = np.column_stack([np.ones_like(t), t, channel])
+    y = 1.0 + 2.0 * t + rng.normal(0.0, 0.3, t.size)
+    w = np.ones_like(t)
+    fit = solve_wls(x, y, w)
+    ols, *_ = np.linalg.lstsq(x, y, rcond=None)
+    assert np.abs(ols).max() > 1e4
+    assert np.abs(fit.coef[:2]).max() < 100
+    nxt = np.array([1.0, 1.08, 0.037 - 0.002 * 1.08 + 5e-4])  # the channel bends
+    assert abs(nxt @ fit.coef - (1.0 + 2.0 * 1.08)) < 2.0
+    assert abs(nxt @ ols - (1.0 + 2.0 * 1.08)) > 50.0
