@@ -25,6 +25,7 @@ from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, ru
 from afmdrift.batch._summary import import_plotting, plot_archive, write_summary
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import ConfigError, InputError
+from afmdrift.runs import available_cores
 
 __all__ = ["SCHEDULER_ENV", "BatchReport", "expand_inputs", "run_batch"]
 
@@ -215,7 +216,7 @@ def _has_dashboard() -> bool:
 def _local_cluster(workers: int | None) -> Any:
     from distributed import LocalCluster
 
-    n = workers if workers is not None else len(os.sched_getaffinity(0))
+    n = workers if workers is not None else available_cores()
     if n < 1:
         raise ConfigError(f"--workers must be >= 1, got {n}")
     return LocalCluster(

@@ -277,8 +277,9 @@ def load_stack(
     Parameters and errors are those of :func:`load_image`.
     """
     pixel = _pixel_pair(pixel_size_nm)
-    in_nm = height_unit is None or length_unit_to_nm(height_unit, where="height_unit") == 1.0
-    if stream and in_nm:
+    if stream and (
+        height_unit is None or length_unit_to_nm(height_unit, where="height_unit") == 1.0
+    ):
         suffix = Path(path).suffix.lower()
         mapped = None
         if suffix == ".npy":

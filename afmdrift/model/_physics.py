@@ -80,13 +80,21 @@ class FitResult:
 
 def weighted_rss(x: FloatArray, y: FloatArray, w: FloatArray) -> float:
     """Weighted residual sum of squares of the WLS fit of y on X (the search objective)."""
+    a, b, _ = _whitened(x, y, w)
+    r = b - a @ _determined_lstsq(a, b)
+    return float(r @ r)
+
+
+def _whitened(
+    x: FloatArray, y: FloatArray, w: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """``(A, b, norms)``: the weighted design with columns of unit norm (a zero
+    column stays zero, its norm taken as 1), the weighted data, the norms."""
     sw = np.sqrt(w)
     a = x * sw[:, None]
     norms = np.sqrt(np.sum(a * a, axis=0))
-    a = a[:, norms > 0] / norms[norms > 0]
-    b = y * sw
-    r = b - a @ _determined_lstsq(a, b)
-    return float(r @ r)
+    norms = np.where(norms > 0, norms, 1.0)
+    return a / norms, y * sw, norms
 
 
 #: A direction of the (column-normalised) design whose singular value is below
@@ -109,7 +117,7 @@ def _determined_lstsq(a: FloatArray, b: FloatArray) -> FloatArray:
     u, sv, vt = np.linalg.svd(a, full_matrices=False)
     if sv.size == 0:
         return np.zeros(a.shape[1])
-    kept = sv >= ILL_CONDITIONED * sv[0]
+    kept = (sv > 0.0) & (sv >= ILL_CONDITIONED * sv[0])
     coef: FloatArray = vt.T @ np.where(kept, (u.T @ b) / np.where(kept, sv, 1.0), 0.0)
     return coef
 
@@ -126,13 +134,7 @@ def solve_wls(x: FloatArray, y: FloatArray, w: FloatArray) -> FitResult:
         Non-negative weights (1/σ²).
     """
     keep = np.any(np.abs(x) > 1e-12, axis=0)
-    xk = x[:, keep]
-    sw = np.sqrt(w)
-    a = xk * sw[:, None]
-    norms = np.sqrt(np.sum(a * a, axis=0))
-    norms = np.where(norms > 0, norms, 1.0)
-    an = a / norms
-    b = y * sw
+    an, b, norms = _whitened(x[:, keep], y, w)
     coef_n = _determined_lstsq(an, b)
     coef = coef_n / norms
     resid = b - an @ coef_n
