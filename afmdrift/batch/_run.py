@@ -21,11 +21,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TextIO
 
+from afmdrift._cores import available_cores
 from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, run_job, stems
 from afmdrift.batch._summary import import_plotting, plot_archive, write_summary
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import ConfigError, InputError
-from afmdrift.runs import available_cores
 
 __all__ = ["SCHEDULER_ENV", "BatchReport", "expand_inputs", "run_batch"]
 

@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift._cores import available_cores
 from afmdrift.registration._blocks import FrameStats, gradient_and_stats
 from afmdrift.registration._constants import KernelConstants
 from afmdrift.registration._fftw import BatchedRealFFT, Planner
@@ -99,14 +100,6 @@ def _forget_pools_after_fork() -> None:
 
 
 os.register_at_fork(after_in_child=_forget_pools_after_fork)
-
-
-def _cpus_available() -> int:
-    """CPUs this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # not Linux
-        return os.cpu_count() or 1
 
 
 def _worker_pool(workers: int) -> ThreadPoolExecutor:
@@ -427,7 +420,7 @@ class PassThreads:
         self.constants = constants
         #: Whether a worker waits for a pass's gate spinning (each thread has
         #: a CPU of its own) or in Python (see _run_worker).
-        self.spin = self.threads <= _cpus_available()
+        self.spin = self.threads <= available_cores()
         # Each thread's work arrays hold the largest batch; the plans of the
         # smaller batches are made on their first blocks.
         sizes = sorted({b.stop - b.start for b in batches}, reverse=True)

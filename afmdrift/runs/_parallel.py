@@ -41,6 +41,8 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
+from afmdrift._cores import available_cores
+
 __all__ = ["TaskPool", "available_cores"]
 
 log = logging.getLogger(__name__)
@@ -51,14 +53,6 @@ _R = TypeVar("_R")
 #: Thread counts a spawned worker starts with: the workers are the
 #: parallelism, so a BLAS or OpenMP pool per worker would only oversubscribe.
 _ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def available_cores() -> int:
-    """Cores this process may run on (its CPU affinity, else the CPU count)."""
-    try:
-        return max(len(os.sched_getaffinity(0)), 1)
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(os.cpu_count() or 1, 1)
 
 
 def _dask_worker() -> bool:

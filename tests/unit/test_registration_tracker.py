@@ -265,7 +265,7 @@ def test_results_are_bit_for_bit_independent_of_the_thread_count(
     assert BlockEngine((512, 640), RegistrationConfig(gradient=gradient)).n_batches == 12
     runs = []
     for threads, cpus in ((1, 4), (2, 4), (3, 4), (2, 1)):
-        monkeypatch.setattr(_passes, "_cpus_available", lambda cpus=cpus: cpus)
+        monkeypatch.setattr(_passes, "available_cores", lambda cpus=cpus: cpus)
         cfg = RegistrationConfig(threads=threads, reference=reference, gradient=gradient)
         tracker = DriftTracker(pixel_size_nm=2.0, config=cfg)
         out: list[object] = []
