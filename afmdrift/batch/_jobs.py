@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from afmdrift._version import __version__
+from afmdrift.batch._heap import job_heap
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import AfmdriftError, InputError
 
@@ -151,26 +152,8 @@ def run_job(job: Job) -> Result:
     started = time.perf_counter()
     result = Result(recording=job.recording, status="done", worker=_worker_address())
     try:
-        out = Path(job.out)
-        out.mkdir(parents=True, exist_ok=True)
-        _clear_result(out)
-        if job.task in SESSION_TASKS and not Path(job.path).is_dir():
-            raise InputError(
-                f"{job.recording}: --task {job.task} needs a session directory "
-                "(format v1, with its channels and events), not a stack or movie file"
-            )
-        session, timed = _read(job)
-        config = AfmdriftConfig.model_validate(job.config)
-        if job.task in SESSION_TASKS:
-            docs = _replay(session, config, out / "run", result)
-            if job.task == "diagnose":
-                _diagnose(Path(job.path), config, out)
-        else:
-            docs = _measure(session, config, timed, out / "track.jsonl", result)
-        if job.task == "correct":
-            _correct(session, config, out)
-        if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
-            result.duration_s = docs[-1][0] - docs[0][0]
+        with job_heap():
+            _work(job, result)
     except (AfmdriftError, OSError, ValueError, MemoryError) as err:
         result.status = "failed"
         result.error = _one_line(job.recording, err)
@@ -185,6 +168,31 @@ def run_job(job: Job) -> Result:
     if result.status == "done":
         _atomic_write(Path(job.out) / RESULT_FILE, json.dumps(result.to_json()) + "\n")
     return result
+
+
+def _work(job: Job, result: Result) -> None:
+    """Read ``job``'s recording, run its task and write its output; the
+    counts and last drift into ``result``."""
+    out = Path(job.out)
+    out.mkdir(parents=True, exist_ok=True)
+    _clear_result(out)
+    if job.task in SESSION_TASKS and not Path(job.path).is_dir():
+        raise InputError(
+            f"{job.recording}: --task {job.task} needs a session directory "
+            "(format v1, with its channels and events), not a stack or movie file"
+        )
+    session, timed = _read(job)
+    config = AfmdriftConfig.model_validate(job.config)
+    if job.task in SESSION_TASKS:
+        docs = _replay(session, config, out / "run", result)
+        if job.task == "diagnose":
+            _diagnose(Path(job.path), config, out)
+    else:
+        docs = _measure(session, config, timed, out / "track.jsonl", result)
+    if job.task == "correct":
+        _correct(session, config, out)
+    if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
+        result.duration_s = docs[-1][0] - docs[0][0]
 
 
 # --------------------------------------------------------------------------- steps
