@@ -267,9 +267,12 @@ def _z_surface(corr: F64) -> F64:
         return np.zeros_like(corr)
 
     def mad(axis: int) -> F64:
-        dev = np.abs(corr - np.median(corr, axis=axis, keepdims=True))
-        out: F64 = 1.4826 * np.median(dev, axis=axis, keepdims=True)
-        return out
+        # per column through a contiguous transpose: numpy partitions
+        # contiguous rows twice as fast as strided columns (same medians)
+        lines = corr if axis == 1 else np.ascontiguousarray(corr.T)
+        dev = np.abs(lines - np.median(lines, axis=1, keepdims=True))
+        out: F64 = 1.4826 * np.median(dev, axis=1, keepdims=True)
+        return out if axis == 1 else out.T
 
     out: F64 = corr / np.maximum(np.maximum(spread, mad(1)), mad(0))
     return out
