@@ -11,7 +11,7 @@ Measured side by side in one run, nothing else running:
    archive; ``afmdrift batch --scheduler`` over the archive; frames per
    second, and the ratio two workers / one (the target is ≥ 1.8 on 2 cores).
    Two figures each: the whole command (start-up, connecting, the summary and
-   the picture included: a fixed second or so per command), and the
+   the picture included: about 0.6 s per command), and the
    workers' own (the frames over the busiest worker's time on its
    recordings, from ``summary.csv``), which the command approaches as the
    archive grows; medians of ``--repeats`` runs of the archive.

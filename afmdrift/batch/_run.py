@@ -14,7 +14,6 @@ import glob
 import logging
 import os
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -23,7 +22,7 @@ from typing import Any, TextIO
 
 from afmdrift._cores import available_cores
 from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, run_job, stems
-from afmdrift.batch._summary import import_plotting, plot_archive, write_summary
+from afmdrift.batch._summary import plot_archive, write_summary
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import ConfigError, InputError
 
@@ -135,7 +134,6 @@ def run_batch(
         show.line(f"{skipped} of {len(jobs)} recordings already done; skipping them")
     if todo:
         address = scheduler or os.environ.get(SCHEDULER_ENV) or None
-        threading.Thread(target=import_plotting, name="import-plotting", daemon=True).start()
 
         def finished(k: int, result: Result) -> None:
             rows[k] = result
@@ -146,7 +144,7 @@ def run_batch(
     show.close()
     final = [r for r in rows if r is not None]
     try:
-        plot_archive(out / "archive.png", rows, [Path(j.out).name for j in jobs])
+        plot_archive(out / "archive.svg", rows, [Path(j.out).name for j in jobs])
     except (OSError, ValueError) as err:
         log.warning("archive picture not written: %s", err)
     return BatchReport(results=final, skipped=skipped, summary=summary)

@@ -19,7 +19,7 @@ def register(sub: Any) -> None:
         description="Run a task on every recording (stacks and movies in any format "
         "'afmdrift measure' reads, session directories, globs, folders of images) as "
         "Dask tasks. Writes DIR/<stem>/ (per task, see --task), DIR/summary.csv (one row "
-        "per recording, rewritten as each finishes) and DIR/archive.png. A run started "
+        "per recording, rewritten as each finishes) and DIR/archive.svg. A run started "
         "again skips the recordings done with the same input and configuration. "
         "--pixel-size-nm serves only the files whose header has no pixel size. Exit 0: "
         "all done; 1: some failed; 2: usage error.",

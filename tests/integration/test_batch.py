@@ -101,7 +101,7 @@ def test_batch_on_a_cluster_equals_measure_and_reports_a_bad_file(
         last = [d for d in serial if d["valid"]][-1]
         assert float(row["drift_x_nm"]) == pytest.approx(last["cumulative_dx_nm"], abs=1e-6)
         assert float(row["drift_y_nm"]) == pytest.approx(last["cumulative_dy_nm"], abs=1e-6)
-    assert (out / "archive.png").stat().st_size > 0
+    assert (out / "archive.svg").stat().st_size > 0
 
 
 def test_a_batch_killed_with_sigkill_redoes_nothing_that_was_done(
