@@ -15,6 +15,8 @@ Measured side by side in one run, nothing else running:
    workers' own (the frames over the busiest worker's time on its
    recordings, from ``summary.csv``), which the command approaches as the
    archive grows; medians of ``--repeats`` runs of the archive.
+   ``--lean-workers`` starts the workers without a nanny and without Dask's
+   profiler, to size what Dask's own processes take from the two cores.
 2. **The whole command** as a user runs it with no cluster: ``afmdrift batch
    --workers 2`` (a LocalCluster started and stopped by the command), against
    ``afmdrift measure`` run on each recording in turn (the target: the batch
@@ -125,6 +127,12 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--long-frames", type=int, default=600, help="the largest file's frames")
     ap.add_argument("--repeats", type=int, default=3, help="runs of the archive per cluster")
+    ap.add_argument(
+        "--lean-workers",
+        action="store_true",
+        help="start the running cluster's workers without a nanny and without the "
+        "worker's profiler (what Dask's own processes cost the ratio; see RESULTS.md)",
+    )
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -139,11 +147,14 @@ def main() -> None:
             movie(warm / f"w{k}.npy", 4, seed=90 + k)
         common = ["--pixel-size-nm", "2"]
 
+        worker_args: tuple[str, ...] = ("--no-nanny",) if a.lean_workers else ()
+        no_profile = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
+        worker_env = no_profile if a.lean_workers else {}
         fps: dict[int, float] = {}
         busy: dict[int, float] = {}
         for n in (1, 2):
             walls, busiest = [], []
-            with LoopbackDaskCluster(n) as cluster:
+            with LoopbackDaskCluster(n, worker_args=worker_args, worker_env=worker_env) as cluster:
                 warm_up(warm, root / f"w{n}", n, common, cluster.address)
                 for r in range(a.repeats):  # a new --out each time: nothing is skipped
                     out = root / f"c{n}-{r}"

@@ -19,12 +19,23 @@ __all__ = ["LoopbackDaskCluster"]
 class LoopbackDaskCluster:
     """``with LoopbackDaskCluster(2) as cluster:`` gives ``cluster.address``
     (``tcp://127.0.0.1:PORT``) once every worker has joined; the processes are
-    terminated on exit. ``worker_pids`` are the workers' (nanny) processes."""
+    terminated on exit. ``worker_pids`` are the workers' (nanny) processes.
+    ``worker_args`` and ``worker_env`` go to every ``dask worker`` (for
+    example ``("--no-nanny",)``)."""
 
-    def __init__(self, n_workers: int, *, timeout_s: float = 120.0) -> None:
+    def __init__(
+        self,
+        n_workers: int,
+        *,
+        timeout_s: float = 120.0,
+        worker_args: tuple[str, ...] = (),
+        worker_env: dict[str, str] | None = None,
+    ) -> None:
         if n_workers < 1:
             raise ValueError(f"n_workers must be >= 1, got {n_workers}")
         self.n_workers = n_workers
+        self.worker_args = worker_args
+        self.worker_env = dict(worker_env or {})
         self.timeout_s = timeout_s
         self.address = ""
         self._procs: list[subprocess.Popen[bytes]] = []
@@ -50,8 +61,8 @@ class LoopbackDaskCluster:
     ) -> None:
         self.close()
 
-    def _spawn(self, module: str, *args: str) -> None:
-        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False"}
+    def _spawn(self, module: str, *args: str, extra_env: dict[str, str] | None = None) -> None:
+        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False", **(extra_env or {})}
         self._procs.append(
             subprocess.Popen(
                 [sys.executable, "-m", module, *args, "--no-dashboard"],
@@ -76,7 +87,8 @@ class LoopbackDaskCluster:
         self.address = str(json.loads(file.read_text())["address"])
         for _ in range(self.n_workers):
             self._spawn("distributed.cli.dask_worker", self.address, "--host", "127.0.0.1",
-                        "--nworkers", "1", "--nthreads", "1")  # fmt: skip
+                        "--nworkers", "1", "--nthreads", "1", *self.worker_args,
+                        extra_env=self.worker_env)  # fmt: skip
         with Client(self.address, timeout="30s") as client:
             client.wait_for_workers(self.n_workers, timeout=self.timeout_s)
 
