@@ -38,7 +38,7 @@ import os
 import shutil
 import time
 import traceback
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -76,6 +76,14 @@ class Job:
     channel: str = "Height"
     height_unit: str | None = None
     key: str = field(default="")
+    #: The Dask event topic to which a worker reports the frames done so far
+    #: (every :data:`PROGRESS_INTERVAL_S`); empty: no reports. Not part of the
+    #: fingerprint: it changes no output.
+    progress_topic: str = ""
+
+
+#: Seconds between two reports of a recording's frames done (``progress_topic``).
+PROGRESS_INTERVAL_S = 0.5
 
 
 @dataclass(slots=True)
@@ -188,7 +196,8 @@ def _work(job: Job, result: Result) -> None:
         if job.task == "diagnose":
             _diagnose(Path(job.path), config, out)
     else:
-        docs = _measure(session, config, timed, out / "track.jsonl", result)
+        report = _frame_reporter(job)
+        docs = _measure(session, config, timed, out / "track.jsonl", result, report)
     if job.task == "correct":
         _correct(session, config, out)
     if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
@@ -235,11 +244,16 @@ def _read(job: Job) -> tuple[Any, bool]:
 
 
 def _measure(
-    session: Any, config: AfmdriftConfig, timed: bool, path: Path, result: Result
+    session: Any,
+    config: AfmdriftConfig,
+    timed: bool,
+    path: Path,
+    result: Result,
+    report: Callable[[int], None],
 ) -> list[tuple[float, float, float]]:
     """``afmdrift measure STACK --json``'s lines into ``path``; the summary's
-    counts and last valid drift into ``result``. Returns ``(t_s, x_nm, y_nm)``
-    of the valid frames."""
+    counts and last valid drift into ``result``; ``report`` is given the
+    frames done after each. Returns ``(t_s, x_nm, y_nm)`` of the valid frames."""
     from afmdrift.runs import track_session
 
     valid: list[tuple[float, float, float]] = [(float(session.frame_times[0].mean()), 0.0, 0.0)]
@@ -253,6 +267,7 @@ def _measure(
             if doc.get("valid"):
                 result.valid_frames += 1
                 valid.append((doc["t_s"], doc["cumulative_dx_nm"], doc["cumulative_dy_nm"]))
+            report(result.frames)
     os.replace(tmp, path)
     result.drift_x_nm, result.drift_y_nm = valid[-1][1], valid[-1][2]
     return valid
@@ -342,6 +357,33 @@ def _atomic_write(path: Path, text: str) -> None:
 def _one_line(recording: str, err: object) -> str:
     text = " ".join(str(err).split()) or type(err).__name__
     return text if recording in text or Path(recording).name in text else f"{recording}: {text}"
+
+
+def _frame_reporter(job: Job) -> Callable[[int], None]:
+    """A function that reports the frames done in ``job`` to its client (a Dask
+    event on ``job.progress_topic``) at most every :data:`PROGRESS_INTERVAL_S`;
+    one that does nothing outside a Dask worker or without a topic."""
+    if not job.progress_topic:
+        return _no_report
+    try:
+        from distributed import get_worker
+
+        worker = get_worker()
+    except (ImportError, ValueError):
+        return _no_report
+    last = [time.monotonic()]
+
+    def report(frames: int) -> None:
+        now = time.monotonic()
+        if now - last[0] >= PROGRESS_INTERVAL_S:
+            last[0] = now
+            worker.log_event(job.progress_topic, {"out": job.out, "frames": frames})
+
+    return report
+
+
+def _no_report(frames: int) -> None:
+    return None
 
 
 def _worker_address() -> str:

@@ -14,7 +14,9 @@ import glob
 import logging
 import os
 import sys
+import threading
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -108,6 +110,8 @@ def run_batch(
     """
     recordings = expand_inputs(inputs)
     out.mkdir(parents=True, exist_ok=True)
+    # the workers report frames done to this run's own topic, for the terminal
+    topic = f"afmdrift-batch-progress-{uuid.uuid4().hex[:12]}" if progress is not None else ""
     # one registration thread per worker: the workers are the parallelism
     registration = config.registration.model_copy(update={"threads": 1})
     cfg = config.model_copy(update={"registration": registration}).model_dump(mode="json")
@@ -122,6 +126,7 @@ def run_batch(
             pixel_size_nm=pixel_size_nm,
             channel=channel,
             height_unit=height_unit,
+            progress_topic=topic,
         )
         jobs.append(Job(**{**_fields(job), "key": fingerprint(job)}))
     rows: list[Result | None] = [load_result(job, job.key) for job in jobs]
@@ -138,7 +143,7 @@ def run_batch(
         def finished(k: int, result: Result) -> None:
             rows[k] = result
             write_summary(summary, rows, recordings)
-            show.advance(result)
+            show.advance(result, jobs[k].out)
 
         _on_cluster([jobs[k] for k in todo], todo, finished, address, workers, show)
     show.close()
@@ -177,6 +182,8 @@ def _on_cluster(
         target = address or "a local cluster"
         raise ConfigError(f"cannot reach the Dask scheduler {target}: {err}") from None
     try:
+        for topic in {job.progress_topic for job in jobs} - {""}:
+            client.subscribe_topic(topic, show.event)
         link = getattr(client, "dashboard_link", None)
         if link and (cluster is None or _has_dashboard()):
             show.line(f"Dask dashboard: {link}")
@@ -198,7 +205,7 @@ def _on_cluster(
                 )
             finished(k, result)
     finally:
-        client.close()
+        client.close()  # and with it the progress subscriptions
         if cluster is not None:
             cluster.close()
 
@@ -228,7 +235,9 @@ def _local_cluster(workers: int | None) -> Any:
 
 
 class _Progress:
-    """Recordings and frames done, with the rate, on one terminal line."""
+    """Recordings and frames done, with the rate, on one terminal line: the
+    frames of the recordings finished, and those the workers report from the
+    recordings they are on (:meth:`event`, in the Dask client's thread)."""
 
     def __init__(self, stream: TextIO | None, *, total: int, done: int) -> None:
         self.stream = stream
@@ -237,20 +246,44 @@ class _Progress:
         self.frames = 0
         self.failed = 0
         self.started = time.monotonic()
+        self._lock = threading.Lock()
+        self._running: dict[str, int] = {}
+        self._finished: set[str] = set()
 
     def line(self, text: str) -> None:
         print(text, file=self.stream or sys.stderr, flush=True)
 
-    def advance(self, result: Result) -> None:
-        self.done += 1
-        self.frames += result.frames
-        self.failed += result.status == "failed"
+    def event(self, event: tuple[float, Any]) -> None:
+        """A worker's report (a Dask event ``(time, {"out", "frames"})``): the
+        frames done so far in the recording it writes to ``out``. A report that
+        arrives after its recording finished is ignored."""
+        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
+        try:
+            out, frames = str(msg["out"]), int(msg["frames"])
+        except (TypeError, KeyError, ValueError):
+            return
+        with self._lock:
+            if out not in self._finished:
+                self._running[out] = frames
+                self._draw()
+
+    def advance(self, result: Result, out: str = "") -> None:
+        with self._lock:
+            self._finished.add(out)
+            self._running.pop(out, None)
+            self.done += 1
+            self.frames += result.frames
+            self.failed += result.status == "failed"
+            self._draw()
+
+    def _draw(self) -> None:
         if self.stream is None:
             return
-        rate = self.frames / max(time.monotonic() - self.started, 1e-9)
+        frames = self.frames + sum(self._running.values())
+        rate = frames / max(time.monotonic() - self.started, 1e-9)
         self.stream.write(
             f"\r{self.done}/{self.total} recordings ({self.failed} failed), "
-            f"{self.frames} frames, {rate:.1f} frames/s"
+            f"{frames} frames, {rate:.1f} frames/s"
         )
         self.stream.flush()
 
