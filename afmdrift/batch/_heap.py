@@ -14,10 +14,12 @@ faults contend); see ``benchmarks/RESULTS.md``.
 
 :func:`job_heap` raises the two thresholds for the length of a job, so that
 the frames' arrays come from the heap and are reused, and on leaving puts back
-the worker's own trim threshold (the nanny's, else glibc's default) and
-returns the free heap to the system (``malloc_trim``). What stays with the
-worker after a job is what it held before. Outside glibc (macOS, Windows,
-musl) it does nothing.
+the thresholds the process was started with and returns the free heap to the
+system (``malloc_trim``). It acts only in a process started with
+``MALLOC_TRIM_THRESHOLD_``, whose thresholds are fixed already: in any other
+process (``afmdrift measure``, a worker without a nanny, a test) glibc's
+dynamic threshold is left on, as setting a threshold would switch it off for
+the rest of the process. Outside glibc (macOS, Windows, musl) it does nothing.
 """
 
 from __future__ import annotations
@@ -66,24 +68,30 @@ def _libc() -> Any | None:
     return libc
 
 
-def _worker_trim_threshold() -> int:
-    """The trim threshold the worker was started with: the nanny's
-    ``MALLOC_TRIM_THRESHOLD_``, else glibc's default."""
+def _started_with() -> tuple[int, int] | None:
+    """The (mmap, trim) thresholds the process was started with, when its
+    environment fixed them (``MALLOC_TRIM_THRESHOLD_``, as a Dask nanny sets);
+    None when glibc's dynamic threshold is on."""
+    trim = os.environ.get("MALLOC_TRIM_THRESHOLD_")
+    if trim is None:
+        return None
     try:
-        return max(int(os.environ.get("MALLOC_TRIM_THRESHOLD_", "")), 0)
-    except ValueError:
-        return _GLIBC_DEFAULT
+        mmap = int(os.environ.get("MALLOC_MMAP_THRESHOLD_", str(_GLIBC_DEFAULT)))
+        return max(mmap, 0), max(int(trim), 0)
+    except ValueError:  # glibc ignores a value it cannot read: not ours to guess
+        return None
 
 
 @contextlib.contextmanager
 def job_heap() -> Iterator[None]:
-    """Keep frame-sized arrays in the heap while the ``with`` block runs (see
-    the module docstring). Jobs that overlap on a worker with several threads
-    share one setting: the first to enter sets it, the last to leave puts the
-    worker's back."""
+    """Keep frame-sized arrays in the heap while the ``with`` block runs, in a
+    process started with ``MALLOC_TRIM_THRESHOLD_`` (see the module
+    docstring). Jobs that overlap on a worker with several threads share one
+    setting: the first to enter sets it, the last to leave puts the worker's
+    back."""
     global _active
-    libc = _libc()
-    if libc is None:
+    libc, started = _libc(), _started_with()
+    if libc is None or started is None:
         yield
         return
     with _lock:
@@ -99,6 +107,6 @@ def job_heap() -> Iterator[None]:
         with _lock:
             _active -= 1
             if _active == 0:
-                libc.mallopt(_M_MMAP_THRESHOLD, _GLIBC_DEFAULT)
-                libc.mallopt(_M_TRIM_THRESHOLD, _worker_trim_threshold())
+                libc.mallopt(_M_MMAP_THRESHOLD, started[0])
+                libc.mallopt(_M_TRIM_THRESHOLD, started[1])
                 libc.malloc_trim(0)
