@@ -27,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import ctypes
 import ctypes.util
+import functools
 import logging
 import os
 import sys
@@ -54,8 +55,10 @@ _lock = threading.Lock()
 _active = 0
 
 
+@functools.cache
 def _libc() -> Any | None:
-    """glibc's functions, or None where the C library is not glibc."""
+    """glibc's functions, or None where the C library is not glibc (looked up
+    once per process)."""
     if not sys.platform.startswith("linux"):
         return None
     try:

@@ -363,13 +363,10 @@ def _frame_reporter(job: Job) -> Callable[[int], None]:
     """A function that reports the frames done in ``job`` to its client (a Dask
     event on ``job.progress_topic``) at most every :data:`PROGRESS_INTERVAL_S`;
     one that does nothing outside a Dask worker or without a topic."""
-    if not job.progress_topic:
-        return _no_report
-    try:
-        from distributed import get_worker
+    from afmdrift.runs._parallel import dask_worker
 
-        worker = get_worker()
-    except (ImportError, ValueError):
+    worker = dask_worker()
+    if not job.progress_topic or worker is None:
         return _no_report
     last = [time.monotonic()]
 
@@ -387,12 +384,10 @@ def _no_report(frames: int) -> None:
 
 
 def _worker_address() -> str:
-    try:
-        from distributed import get_worker
+    from afmdrift.runs._parallel import dask_worker
 
-        return str(get_worker().address)
-    except (ImportError, ValueError):
-        return "local"
+    worker = dask_worker()
+    return "local" if worker is None else str(worker.address)
 
 
 def stems(recordings: Iterable[str]) -> list[str]:

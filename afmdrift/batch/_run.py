@@ -257,8 +257,8 @@ class _Progress:
         """A worker's report (a Dask event ``(time, {"out", "frames"})``): the
         frames done so far in the recording it writes to ``out``. A report that
         arrives after its recording finished is ignored."""
-        msg = event[1] if isinstance(event, tuple) and len(event) == 2 else None
         try:
+            _, msg = event
             out, frames = str(msg["out"]), int(msg["frames"])
         except (TypeError, KeyError, ValueError):
             return

@@ -43,7 +43,7 @@ from typing import Any, TypeVar
 
 from afmdrift._cores import available_cores
 
-__all__ = ["TaskPool", "available_cores"]
+__all__ = ["TaskPool", "available_cores", "dask_worker"]
 
 log = logging.getLogger(__name__)
 
@@ -55,17 +55,16 @@ _R = TypeVar("_R")
 _ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def _dask_worker() -> bool:
-    """True when called from a task on a Dask worker."""
+def dask_worker() -> Any | None:
+    """The Dask worker running the calling task, or None outside a Dask task."""
     try:
         from distributed import get_worker
     except ImportError:  # pragma: no cover - distributed is a dependency
-        return False
+        return None
     try:
-        get_worker()
+        return get_worker()
     except ValueError:
-        return False
-    return True
+        return None
 
 
 def _ready(*_: object) -> int:
@@ -120,7 +119,7 @@ class TaskPool:
         """``"dask"``, ``"processes"`` or ``"serial"``: where :meth:`map` runs tasks."""
 
     def __enter__(self) -> TaskPool:
-        if _dask_worker():
+        if dask_worker() is not None:
             self.where = "dask"
         elif self.workers > 1 and not multiprocessing.current_process().daemon:
             ctx = multiprocessing.get_context("spawn")
