@@ -14,13 +14,16 @@ Measured side by side in one run, nothing else running:
    the picture included: about 0.6 s per command), and the
    workers' own (the frames over the busiest worker's time on its
    recordings, from ``summary.csv``), which the command approaches as the
-   archive grows; medians of ``--repeats`` runs of the archive.
-   ``--lean-workers`` starts the workers without a nanny and without Dask's
-   profiler, to size what Dask's own processes take from the two cores.
+   archive grows; medians of ``--repeats`` runs of the archive. Twice: the
+   processes started with Dask's default settings, and with afmdrift's
+   (``afmdrift.batch.DASK_SETTINGS``, as ``DASK_...`` variables: what the
+   README tells a cluster's owner to set). With each, the CPU the cluster's
+   processes take while idle (a floor of what they take from the tasks).
 2. **The whole command** as a user runs it with no cluster: ``afmdrift batch
-   --workers 2`` (a LocalCluster started and stopped by the command), against
-   ``afmdrift measure`` run on each recording in turn (the target: the batch
-   takes no longer).
+   --workers 1`` and ``--workers 2`` (a LocalCluster started and stopped by
+   the command, with afmdrift's settings, its workers' start-up included),
+   medians of ``--repeats``; and ``--workers 2`` against ``afmdrift measure``
+   run on each recording in turn (the target: the batch takes no longer).
 3. **Peak worker memory** on the largest file: the worker's resident
    anonymous memory while it tracks the long movie, against the file's size
    (frames stream from a memory map, so a worker holds a few frames; the
@@ -47,6 +50,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
+from afmdrift.batch import dask_environ
 from afmdrift.testing import TextureShifter, rough_texture
 from afmdrift.testing._dask import LoopbackDaskCluster
 
@@ -121,18 +125,57 @@ def peak_mb(procs: list[psutil.Process], stop: threading.Event, out: list[float]
     out.append(peak)
 
 
+def running_cluster(
+    label: str, env: dict[str, str], arc: Path, warm: Path, root: Path, frames: int, repeats: int
+) -> None:
+    """Part 1 for one set of Dask settings ``env``: prints both figures and the ratios."""
+    common = ["--pixel-size-nm", "2"]
+    fps: dict[int, float] = {}
+    busy: dict[int, float] = {}
+    for n in (1, 2):
+        walls, busiest = [], []
+        with LoopbackDaskCluster(n, env=env) as cluster:
+            warm_up(warm, root / f"w{label}{n}", n, common, cluster.address)
+            idle = idle_cpu(cluster)
+            for r in range(repeats):  # a new --out each time: nothing is skipped
+                out = root / f"c{label}{n}-{r}"
+                walls.append(batch([str(arc), "--out", str(out), *common,
+                                    "--scheduler", cluster.address], root))  # fmt: skip
+                busiest.append(busiest_worker_s(out / "summary.csv"))
+        wall, busy[n] = statistics.median(walls), statistics.median(busiest)
+        fps[n] = frames / wall
+        print(f"running cluster ({label} settings), {n} worker(s), median of {repeats}: command "
+              f"{wall:.2f} s [{min(walls):.2f}-{max(walls):.2f}], {fps[n]:.0f} frames/s; busiest "
+              f"worker {busy[n]:.2f} s, {frames / busy[n]:.0f} frames/s; idle, the cluster's "
+              f"processes take {idle:.1f} % of a core")  # fmt: skip
+    print(f"running cluster ({label} settings), two workers / one: command "
+          f"{fps[2] / fps[1]:.2f}x, workers {busy[1] / busy[2]:.2f}x (target >= 1.8)")  # fmt: skip
+
+
+def idle_cpu(cluster: LoopbackDaskCluster, seconds: float = 5.0) -> float:
+    """CPU the scheduler and the workers (nannies and their worker processes)
+    use while no task runs, in % of one core, over ``seconds``."""
+    procs = [psutil.Process(pid) for pid in [cluster.scheduler_pid, *cluster.worker_pids]]
+
+    def used() -> float:
+        total = 0.0
+        for p in procs:
+            for q in [p, *p.children(recursive=True)]:
+                t = q.cpu_times()
+                total += t.user + t.system
+        return total
+
+    before, t0 = used(), time.perf_counter()
+    time.sleep(seconds)
+    return 100 * (used() - before) / (time.perf_counter() - t0)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--recordings", type=int, default=12)
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--long-frames", type=int, default=600, help="the largest file's frames")
     ap.add_argument("--repeats", type=int, default=3, help="runs of the archive per cluster")
-    ap.add_argument(
-        "--lean-workers",
-        action="store_true",
-        help="start the running cluster's workers without a nanny and without the "
-        "worker's profiler (what Dask's own processes cost the ratio; see RESULTS.md)",
-    )
     a = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -146,39 +189,27 @@ def main() -> None:
         for k in range(4):  # enough recordings that each worker of two takes one
             movie(warm / f"w{k}.npy", 4, seed=90 + k)
         common = ["--pixel-size-nm", "2"]
+        print(f"archive: {a.recordings} x {a.frames} frames of 512² float32")
 
-        worker_args: tuple[str, ...] = ("--no-nanny",) if a.lean_workers else ()
-        no_profile = {"DASK_DISTRIBUTED__WORKER__PROFILE__ENABLED": "False"}
-        worker_env = no_profile if a.lean_workers else {}
-        fps: dict[int, float] = {}
-        busy: dict[int, float] = {}
+        running_cluster("Dask's default", {}, arc, warm, root, frames, a.repeats)
+        running_cluster("afmdrift's", dask_environ(), arc, warm, root, frames, a.repeats)
+
+        local: dict[int, float] = {}
         for n in (1, 2):
-            walls, busiest = [], []
-            with LoopbackDaskCluster(n, worker_args=worker_args, worker_env=worker_env) as cluster:
-                warm_up(warm, root / f"w{n}", n, common, cluster.address)
-                for r in range(a.repeats):  # a new --out each time: nothing is skipped
-                    out = root / f"c{n}-{r}"
-                    walls.append(batch([str(arc), "--out", str(out), *common,
-                                        "--scheduler", cluster.address], root))  # fmt: skip
-                    busiest.append(busiest_worker_s(out / "summary.csv"))
-            wall, busy[n] = statistics.median(walls), statistics.median(busiest)
-            fps[n] = frames / wall
-            print(f"running cluster, {n} worker(s), median of {a.repeats}: command {wall:.2f} s "
-                  f"[{min(walls):.2f}-{max(walls):.2f}], {fps[n]:.0f} frames/s; busiest worker "
-                  f"{busy[n]:.2f} s, {frames / busy[n]:.0f} frames/s "
-                  f"({a.recordings} x {a.frames} frames of 512²)")  # fmt: skip
-        print(f"two workers / one: command {fps[2] / fps[1]:.2f}x, "
-              f"workers {busy[1] / busy[2]:.2f}x (target >= 1.8)")  # fmt: skip
-
-        whole = batch([str(arc), "--out", str(root / "local"), *common, "--workers", "2"], root)
+            walls = [batch([str(arc), "--out", str(root / f"local{n}-{r}"), *common,
+                            "--workers", str(n)], root) for r in range(a.repeats)]  # fmt: skip
+            local[n] = statistics.median(walls)
+            print(f"afmdrift batch --workers {n} (LocalCluster started by the command), median of "
+                  f"{a.repeats}: {local[n]:.2f} s [{min(walls):.2f}-{max(walls):.2f}], "
+                  f"{frames / local[n]:.0f} frames/s")  # fmt: skip
+        print(f"afmdrift batch --workers 2 / --workers 1: {local[1] / local[2]:.2f}x")
         t0 = time.perf_counter()
         for f in sorted(arc.glob("*.npy")):
             subprocess.run([*EXE, "measure", str(f), *common], cwd=root, check=False,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
         serial = time.perf_counter() - t0
-        print(f"afmdrift batch --workers 2 (LocalCluster started by the command): {whole:.2f} s; "
-              f"afmdrift measure on each recording in turn: {serial:.2f} s; "
-              f"batch/serial {whole / serial:.2f} (target <= 1)")  # fmt: skip
+        print(f"afmdrift measure on each recording in turn: {serial:.2f} s; "
+              f"batch --workers 2 / serial {local[2] / serial:.2f} (target <= 1)")  # fmt: skip
 
         big = movie(root / "long.npy", a.long_frames, seed=123)
         with LoopbackDaskCluster(1) as cluster:

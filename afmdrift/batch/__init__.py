@@ -11,16 +11,25 @@ is done. A worker never imports the daemon nor ZeroMQ.
 """
 
 from afmdrift.batch._jobs import TASKS, Job, Result, run_job
-from afmdrift.batch._run import SCHEDULER_ENV, BatchReport, expand_inputs, run_batch
+from afmdrift.batch._run import (
+    DASK_SETTINGS,
+    SCHEDULER_ENV,
+    BatchReport,
+    dask_environ,
+    expand_inputs,
+    run_batch,
+)
 from afmdrift.batch._summary import SUMMARY_COLUMNS
 
 __all__ = [
+    "DASK_SETTINGS",
     "SCHEDULER_ENV",
     "SUMMARY_COLUMNS",
     "TASKS",
     "BatchReport",
     "Job",
     "Result",
+    "dask_environ",
     "expand_inputs",
     "run_batch",
     "run_job",

@@ -28,12 +28,47 @@ from afmdrift.batch._summary import plot_archive, write_summary
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import ConfigError, InputError
 
-__all__ = ["SCHEDULER_ENV", "BatchReport", "expand_inputs", "run_batch"]
+__all__ = [
+    "DASK_SETTINGS",
+    "SCHEDULER_ENV",
+    "BatchReport",
+    "dask_environ",
+    "expand_inputs",
+    "run_batch",
+]
 
 log = logging.getLogger(__name__)
 
 #: Environment variable naming the scheduler when ``--scheduler`` is not given.
 SCHEDULER_ENV = "AFMDRIFT_SCHEDULER"
+
+#: Dask settings for tasks that take seconds (one recording each), where Dask's
+#: defaults serve tasks of milliseconds. The command's own LocalCluster runs
+#: with them (scheduler and workers); for a cluster of your own, start ``dask
+#: scheduler`` and ``dask worker`` with :func:`dask_environ` (the README lists
+#: them). By default each worker's statistical profiler samples its task
+#: thread's stack every 10 ms, every Dask server checks its event loop every
+#: 20 ms and the memory monitor reads the worker's RSS every 100 ms: on two
+#: workers on two cores that is CPU taken from the tasks (the figures are in
+#: benchmarks/RESULTS.md). What these settings give up: the dashboard's profile
+#: page (empty), the warning of a blocked event loop (up to 0.5 s later), a
+#: memory limit's check (every 0.5 s).
+DASK_SETTINGS: dict[str, object] = {
+    "distributed.worker.profile.enabled": False,
+    "distributed.admin.tick.interval": "500ms",
+    "distributed.worker.memory.monitor-interval": "500ms",
+}
+
+
+def dask_environ(settings: dict[str, object] | None = None) -> dict[str, str]:
+    """``settings`` (default :data:`DASK_SETTINGS`) as the environment variables
+    Dask reads at start-up: ``distributed.admin.tick.interval`` becomes
+    ``DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL=500ms``."""
+    out = {}
+    for key, value in (DASK_SETTINGS if settings is None else settings).items():
+        name = "DASK_" + "__".join(part.replace("-", "_").upper() for part in key.split("."))
+        out[name] = str(value)
+    return out
 
 
 @dataclass(frozen=True, slots=True)
@@ -219,19 +254,23 @@ def _has_dashboard() -> bool:
 
 
 def _local_cluster(workers: int | None) -> Any:
+    """A LocalCluster of ``workers`` processes with :data:`DASK_SETTINGS` (the
+    scheduler reads them here, and each nanny passes them to its worker)."""
+    import dask
     from distributed import LocalCluster
 
     n = workers if workers is not None else available_cores()
     if n < 1:
         raise ConfigError(f"--workers must be >= 1, got {n}")
-    return LocalCluster(
-        n_workers=n,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=":0" if _has_dashboard() else None,
-        silence_logs=logging.ERROR,
-    )
+    with dask.config.set(DASK_SETTINGS):
+        return LocalCluster(
+            n_workers=n,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address=":0" if _has_dashboard() else None,
+            silence_logs=logging.ERROR,
+        )
 
 
 class _Progress:

@@ -19,23 +19,22 @@ __all__ = ["LoopbackDaskCluster"]
 class LoopbackDaskCluster:
     """``with LoopbackDaskCluster(2) as cluster:`` gives ``cluster.address``
     (``tcp://127.0.0.1:PORT``) once every worker has joined; the processes are
-    terminated on exit. ``worker_pids`` are the workers' (nanny) processes.
-    ``worker_args`` and ``worker_env`` go to every ``dask worker`` (for
-    example ``("--no-nanny",)``)."""
+    terminated on exit. ``worker_pids`` are the workers' (nanny) processes,
+    ``scheduler_pid`` the scheduler's.
+    ``env`` is added to the environment of the scheduler and of every worker
+    (Dask settings as ``DASK_...`` variables)."""
 
     def __init__(
         self,
         n_workers: int,
         *,
         timeout_s: float = 120.0,
-        worker_args: tuple[str, ...] = (),
-        worker_env: dict[str, str] | None = None,
+        env: dict[str, str] | None = None,
     ) -> None:
         if n_workers < 1:
             raise ValueError(f"n_workers must be >= 1, got {n_workers}")
         self.n_workers = n_workers
-        self.worker_args = worker_args
-        self.worker_env = dict(worker_env or {})
+        self.env = dict(env or {})
         self.timeout_s = timeout_s
         self.address = ""
         self._procs: list[subprocess.Popen[bytes]] = []
@@ -44,6 +43,10 @@ class LoopbackDaskCluster:
     @property
     def worker_pids(self) -> list[int]:
         return [p.pid for p in self._procs[1:]]
+
+    @property
+    def scheduler_pid(self) -> int:
+        return self._procs[0].pid
 
     def __enter__(self) -> LoopbackDaskCluster:
         try:
@@ -61,8 +64,8 @@ class LoopbackDaskCluster:
     ) -> None:
         self.close()
 
-    def _spawn(self, module: str, *args: str, extra_env: dict[str, str] | None = None) -> None:
-        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False", **(extra_env or {})}
+    def _spawn(self, module: str, *args: str) -> None:
+        env = {**os.environ, "DASK_DISTRIBUTED__WORKER__DAEMON": "False", **self.env}
         self._procs.append(
             subprocess.Popen(
                 [sys.executable, "-m", module, *args, "--no-dashboard"],
@@ -87,8 +90,7 @@ class LoopbackDaskCluster:
         self.address = str(json.loads(file.read_text())["address"])
         for _ in range(self.n_workers):
             self._spawn("distributed.cli.dask_worker", self.address, "--host", "127.0.0.1",
-                        "--nworkers", "1", "--nthreads", "1", *self.worker_args,
-                        extra_env=self.worker_env)  # fmt: skip
+                        "--nworkers", "1", "--nthreads", "1")  # fmt: skip
         with Client(self.address, timeout="30s") as client:
             client.wait_for_workers(self.n_workers, timeout=self.timeout_s)
 

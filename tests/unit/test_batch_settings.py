@@ -1,0 +1,57 @@
+"""The Dask settings ``afmdrift batch`` runs its own LocalCluster with, and
+tells a cluster's owner to set (:data:`afmdrift.batch.DASK_SETTINGS`): each one
+is a setting Dask has, its environment variable reads back as the same value,
+the README lists the same variables, and the command's scheduler and workers
+do run with them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import dask
+import distributed  # noqa: F401  (loads distributed's defaults into dask.config)
+import pytest
+
+from afmdrift.batch import DASK_SETTINGS, dask_environ
+from afmdrift.batch._run import _local_cluster
+
+README = Path(__file__).resolve().parents[2] / "README.md"
+
+
+@pytest.mark.parametrize("key", sorted(DASK_SETTINGS))
+def test_each_setting_is_one_dask_has(key: str) -> None:
+    # a misspelt key would be accepted by dask.config.set and change nothing
+    dask.config.get(key)  # raises KeyError for a setting Dask does not have
+
+
+def test_the_environment_variables_read_back_as_the_settings() -> None:
+    env = dask_environ()
+    assert len(env) == len(DASK_SETTINGS)
+    assert all(name.startswith("DASK_DISTRIBUTED__") for name in env)
+    read = dask.config.collect_env(env)
+    for key, value in DASK_SETTINGS.items():
+        assert dask.config.get(key, config=read) == value
+
+
+def test_the_readme_lists_the_same_variables() -> None:
+    text = README.read_text(encoding="utf-8")
+    for name, value in dask_environ().items():
+        assert f"{name}={value}" in text
+
+
+def test_the_commands_local_cluster_runs_with_the_settings() -> None:
+    from distributed import Client
+
+    def worker_state(dask_worker: distributed.Worker) -> tuple[bool, float]:
+        return "profile" in dask_worker.periodic_callbacks, dask_worker.periodic_callbacks[
+            "tick"
+        ].callback_time
+
+    def scheduler_tick(dask_scheduler: distributed.Scheduler) -> float:
+        return float(dask_scheduler.periodic_callbacks["tick"].callback_time)
+
+    with _local_cluster(1) as cluster, Client(cluster) as client:
+        assert [tuple(v) for v in client.run(worker_state).values()] == [(False, 500)]
+        assert client.run_on_scheduler(scheduler_tick) == 500
+    # the settings hold for the cluster only, not for the rest of the process
+    assert dask.config.get("distributed.worker.profile.enabled") is True
