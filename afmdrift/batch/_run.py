@@ -255,14 +255,15 @@ def _has_dashboard() -> bool:
 
 def _local_cluster(workers: int | None) -> Any:
     """A LocalCluster of ``workers`` processes with :data:`DASK_SETTINGS` (the
-    scheduler reads them here, and each nanny passes them to its worker)."""
+    scheduler reads them here, and each nanny passes them to its worker),
+    except a setting the user changed from Dask's default, which is kept."""
     import dask
     from distributed import LocalCluster
 
     n = workers if workers is not None else available_cores()
     if n < 1:
         raise ConfigError(f"--workers must be >= 1, got {n}")
-    with dask.config.set(DASK_SETTINGS):
+    with dask.config.set(_unless_configured(DASK_SETTINGS)):
         return LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -271,6 +272,21 @@ def _local_cluster(workers: int | None) -> Any:
             dashboard_address=":0" if _has_dashboard() else None,
             silence_logs=logging.ERROR,
         )
+
+
+def _unless_configured(settings: dict[str, object]) -> dict[str, object]:
+    """``settings`` without those whose current value (from a Dask YAML file or
+    a ``DASK_...`` variable) differs from Dask's own default."""
+    import dask
+
+    defaults: dict[str, Any] = {}
+    for d in dask.config.defaults:
+        dask.config.update(defaults, d)
+    return {
+        key: value
+        for key, value in settings.items()
+        if dask.config.get(key, None) == dask.config.get(key, None, config=defaults)
+    }
 
 
 class _Progress:

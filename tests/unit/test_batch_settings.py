@@ -9,7 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import dask
-import distributed  # noqa: F401  (loads distributed's defaults into dask.config)
+import distributed  # also loads distributed's defaults into dask.config
 import pytest
 
 from afmdrift.batch import DASK_SETTINGS, dask_environ
@@ -55,3 +55,21 @@ def test_the_commands_local_cluster_runs_with_the_settings() -> None:
         assert client.run_on_scheduler(scheduler_tick) == 500
     # the settings hold for the cluster only, not for the rest of the process
     assert dask.config.get("distributed.worker.profile.enabled") is True
+
+
+def test_a_setting_the_user_changed_is_kept() -> None:
+    from distributed import Client
+
+    def scheduler_tick(dask_scheduler: distributed.Scheduler) -> float:
+        return float(dask_scheduler.periodic_callbacks["tick"].callback_time)
+
+    def profiling(dask_worker: distributed.Worker) -> bool:
+        return "profile" in dask_worker.periodic_callbacks
+
+    with (
+        dask.config.set({"distributed.admin.tick.interval": "50ms"}),
+        _local_cluster(1) as cluster,
+        Client(cluster) as client,
+    ):
+        assert client.run_on_scheduler(scheduler_tick) == 50  # the user's
+        assert list(client.run(profiling).values()) == [False]  # afmdrift's
