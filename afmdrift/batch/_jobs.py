@@ -191,12 +191,12 @@ def _work(job: Job, result: Result) -> None:
         )
     session, timed = _read(job)
     config = AfmdriftConfig.model_validate(job.config)
+    report = _frame_reporter(job)
     if job.task in SESSION_TASKS:
-        docs = _replay(session, config, out / "run", result)
+        docs = _replay(session, config, out / "run", result, report)
         if job.task == "diagnose":
             _diagnose(Path(job.path), config, out)
     else:
-        report = _frame_reporter(job)
         docs = _measure(session, config, timed, out / "track.jsonl", result, report)
     if job.task == "correct":
         _correct(session, config, out)
@@ -306,16 +306,21 @@ def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
 
 
 def _replay(
-    session: Any, config: AfmdriftConfig, run: Path, result: Result
+    session: Any,
+    config: AfmdriftConfig,
+    run: Path,
+    result: Result,
+    report: Callable[[int], None],
 ) -> list[tuple[float, float, float]]:
     """``afmdrift replay SESSION --out run``; the summary's counts and the
-    last valid drift position p (commanded moves removed) into ``result``.
-    Returns ``(t_s, x_nm, y_nm)`` of the valid frames."""
+    last valid drift position p (commanded moves removed) into ``result``;
+    ``report`` is given the frames done as they are. Returns ``(t_s, x_nm,
+    y_nm)`` of the valid frames."""
     from afmdrift.runs import RunStore, replay_session
 
     # A run left by a job killed halfway: replay writes only into an empty directory.
     shutil.rmtree(run, ignore_errors=True)
-    replay_session(session, run, config=config)
+    replay_session(session, run, config=config, on_frame=report)
     with RunStore(run) as store:
         records = store.frames()
     valid = [(r.t_mid_s, r.x_nm, r.y_nm) for r in records if r.valid]

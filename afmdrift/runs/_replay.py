@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -48,8 +49,11 @@ def replay_session(
     run_dir: str | Path,
     *,
     config: AfmdriftConfig,
+    on_frame: Callable[[int], None] | None = None,
 ) -> ReplaySummary:
     """Run the daemon's per-frame pipeline over ``session`` and record the run.
+    ``on_frame`` is given the number of frames done after each frame is
+    recorded (a batch worker's progress).
 
     Raises
     ------
@@ -81,11 +85,13 @@ def replay_session(
         pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
         fed = 0
-        for outcome in pipeline.run(s.iter_frames()):
+        for done, outcome in enumerate(pipeline.run(s.iter_frames()), start=1):
             record_outcome(store, outcome)
             fed += outcome.record.fed_model
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)
+            if on_frame is not None:
+                on_frame(done)
         csv_path = store.write_measurements_csv(out / "measurements.csv")
         smoothed = pipeline.positions.trajectory.smoothed()
         write_trajectory_csv(
