@@ -10,6 +10,7 @@ input and configuration (its ``result.json``) is not run again.
 
 from __future__ import annotations
 
+import copy
 import glob
 import logging
 import os
@@ -264,6 +265,9 @@ def _local_cluster(workers: int | None) -> Any:
     if n < 1:
         raise ConfigError(f"--workers must be >= 1, got {n}")
     with dask.config.set(_unless_configured(DASK_SETTINGS)):
+        # each nanny's own copy, for a worker it restarts after this block too
+        # (it would otherwise share the nested dicts that leaving the block resets)
+        nanny_config = {"distributed": copy.deepcopy(dask.config.get("distributed"))}
         return LocalCluster(
             n_workers=n,
             threads_per_worker=1,
@@ -271,21 +275,25 @@ def _local_cluster(workers: int | None) -> Any:
             host="127.0.0.1",
             dashboard_address=":0" if _has_dashboard() else None,
             silence_logs=logging.ERROR,
+            config=nanny_config,
         )
 
 
 def _unless_configured(settings: dict[str, object]) -> dict[str, object]:
-    """``settings`` without those whose current value (from a Dask YAML file or
-    a ``DASK_...`` variable) differs from Dask's own default."""
+    """``settings`` without those the user configured: named in a Dask YAML file
+    or a ``DASK_...`` variable (whatever the value), or set in this process to
+    a value other than Dask's own default."""
     import dask
 
     defaults: dict[str, Any] = {}
     for d in dask.config.defaults:
         dask.config.update(defaults, d)
+    user = dask.config.collect()  # the YAML files and the environment, no defaults
     return {
         key: value
         for key, value in settings.items()
-        if dask.config.get(key, None) == dask.config.get(key, None, config=defaults)
+        if dask.config.get(key, None, config=user) is None
+        and dask.config.get(key, None) == dask.config.get(key, None, config=defaults)
     }
 
 
