@@ -55,6 +55,8 @@ from afmdrift.testing import TextureShifter, rough_texture
 from afmdrift.testing._dask import LoopbackDaskCluster
 
 EXE = [sys.executable, "-m", "afmdrift"]
+#: The options every ``afmdrift`` command of the benchmark takes (the movies have no calibration).
+COMMON = ["--pixel-size-nm", "2"]
 
 
 def movie(path: Path, frames: int, seed: int, size: int = 512) -> Path:
@@ -102,13 +104,18 @@ def busiest_worker_s(summary: Path) -> float:
     return max(per.values())
 
 
+def family(p: psutil.Process) -> list[psutil.Process]:
+    """``p`` and its children (a nanny and the worker process it started)."""
+    return [p, *p.children(recursive=True)]
+
+
 def anon_mb(p: psutil.Process) -> float:
     """Resident anonymous memory of ``p`` and its children, MB: what the worker
     holds itself. File pages of the memory-mapped stack are left out: they
     count in RSS while mapped but belong to the page cache, which the kernel
     reclaims as it needs."""
     total = 0
-    for q in [p, *p.children(recursive=True)]:
+    for q in family(p):
         for line in Path(f"/proc/{q.pid}/status").read_text().splitlines():
             if line.startswith("RssAnon:"):
                 total += int(line.split()[1])
@@ -129,17 +136,16 @@ def running_cluster(
     label: str, env: dict[str, str], arc: Path, warm: Path, root: Path, frames: int, repeats: int
 ) -> None:
     """Part 1 for one set of Dask settings ``env``: prints both figures and the ratios."""
-    common = ["--pixel-size-nm", "2"]
     fps: dict[int, float] = {}
     busy: dict[int, float] = {}
     for n in (1, 2):
         walls, busiest = [], []
         with LoopbackDaskCluster(n, env=env) as cluster:
-            warm_up(warm, root / f"w{label}{n}", n, common, cluster.address)
+            warm_up(warm, root / f"w{label}{n}", n, COMMON, cluster.address)
             idle = idle_cpu(cluster)
             for r in range(repeats):  # a new --out each time: nothing is skipped
                 out = root / f"c{label}{n}-{r}"
-                walls.append(batch([str(arc), "--out", str(out), *common,
+                walls.append(batch([str(arc), "--out", str(out), *COMMON,
                                     "--scheduler", cluster.address], root))  # fmt: skip
                 busiest.append(busiest_worker_s(out / "summary.csv"))
         wall, busy[n] = statistics.median(walls), statistics.median(busiest)
@@ -160,7 +166,7 @@ def idle_cpu(cluster: LoopbackDaskCluster, seconds: float = 5.0) -> float:
     def used() -> float:
         total = 0.0
         for p in procs:
-            for q in [p, *p.children(recursive=True)]:
+            for q in family(p):
                 t = q.cpu_times()
                 total += t.user + t.system
         return total
@@ -188,7 +194,6 @@ def main() -> None:
         warm.mkdir()
         for k in range(4):  # enough recordings that each worker of two takes one
             movie(warm / f"w{k}.npy", 4, seed=90 + k)
-        common = ["--pixel-size-nm", "2"]
         print(f"archive: {a.recordings} x {a.frames} frames of 512² float32")
 
         running_cluster("Dask's default", {}, arc, warm, root, frames, a.repeats)
@@ -196,7 +201,7 @@ def main() -> None:
 
         local: dict[int, float] = {}
         for n in (1, 2):
-            walls = [batch([str(arc), "--out", str(root / f"local{n}-{r}"), *common,
+            walls = [batch([str(arc), "--out", str(root / f"local{n}-{r}"), *COMMON,
                             "--workers", str(n)], root) for r in range(a.repeats)]  # fmt: skip
             local[n] = statistics.median(walls)
             print(f"afmdrift batch --workers {n} (LocalCluster started by the command), median of "
@@ -205,7 +210,7 @@ def main() -> None:
         print(f"afmdrift batch --workers 2 / --workers 1: {local[1] / local[2]:.2f}x")
         t0 = time.perf_counter()
         for f in sorted(arc.glob("*.npy")):
-            subprocess.run([*EXE, "measure", str(f), *common], cwd=root, check=False,
+            subprocess.run([*EXE, "measure", str(f), *COMMON], cwd=root, check=False,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
         serial = time.perf_counter() - t0
         print(f"afmdrift measure on each recording in turn: {serial:.2f} s; "
@@ -213,13 +218,13 @@ def main() -> None:
 
         big = movie(root / "long.npy", a.long_frames, seed=123)
         with LoopbackDaskCluster(1) as cluster:
-            warm_up(warm, root / "wl", 1, common, cluster.address)
+            warm_up(warm, root / "wl", 1, COMMON, cluster.address)
             workers = [psutil.Process(pid) for pid in cluster.worker_pids]
             base = anon_mb(workers[0])
             stop, peak = threading.Event(), []  # type: ignore[var-annotated]
             watcher = threading.Thread(target=peak_mb, args=(workers, stop, peak))
             watcher.start()
-            wall = batch([str(big), "--out", str(root / "long"), *common,
+            wall = batch([str(big), "--out", str(root / "long"), *COMMON,
                           "--scheduler", cluster.address], root)  # fmt: skip
             stop.set()
             watcher.join()

@@ -61,12 +61,12 @@ DASK_SETTINGS: dict[str, object] = {
 }
 
 
-def dask_environ(settings: dict[str, object] | None = None) -> dict[str, str]:
-    """``settings`` (default :data:`DASK_SETTINGS`) as the environment variables
-    Dask reads at start-up: ``distributed.admin.tick.interval`` becomes
+def dask_environ() -> dict[str, str]:
+    """:data:`DASK_SETTINGS` as the environment variables Dask reads at
+    start-up: ``distributed.admin.tick.interval`` becomes
     ``DASK_DISTRIBUTED__ADMIN__TICK__INTERVAL=500ms``."""
     out = {}
-    for key, value in (DASK_SETTINGS if settings is None else settings).items():
+    for key, value in DASK_SETTINGS.items():
         name = "DASK_" + "__".join(part.replace("-", "_").upper() for part in key.split("."))
         out[name] = str(value)
     return out
