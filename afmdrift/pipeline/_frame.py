@@ -117,6 +117,10 @@ class FramePipeline:
         Feed the predictor and build d(t) (default). ``afmdrift measure`` on a
         stack reports drift positions only and skips this stage: the
         positions come from the same component either way.
+    first_prior_px : (float, float), optional
+        Expected drift of the first frame after the first, px (``--prior-px``):
+        it centres the block search until a frame is accepted; later frames
+        take the tracker's prediction.
 
     Notes
     -----
@@ -131,11 +135,15 @@ class FramePipeline:
         predictor: Predictor | None = None,
         keep_trajectory: bool = False,
         model: bool = True,
+        first_prior_px: tuple[float, float] | None = None,
     ) -> None:
         self.config = config
         self.model = model
         self.positions = DriftPositions(
-            config=config, tracker_factory=tracker_factory, keep_trajectory=keep_trajectory
+            config=config,
+            tracker_factory=tracker_factory,
+            keep_trajectory=keep_trajectory,
+            first_prior_px=first_prior_px,
         )
         self.predictor = predictor if predictor is not None else self._make_predictor(config)
         self.feed = HistoryFeed()

@@ -163,6 +163,9 @@ class DriftPositions:
     ``keep_trajectory`` keeps every frame of the trajectory for its smoothed
     estimate (``afmdrift replay``, ``afmdrift correct``); without it, as in
     the daemon, frames no later frame can refer to are forgotten.
+    ``first_prior_px`` is the user's expected drift (px) of the frames after
+    the first reference until one is accepted (``--prior-px``;
+    :meth:`DriftTracker.expect`).
     """
 
     def __init__(
@@ -171,8 +174,11 @@ class DriftPositions:
         config: AfmdriftConfig,
         tracker_factory: TrackerFactory | None = None,
         keep_trajectory: bool = False,
+        first_prior_px: tuple[float, float] | None = None,
     ) -> None:
         self.config = config
+        # the user's expected drift of the first frame after the first reference
+        self._first_prior_px = first_prior_px
         self._tracker_factory = tracker_factory or self._default_tracker_factory
         self._tracker: DriftTracker | None = None
         self._tracker_key: GeometryKey | None = None
@@ -319,6 +325,8 @@ class DriftPositions:
         moved = (0.0, 0.0)
         if tracker is None or new_reference:
             tracker = self._tracker_factory(frame.pixel_size_nm)
+            if self._tracker is None and self._first_prior_px is not None:
+                tracker.expect(self._first_prior_px)
         elif self._last_t_s is not None:
             moved = _content_moved_px(frame, self._last_t_s, events)
         try:

@@ -372,6 +372,19 @@ def _overlap_score(a: F64, b: F64, dx: int, dy: int) -> float:
     return _ncc(a, b, dx, dy) * math.sqrt(max(share, 0.0))
 
 
+def overlap_evidence(
+    reference: npt.NDArray[np.floating], current: npt.NDArray[np.floating], dx: int, dy: int
+) -> float:
+    """Evidence that ``current`` shows ``reference`` moved by ``(dx, dy)`` px:
+    the normalised cross-correlation of the levelled heights over their
+    overlap times the square root of its share (:func:`_overlap_score`);
+    ``-inf`` when they do not overlap by :data:`MIN_OVERLAP_PX` per axis."""
+    rows, cols = reference.shape
+    if cols - abs(dx) < MIN_OVERLAP_PX or rows - abs(dy) < MIN_OVERLAP_PX:
+        return -math.inf
+    return _overlap_score(levelled(reference), levelled(current), dx, dy)
+
+
 def _unwrap(a: F64, b: F64, dx: int, dy: int) -> tuple[int, int]:
     """The shift behind the circular peak at minimal-image shift ``(dx, dy)``:
     an alternative ``d ± N`` replaces it only when its overlap's evidence

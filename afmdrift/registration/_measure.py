@@ -28,6 +28,7 @@ from afmdrift.registration._coarse import (
     coarse_shift,
     format_shifts,
     levelled,
+    overlap_evidence,
     overlap_slices,
 )
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
@@ -225,11 +226,35 @@ class _Attempt:
     top: npt.NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     left: npt.NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
     lattice: tuple[tuple[float, float], ...] = ()
+    #: The expected drift given or predicted, before a coarse alignment moved the search.
+    expected: tuple[float, float] | None = None
 
     def registration(self) -> Registration:
         assert self.result is not None
-        result = replace(self.result, prior_px=self.prior, prior=self.how, lattice_px=self.lattice)
+        result = replace(
+            self.result,
+            prior_px=self.prior,
+            prior=self.how,
+            lattice_px=self.lattice,
+            expected_px=self.expected,
+        )
+        if result.valid:
+            result = _decided(result, self.coarse if self.lattice else None)
         return Registration(result, self.top, self.left, self.coarse, self.alternative)
+
+
+def _decided(result: DriftResult, coarse: CoarseShift | None) -> DriftResult:
+    """``result`` with what decided it (:attr:`DriftResult.decided_by`): the
+    prior when the coarse alignment it was measured around took the lattice
+    translation nearest the prior among tied ones, else the content."""
+    if coarse is None or coarse.lattice_by != "prior":
+        return replace(result, decided_by="content")
+    d = (result.dx_px, result.dy_px)
+    others = tuple(c for c in coarse.candidates_px if math.hypot(c[0] - d[0], c[1] - d[1]) > 0.5)
+    if not others:
+        return replace(result, decided_by="content")
+    ambiguity = min(math.hypot(c[0] - d[0], c[1] - d[1]) for c in others)
+    return replace(result, decided_by="prior", alternatives_px=others, ambiguity_px=ambiguity)
 
 
 def register(
@@ -296,7 +321,88 @@ def register(
         at.lattice = at.coarse.lattice_px
     if not at.result.valid and ref_heights is not None:
         _retry(at, pair, expected_px=expected_px, textured=textured)
+    elif expected_px is not None and at.search is None and _suspect(at.result, expected_px):
+        _check_by_coarse(at, pair, expected_px=expected_px, textured=textured)
     return at.registration()
+
+
+#: A valid result around an expected position is checked against the
+#: whole-frame alignment when it lands this far from the expectation (px,
+#: either axis) ...
+CHECK_OFF_PX = 2.0
+#: ... or rests on fewer than this share of its blocks. Blocks whose windows
+#: overlap (small frames: 16 windows of two thirds of a 128² frame) see much
+#: the same content and can agree on one false peak when the content jumped
+#: farther than expected (an unlogged offset move): 15 of 16 blocks put a
+#: 128² frame (+5, -6) px from the prior where it had moved (-28, +8) px.
+CHECK_VALID_SHARE = 0.5
+#: Evidence margin (:func:`overlap_evidence`) by which one of two valid shifts
+#: must beat the other; closer than this, the pair is refused.
+EVIDENCE_MARGIN = 0.1
+
+
+def _suspect(result: DriftResult, expected_px: tuple[float, float]) -> bool:
+    """Whether a valid result around ``expected_px`` is checked (see
+    :data:`CHECK_OFF_PX`); a coarse alignment costs tens of block passes,
+    so a result where it was expected, on most of its blocks, is not."""
+    off = max(abs(result.dx_px - expected_px[0]), abs(result.dy_px - expected_px[1]))
+    return off > CHECK_OFF_PX or result.valid_blocks < CHECK_VALID_SHARE * result.total_blocks
+
+
+def _check_by_coarse(
+    at: _Attempt,
+    pair: _Pair,
+    *,
+    expected_px: tuple[float, float],
+    textured: npt.NDArray[np.bool_],
+) -> None:
+    """Step 4 of :func:`register`, for a suspect valid result (:func:`_suspect`):
+    the whole-frame coarse alignment, when trusted and farther from the result
+    than the block search around it, is measured too; of two valid results
+    the one whose overlap shows the same sample clearly better
+    (:func:`overlap_evidence`) is taken, and a pair whose two shifts fit
+    alike is refused, naming both. A coarse alignment whose blocks do not
+    agree replaces nothing, but refuses a result its overlap clearly beats."""
+    if not pair.engine.config.coarse or pair.ref_heights is None:
+        return
+    coarse = pair.coarse(expected_px)
+    if not coarse.trusted:
+        return
+    first = at.result
+    assert first is not None
+    cx, cy = coarse.prior_px
+    reach = _coarse_search(pair.engine.config, coarse) + 1.0
+    if abs(first.dx_px - cx) <= reach and abs(first.dy_px - cy) <= reach:
+        return
+    kept = (at.result, at.top, at.left, at.prior, at.how, at.lattice)
+    at.coarse = coarse
+
+    def evidence(dx: float, dy: float) -> float:
+        assert pair.ref_heights is not None
+        return overlap_evidence(pair.ref_heights, pair.heights, round(dx), round(dy))
+
+    e_first = evidence(first.dx_px, first.dy_px)
+    e_coarse = evidence(cx, cy)
+    where = (
+        f"the blocks around the expected position give ({first.dx_px:+.1f}, "
+        f"{first.dy_px:+.1f}) px, the whole-frame alignment ({cx:+.0f}, {cy:+.0f}) px"
+    )
+    if _measure_around(at, pair, coarse, textured):
+        if e_coarse > e_first + EVIDENCE_MARGIN:
+            at.how = f"{at.how}; {where}: the overlap decides"
+            return
+        at.result, at.top, at.left, at.prior, at.how, at.lattice = kept
+        if e_first > e_coarse + EVIDENCE_MARGIN:
+            return
+    elif not e_coarse > e_first + EVIDENCE_MARGIN:
+        return
+    at.result, at.top, at.left, at.prior, at.how, at.lattice = kept
+    at.result = invalid_result(
+        first.field,
+        f"two shifts fit: {where} (overlap evidence {e_first:.2f} and {e_coarse:.2f}); "
+        "the frame content jumped farther than expected or changed",
+        valid_blocks=first.valid_blocks,
+    )
 
 
 def _choose_prior(
@@ -314,7 +420,7 @@ def _choose_prior(
     translations tie with nothing to decide comes back ``refused``."""
     engine, ref = pair.engine, pair.ref
     cfg = engine.config
-    at = _Attempt()
+    at = _Attempt(expected=expected_px)
     if expected_px is not None:
         at.prior, at.how = expected_px, source
     if not cfg.coarse or pair.ref_heights is None:
@@ -340,6 +446,7 @@ def _choose_prior(
             prior_px=expected_px,
             prior=coarse.describe() if expected_px is None else f"{source}; {coarse.describe()}",
             lattice_px=coarse.candidates_px,
+            expected_px=expected_px,
         )
         empty = np.zeros(0, dtype=np.intp)
         at.refused = Registration(result, empty, empty, coarse)
@@ -513,7 +620,8 @@ def ambiguous_reason(coarse: CoarseShift) -> str:
     return (
         f"ambiguous: the images cannot tell apart the shifts {format_shifts(coarse.candidates_px)}"
         " px (lattice translations of a periodic sample: the content fits each as well), "
-        "and no expected drift decides; give it (prior_px)"
+        "and no expected drift decides; give it (--prior-px DX DY on the command line, "
+        "prior_px in the API)"
     )
 
 

@@ -127,6 +127,22 @@ class DriftResult:
         translations of a periodic sample), as offsets from the result; the
         one nearest the prior was taken. A result refused as ambiguous: the
         tied shifts themselves (px), nearest zero (or the prior) first.
+    expected_px : (float, float) or None
+        The expected drift as it was given (``prior`` starts with ``given``)
+        or predicted (``predicted``), px, before any coarse alignment moved
+        the search; None when nothing was expected.
+    decided_by : str or None
+        What picked the shift among those the images allow: ``content`` (the
+        frames' content: no other shift fits as well), ``prior`` (lattice
+        translations fit alike and the prior alone picked the one nearest
+        it; the result is only as good as the prior). None when invalid.
+    alternatives_px : tuple of (float, float)
+        ``decided_by == "prior"``: the other shifts that fit as well (px),
+        nearest the prior first.
+    ambiguity_px : float
+        ``decided_by == "prior"``: distance from the result to the nearest
+        alternative, px (a prior off by half of it would have picked
+        another); NaN otherwise.
     """
 
     dx_px: float
@@ -144,6 +160,10 @@ class DriftResult:
     prior_px: tuple[float, float] | None = None
     prior: str = ""
     lattice_px: tuple[tuple[float, float], ...] = ()
+    expected_px: tuple[float, float] | None = None
+    decided_by: str | None = None
+    alternatives_px: tuple[tuple[float, float], ...] = ()
+    ambiguity_px: float = math.nan
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (non-finite numbers become None)."""
@@ -162,4 +182,16 @@ class DriftResult:
             "prior_px": None if self.prior_px is None else list(self.prior_px),
             "prior": self.prior,
             "lattice_px": [list(v) for v in self.lattice_px],
+            "expected_px": None if self.expected_px is None else list(self.expected_px),
+            "decided_by": self.decided_by,
+            "ambiguity_px": _json_float(self.ambiguity_px),
+            "alternatives": [
+                {
+                    "shift_px": [a, b],
+                    "from_prior_px": None
+                    if self.expected_px is None
+                    else math.hypot(a - self.expected_px[0], b - self.expected_px[1]),
+                }
+                for a, b in self.alternatives_px
+            ],
         }

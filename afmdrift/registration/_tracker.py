@@ -165,6 +165,7 @@ class DriftTracker:
         self._velocity = (0.0, 0.0)  # last increment per frame, px
         self._last_index = 0
         self._innovations: deque[float] = deque(maxlen=_INNOVATIONS_KEPT)
+        self._given: tuple[float, float] | None = None  # expect(): until a frame is accepted
         # a held frame: (index, its measurement against the current reference)
         # and how far it landed from the prediction
         self._held: tuple[int, tuple[float, float], tuple[float, float]] | None = None
@@ -248,6 +249,21 @@ class DriftTracker:
         moved = check_prior(moved_px)
         assert moved is not None
         return self._step(engine, self._ref, grad, heights, moved)
+
+    def expect(self, prior_px: tuple[float, float] | None) -> None:
+        """Expected drift ``(dx, dy)`` of the next frames relative to the
+        reference, px, given by the user (``--prior-px``): it centres the
+        block search (and, on a periodic sample, picks the lattice
+        translation nearest it) until a frame is accepted; from then on the
+        tracker's own prediction does. None forgets it. :meth:`reset`
+        forgets it too.
+
+        Raises
+        ------
+        InputError
+            ``prior_px`` is not two finite numbers.
+        """
+        self._given = check_prior(prior_px)
 
     def measure_ahead(
         self, image: npt.ArrayLike | Frame, *, moved_px: tuple[float, float] = (0.0, 0.0)
@@ -335,6 +351,12 @@ class DriftTracker:
         alignment decides), and whether any motion is known."""
         cfg = self.config
         gap = self._count - self._last_index
+        given = None if self._motion_known else self._given
+        if given is not None:
+            # the user's expectation stands for the motion not known yet
+            # (not a prediction from measured motion: nothing is held against it)
+            prior = (given[0] + moved[0], given[1] + moved[1])
+            return prior, prior, moved != (0.0, 0.0)
         prior = (
             self._rel[0] + self._velocity[0] * gap + moved[0],
             self._rel[1] + self._velocity[1] * gap + moved[1],
@@ -413,7 +435,7 @@ class DriftTracker:
             heights,
             ref_heights=self._ref_heights if cfg.coarse else None,
             expected_px=expected,
-            source="predicted",
+            source="given" if self._given is not None and not self._motion_known else "predicted",
             pixel_size_nm=self.pixel_size_nm,
             check=functools.partial(self._check, heights, grad),
         )
@@ -552,7 +574,14 @@ class DriftTracker:
         sy = math.hypot(meas.sigma_y_nm, self._rel_sigma_nm[1])
         dx = meas.dx_px - prev[0]
         dy = meas.dy_px - prev[1]
-        return DriftResult(
+
+        def rel(v: tuple[float, float] | None) -> tuple[float, float] | None:
+            return None if v is None else (v[0] - prev[0], v[1] - prev[1])
+
+        # what decided it and the search's centre come along, re-expressed
+        # relative to the previous accepted frame as the shift is
+        return replace(
+            meas,
             dx_px=dx,
             dy_px=dy,
             dx_nm=dx * px,
@@ -560,11 +589,10 @@ class DriftTracker:
             sigma_x_nm=sx,
             sigma_y_nm=sy,
             sigma_nm=math.sqrt(0.5 * (sx * sx + sy * sy)),
-            valid=meas.valid,
-            valid_blocks=meas.valid_blocks,
-            total_blocks=meas.total_blocks,
-            reason=meas.reason,
             field=field,
+            prior_px=rel(meas.prior_px),
+            expected_px=rel(meas.expected_px),
+            alternatives_px=tuple((a - prev[0], b - prev[1]) for a, b in meas.alternatives_px),
         )
 
     def _overlap(
