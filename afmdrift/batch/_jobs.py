@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
 import shutil
@@ -50,6 +51,8 @@ from afmdrift.errors import AfmdriftError, InputError
 
 __all__ = ["TASKS", "Job", "Result", "fingerprint", "load_result", "run_job"]
 
+log = logging.getLogger(__name__)
+
 Task = Literal["measure", "correct", "replay", "diagnose"]
 #: What ``afmdrift batch --task`` can do to each recording.
 TASKS: tuple[Task, ...] = ("measure", "correct", "replay", "diagnose")
@@ -57,6 +60,8 @@ TASKS: tuple[Task, ...] = ("measure", "correct", "replay", "diagnose")
 SESSION_TASKS: tuple[Task, ...] = ("replay", "diagnose")
 
 RESULT_FILE = "result.json"
+#: Statuses of a recording that a later run skips (``failed`` is tried again).
+FINISHED = ("done", "no_drift")
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,6 +81,10 @@ class Job:
     channel: str = "Height"
     height_unit: str | None = None
     key: str = field(default="")
+    #: ``--override-pixel-size``: ``pixel_size_nm`` replaces a header's calibration.
+    override_pixel_size: bool = False
+    #: ``--prior-px``: the expected drift of the first frame after the first, px.
+    prior_px: tuple[float, float] | None = None
     #: The Dask event topic to which a worker reports the frames done so far
     #: (every :data:`PROGRESS_INTERVAL_S`); empty: no reports. Not part of the
     #: fingerprint: it changes no output.
@@ -91,9 +100,14 @@ class Result:
     """What a job gives the summary (one row of ``summary.csv``)."""
 
     recording: str
-    status: Literal["done", "failed"]
+    #: ``done``; ``no_drift``: read and run, but no frame after the first was
+    #: measured (the drift columns are empty, ``error`` says why); ``failed``.
+    status: Literal["done", "no_drift", "failed"]
     frames: int = 0
     valid_frames: int = 0
+    #: Of the valid frames, those whose shift the prior alone picked among
+    #: lattice translations (``decided_by: "prior"``).
+    prior_decided: int = 0
     drift_x_nm: float = math.nan
     drift_y_nm: float = math.nan
     worker: str = ""
@@ -136,6 +150,8 @@ def fingerprint(job: Job) -> str:
         "pixel_size_nm": job.pixel_size_nm,
         "channel": job.channel,
         "height_unit": job.height_unit,
+        "override_pixel_size": job.override_pixel_size,
+        "prior_px": job.prior_px,
     }
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 
@@ -146,7 +162,11 @@ def load_result(job: Job, key: str) -> Result | None:
         doc = json.loads((Path(job.out) / RESULT_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    if not isinstance(doc, dict) or doc.get("fingerprint") != key or doc.get("status") != "done":
+    if (
+        not isinstance(doc, dict)
+        or doc.get("fingerprint") != key
+        or doc.get("status") not in FINISHED
+    ):
         return None
     try:
         return Result.from_json(doc)
@@ -173,7 +193,7 @@ def run_job(job: Job) -> Result:
         )
     result.seconds = time.perf_counter() - started
     result.fingerprint = job.key
-    if result.status == "done":
+    if result.status in FINISHED:
         _atomic_write(Path(job.out) / RESULT_FILE, json.dumps(result.to_json()) + "\n")
     return result
 
@@ -193,15 +213,15 @@ def _work(job: Job, result: Result) -> None:
     config = AfmdriftConfig.model_validate(job.config)
     report = _frame_reporter(job)
     if job.task in SESSION_TASKS:
-        docs = _replay(session, config, out / "run", result, report)
+        _replay(session, config, out / "run", result, report, prior_px=job.prior_px)
         if job.task == "diagnose":
             _diagnose(Path(job.path), config, out)
     else:
-        docs = _measure(session, config, timed, out / "track.jsonl", result, report)
+        _measure(session, config, timed, out / "track.jsonl", result, report, prior_px=job.prior_px)
     if job.task == "correct":
-        _correct(session, config, out)
-    if docs and math.isfinite(docs[-1][0]) and math.isfinite(docs[0][0]):
-        result.duration_s = docs[-1][0] - docs[0][0]
+        _correct(session, config, out, prior_px=job.prior_px)
+    mids = session.frame_times.mean(axis=1)
+    result.duration_s = float(mids[-1] - mids[0])
 
 
 # --------------------------------------------------------------------------- steps
@@ -209,7 +229,7 @@ def _work(job: Job, result: Result) -> None:
 
 def _read(job: Job) -> tuple[Any, bool]:
     """The recording as a session, and whether its frame times are the instrument's."""
-    from afmdrift.io import MissingPixelSizeError, load_stack
+    from afmdrift.io import calibrated, load_stack
     from afmdrift.session import SessionError, read_session, session_from_images
 
     path = Path(job.path)
@@ -225,14 +245,12 @@ def _read(job: Job) -> tuple[Any, bool]:
             stream=True,
         )
 
-    try:
-        # a file whose header has a calibration keeps it; the given pixel size
-        # serves the files without one
-        images = read(None)
-    except MissingPixelSizeError:
-        if job.pixel_size_nm is None:
-            raise
-        images = read(job.pixel_size_nm)
+    images, note = calibrated(
+        read, job.pixel_size_nm, override=job.override_pixel_size,
+        pixel_of=lambda stack: stack[0].pixel_size_nm,
+    )  # fmt: skip
+    if note is not None:
+        log.warning("%s: %s", job.recording, note)
     if len(images) < 2:
         raise SessionError(f"{path}: holds one image; a recording needs two frames or more")
     try:
@@ -250,30 +268,48 @@ def _measure(
     path: Path,
     result: Result,
     report: Callable[[int], None],
-) -> list[tuple[float, float, float]]:
+    *,
+    prior_px: tuple[float, float] | None,
+) -> None:
     """``afmdrift measure STACK --json``'s lines into ``path``; the summary's
-    counts and last valid drift into ``result``; ``report`` is given the
-    frames done after each. Returns ``(t_s, x_nm, y_nm)`` of the valid frames."""
+    counts and last measured drift into ``result`` (none when no frame was
+    measured); ``report`` is given the frames done after each."""
     from afmdrift.runs import track_session
 
-    valid: list[tuple[float, float, float]] = [(float(session.frame_times[0].mean()), 0.0, 0.0)]
     tmp = path.with_name(path.name + ".tmp")
     result.frames = 1
-    result.valid_frames = 1
+    refusals: list[str] = []
     with tmp.open("w", encoding="utf-8") as fh:
-        for doc in track_session(session, config, timed=timed):
+        for doc in track_session(session, config, timed=timed, prior_px=prior_px):
             fh.write(json.dumps(doc) + "\n")
             result.frames += 1
             if doc.get("valid"):
                 result.valid_frames += 1
-                valid.append((doc["t_s"], doc["cumulative_dx_nm"], doc["cumulative_dy_nm"]))
+                result.prior_decided += doc.get("decided_by") == "prior"
+                result.drift_x_nm = doc["cumulative_dx_nm"]
+                result.drift_y_nm = doc["cumulative_dy_nm"]
+            else:
+                refusals.append(
+                    f"frame {doc['cur_frame']}: {doc.get('reason') or doc.get('error')}"
+                )
             report(result.frames)
     os.replace(tmp, path)
-    result.drift_x_nm, result.drift_y_nm = valid[-1][1], valid[-1][2]
-    return valid
+    _no_drift(result, refusals)
 
 
-def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
+def _no_drift(result: Result, refusals: list[str]) -> None:
+    """A recording none of whose frames was measured: status ``no_drift``,
+    no drift, and why (the first refusal) in ``error``."""
+    if result.valid_frames == 0:
+        result.status = "no_drift"
+        result.drift_x_nm = result.drift_y_nm = math.nan
+        why = refusals[0] if refusals else "no frame after the first"
+        result.error = f"no frame was measured ({why})"
+
+
+def _correct(
+    session: Any, config: AfmdriftConfig, out: Path, *, prior_px: tuple[float, float] | None
+) -> None:
     """``afmdrift correct --format npy``'s output, and the same frames as an
     ImageJ TIFF stack (pixel size and frame times) that Fiji and Gwyddion open."""
     import numpy as np
@@ -281,7 +317,9 @@ def _correct(session: Any, config: AfmdriftConfig, out: Path) -> None:
 
     from afmdrift.runs import correct_session
 
-    summary = correct_session(session, out / "corrected", config=config, output="npy")
+    summary = correct_session(
+        session, out / "corrected", config=config, output="npy", prior_px=prior_px
+    )
     frames = np.load(out / "corrected" / "frames.npy", mmap_mode="r")
     px, py = session.meta.pixel_size_nm
     skipped = set(summary.frames_skipped)
@@ -311,24 +349,32 @@ def _replay(
     run: Path,
     result: Result,
     report: Callable[[int], None],
-) -> list[tuple[float, float, float]]:
+    *,
+    prior_px: tuple[float, float] | None,
+) -> None:
     """``afmdrift replay SESSION --out run``; the summary's counts and the
-    last valid drift position p (commanded moves removed) into ``result``;
-    ``report`` is given the frames done as they are. Returns ``(t_s, x_nm,
-    y_nm)`` of the valid frames."""
+    last measured drift position p (commanded moves removed) into
+    ``result`` (none when no frame was measured); ``report`` is given the
+    frames done as they are."""
     from afmdrift.runs import RunStore, replay_session
 
     # A run left by a job killed halfway: replay writes only into an empty directory.
     shutil.rmtree(run, ignore_errors=True)
-    replay_session(session, run, config=config, on_frame=report)
+    summary = replay_session(session, run, config=config, on_frame=report, prior_px=prior_px)
+    result.prior_decided = summary.prior_decided
     with RunStore(run) as store:
         records = store.frames()
-    valid = [(r.t_mid_s, r.x_nm, r.y_nm) for r in records if r.valid]
     result.frames = len(records)
-    result.valid_frames = len(valid)
-    if valid:
-        result.drift_x_nm, result.drift_y_nm = valid[-1][1], valid[-1][2]
-    return valid
+    refusals: list[str] = []
+    for r in records[1:]:
+        # measured: valid with an increment (a reference has none: its p is 0
+        # or carried across from the frames before it, never measured)
+        if r.valid and math.isfinite(r.dx_nm):
+            result.valid_frames += 1
+            result.drift_x_nm, result.drift_y_nm = r.x_nm, r.y_nm
+        elif not r.valid:
+            refusals.append(f"frame {r.seq}: {r.reason}")
+    _no_drift(result, refusals)
 
 
 def _diagnose(session_dir: Path, config: AfmdriftConfig, out: Path) -> None:

@@ -136,6 +136,8 @@ def run_batch(
     channel: str = "Height",
     height_unit: str | None = None,
     progress: TextIO | None = None,
+    override_pixel_size: bool = False,
+    prior_px: tuple[float, float] | None = None,
 ) -> BatchReport:
     """Run ``task`` on every recording of ``inputs``; see the module docstring.
 
@@ -143,6 +145,9 @@ def run_batch(
     ``scheduler`` address is given (nor ``$AFMDRIFT_SCHEDULER``). Each worker
     runs one recording at a time with one registration thread. ``progress``:
     a terminal to show recordings and frames done, with the rate.
+    ``pixel_size_nm`` serves the files without a calibration, and replaces
+    a header's only with ``override_pixel_size``; ``prior_px`` is the
+    expected drift of each recording's first frame after the first.
     """
     recordings = expand_inputs(inputs)
     out.mkdir(parents=True, exist_ok=True)
@@ -163,6 +168,8 @@ def run_batch(
             channel=channel,
             height_unit=height_unit,
             progress_topic=topic,
+            override_pixel_size=override_pixel_size,
+            prior_px=prior_px,
         )
         jobs.append(Job(**{**_fields(job), "key": fingerprint(job)}))
     rows: list[Result | None] = [load_result(job, job.key) for job in jobs]

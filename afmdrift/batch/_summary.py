@@ -21,6 +21,7 @@ SUMMARY_COLUMNS: tuple[str, ...] = (
     "status",
     "frames",
     "valid_frames",
+    "prior_decided",
     "drift_x_nm",
     "drift_y_nm",
     "worker",
@@ -38,7 +39,7 @@ def write_summary(path: Path, rows: Sequence[Result | None], recordings: Sequenc
     w.writerow(SUMMARY_COLUMNS)
     for rec, r in zip(recordings, rows, strict=True):
         if r is None:
-            w.writerow([rec, "", "", "", "", "", "", "", ""])
+            w.writerow([rec] + [""] * (len(SUMMARY_COLUMNS) - 1))
             continue
         w.writerow(
             [
@@ -46,6 +47,7 @@ def write_summary(path: Path, rows: Sequence[Result | None], recordings: Sequenc
                 r.status,
                 r.frames,
                 r.valid_frames,
+                r.prior_decided,
                 _num(r.drift_x_nm),
                 _num(r.drift_y_nm),
                 r.worker,

@@ -10,6 +10,7 @@ from typing import Any
 
 from afmdrift.batch._jobs import TASKS
 from afmdrift.cli._import import add_file_options, pixel_size_option
+from afmdrift.cli._options import add_prior_option, prior_option
 
 
 def register(sub: Any) -> None:
@@ -21,8 +22,10 @@ def register(sub: Any) -> None:
         "Dask tasks. Writes DIR/<stem>/ (per task, see --task), DIR/summary.csv (one row "
         "per recording, rewritten as each finishes) and DIR/archive.svg. A run started "
         "again skips the recordings done with the same input and configuration. "
-        "--pixel-size-nm serves only the files whose header has no pixel size. Exit 0: "
-        "all done; 1: some failed; 2: usage error.",
+        "A recording none of whose frames could be measured has status no_drift and "
+        "empty drift columns. --pixel-size-nm serves only the files whose header has no "
+        "pixel size. Exit 0: all done; 1: some failed or with no drift measured; 2: usage "
+        "error.",
     )
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="recordings, globs or folders")
     p.add_argument("--out", required=True, metavar="DIR", help="output directory")
@@ -51,6 +54,7 @@ def register(sub: Any) -> None:
         help="an existing Dask scheduler (tcp://HOST:PORT; default $AFMDRIFT_SCHEDULER, "
         "else a local cluster)",
     )
+    add_prior_option(p)
     p.set_defaults(handler=_run)
 
 
@@ -66,18 +70,23 @@ def _run(args: argparse.Namespace) -> int:
         config=load_config(args.config),
         workers=args.workers,
         scheduler=args.scheduler,
-        pixel_size_nm=pixel_size_option(args.pixel_size_nm),
+        pixel_size_nm=pixel_size_option(args.pixel_size_nm, override=args.override_pixel_size),
+        override_pixel_size=args.override_pixel_size,
+        prior_px=prior_option(args),
         channel=args.channel,
         height_unit=args.height_unit,
         progress=sys.stderr if terminal else None,
     )
-    done = len(report.results) - report.failed
+    no_drift = [r for r in report.results if r.status == "no_drift"]
+    done = len(report.results) - report.failed - len(no_drift)
     print(
-        f"{done} done, {report.failed} failed, {report.skipped} skipped as already done: "
-        f"{report.summary}",
+        f"{done} done, {len(no_drift)} with no drift measured, {report.failed} failed, "
+        f"{report.skipped} skipped as already done: {report.summary}",
         file=sys.stderr,
     )
     for r in report.results:
         if r.status == "failed":
             print(f"failed: {r.error}", file=sys.stderr)
-    return 1 if report.failed else 0
+        elif r.status == "no_drift":
+            print(f"no drift: {r.recording}: {r.error}", file=sys.stderr)
+    return 1 if report.failed or no_drift else 0

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from afmdrift.cli._options import add_prior_option, prior_option
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -38,6 +40,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
+    add_prior_option(p)
     p.set_defaults(handler=_correct)
 
 
@@ -54,6 +57,7 @@ def _correct(args: argparse.Namespace) -> int:
         mode=args.trajectory,
         output=args.format,
         fill=args.fill,
+        prior_px=prior_option(args),
     )
     skipped = ", ".join(map(str, summary.frames_skipped)) or "none"
     print(

@@ -6,6 +6,8 @@ import argparse
 import json
 from typing import Any
 
+from afmdrift.cli._options import PRIOR_HELP, add_prior_option, prior_option
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -52,6 +54,9 @@ def register(sub: Any) -> None:
         help="processes for the candidates' online re-runs, side by side "
         "(default: one per core this process may use; 1 runs them in this process)",
     )
+    add_prior_option(
+        p, help=PRIOR_HELP + " (a SESSION only: a run directory is read as it was measured)"
+    )
     p.set_defaults(handler=_diagnose)
 
 
@@ -77,6 +82,7 @@ def _diagnose(args: argparse.Namespace) -> int:
         run_dir=args.run_dir,
         session_dir=args.session,
         options=DiagnoseOptions(burn_in_frames=args.burn_in, workers=workers),
+        prior_px=prior_option(args),
     )
     if args.report:
         from afmdrift.diagnostics import write_report

@@ -35,8 +35,16 @@ came from (``prior_px``, ``prior``) and lists lattice translations the
 images cannot tell apart (``lattice_px``); a pair whose translations tie
 with no prior to decide is refused as ambiguous, naming them.
 
-Exit status: 0 when every measurement is valid, 1 when one is invalid (the
-result is still printed), 2 on an error (unreadable file, unusable image).
+A result is ``decided_by`` the content when no other shift fits the frames
+as well, and by the prior when lattice translations fit alike and the
+expected drift alone picked the one nearest it: then its ``alternatives``
+(with their distance from the prior) and ``ambiguity_px`` (the distance to
+the nearest) are printed, a warning goes to stderr and the exit status is 3.
+
+Exit status: 0 when every measurement is valid and decided by the content,
+1 when one is invalid (the result is still printed), 2 on an error
+(unreadable file, unusable image), 3 when all are valid but the prior alone
+decided one.
 """
 
 from __future__ import annotations
@@ -52,6 +60,7 @@ from typing import TYPE_CHECKING, Any
 from pydantic import ValidationError
 
 from afmdrift.cli._import import add_file_options, pixel_size_option
+from afmdrift.cli._options import add_prior_option, prior_option
 from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.errors import ConfigError, InputError
 
@@ -69,7 +78,8 @@ def register(sub: Any) -> None:
         "movie), between successive frames (JSON lines with increment and cumulative "
         "drift). Files: .npy, .tif, NanoScope .spm/.000-.999, .gwy, .asd (FILE.asd:i "
         "selects frame i), .nc, .sxm, .ibw, .jpk, .h5-jpk, .stp. "
-        "Exit 0: all valid; 1: some result invalid; 2: error.",
+        "Exit 0: all valid; 1: some result invalid; 2: error; 3: valid, but the prior "
+        "alone picked a shift among lattice translations (see decided_by).",
     )
     p.add_argument("ref", metavar="REF", help="reference image, or a stack/movie")
     p.add_argument("cur", metavar="CUR", nargs="?", help="current image")
@@ -81,13 +91,13 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--block-size", type=int, metavar="PX", help="override [registration]")
     p.add_argument("--extended-size", type=int, metavar="PX", help="override [registration]")
-    p.add_argument(
-        "--prior-px",
-        type=float,
-        nargs=2,
-        metavar=("DX", "DY"),
-        help="expected drift in px; the block search is centred on it (no coarse step, "
-        "except on a periodic sample: the lattice translation nearest it is measured)",
+    add_prior_option(
+        p,
+        help="expected drift DX DY in px; the block search is centred on it (no coarse "
+        "step, except on a periodic sample: the lattice translation nearest it is "
+        "measured, and the result says decided_by: prior when the prior alone picked it); "
+        "for a stack, the expected drift of the first frame after the first (later frames "
+        "take the tracker's prediction)",
     )
     p.add_argument(
         "--search-px",
@@ -116,9 +126,9 @@ def register(sub: Any) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.io import load_image
+    from afmdrift.io import calibrated, load_image
 
-    given = (float(args.prior_px[0]), float(args.prior_px[1])) if args.prior_px else None
+    given = prior_option(args)
     if args.cur is None:
         return _run_stack(args, load_config(args.config))
     if args.dewarp:
@@ -129,11 +139,24 @@ def _run(args: argparse.Namespace) -> int:
         extended_size=args.extended_size,
         search_px=args.search_px,
     )
-    pixel = pixel_size_option(args.pixel_size_nm)
-    read = {"pixel_size_nm": pixel, "channel": args.channel, "height_unit": args.height_unit}
+    pixel = pixel_size_option(args.pixel_size_nm, override=args.override_pixel_size)
     coarse = not args.no_coarse
-    ref = load_image(args.ref, **read)
-    cur = load_image(args.cur, **read)
+
+    def read_image(spec: str) -> AfmImage:
+        image, note = calibrated(
+            lambda px: load_image(
+                spec, pixel_size_nm=px, channel=args.channel, height_unit=args.height_unit
+            ),
+            pixel,
+            override=args.override_pixel_size,
+            pixel_of=lambda im: im.pixel_size_nm,
+        )
+        if note is not None:
+            print(f"afmdrift: {spec}: {note}", file=sys.stderr)
+        return image
+
+    ref = read_image(args.ref)
+    cur = read_image(args.cur)
     report_channels([ref, cur], args.channel)
     result = measure_pair(ref, cur, config, prior_px=given, coarse=coarse)
     doc = {
@@ -144,10 +167,32 @@ def _run(args: argparse.Namespace) -> int:
         "pixel_size_nm": list(ref.pixel_size_nm),
         **result.to_dict(),
     }
+    doc["given_prior_px"] = None if given is None else list(given)
     print(json.dumps(doc) if args.json else _describe(doc))
     if args.plot:
         _plot_field(ref, result, Path(args.plot))
-    return 0 if result.valid else 1
+    warn_if_prior_decided(result.to_dict(), what=f"{cur.source} against {ref.source}")
+    return exit_status([result.to_dict()])
+
+
+def warn_if_prior_decided(doc: dict[str, Any], *, what: str) -> None:
+    """A warning on stderr when the prior alone picked ``doc``'s shift."""
+    if doc.get("decided_by") != "prior":
+        return
+    print(
+        f"afmdrift: warning: {what}: the prior alone picked this shift among "
+        f"{len(doc['alternatives']) + 1} that fit the images alike (the nearest other is "
+        f"{doc['ambiguity_px']:.1f} px away); it is right only if the prior is "
+        "right to within half that",
+        file=sys.stderr,
+    )
+
+
+def exit_status(docs: Sequence[dict[str, Any]]) -> int:
+    """1 if any result is invalid, else 3 if the prior alone decided any, else 0."""
+    if not all(d.get("valid") for d in docs):
+        return 1
+    return 3 if any(d.get("decided_by") == "prior" for d in docs) else 0
 
 
 def measurement_config(
@@ -268,12 +313,25 @@ def _describe(doc: dict[str, Any]) -> str:
         f"blocks     {doc['valid_blocks']} of {doc['total_blocks']} valid",
         "prior      "
         + (
-            "none"
+            "none given"
+            if doc.get("given_prior_px") is None
+            else f"{doc['given_prior_px'][0]:+g}, {doc['given_prior_px'][1]:+g} px given"
+        ),
+        "search     "
+        + (
+            "around zero"
             if doc["prior_px"] is None
-            else f"{doc['prior_px'][0]:+g}, {doc['prior_px'][1]:+g} px"
+            else f"around {doc['prior_px'][0]:+g}, {doc['prior_px'][1]:+g} px"
         )
         + f" ({doc['prior']})",
     ]
+    if doc.get("decided_by") == "prior":
+        lines.append(
+            f"DECIDED BY THE PRIOR: {len(doc['alternatives'])} other shifts fit as well, "
+            f"the nearest {doc['ambiguity_px']:.1f} px away"
+        )
+    elif doc.get("decided_by"):
+        lines.append(f"decided by {doc['decided_by']}")
     if not doc["valid"]:
         lines.append(f"INVALID    {doc['reason']}")
     return "\n".join(lines)
@@ -284,15 +342,10 @@ def _describe(doc: dict[str, Any]) -> str:
 
 def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
     """One STACK argument: track it through the daemon's position component."""
-    from afmdrift.io import load_stack, parse_spec
+    from afmdrift.io import calibrated, load_stack, parse_spec
 
     if parse_spec(args.ref)[1] is not None:
         raise InputError(f"{args.ref}: one frame; give REF CUR, or the whole stack/movie")
-    if args.prior_px:
-        raise ConfigError(
-            "--prior-px applies to a pair (REF CUR); a stack is tracked from the coarse "
-            "alignment of its first pair and the measured motion after it"
-        )
     registration = measurement_config(
         base.registration,
         block_size=args.block_size,
@@ -301,28 +354,42 @@ def _run_stack(args: argparse.Namespace, base: AfmdriftConfig) -> int:
     )
     if args.no_coarse:
         registration = registration.model_copy(update={"coarse": False})
-    read = {
-        "pixel_size_nm": pixel_size_option(args.pixel_size_nm),
-        "channel": args.channel,
-        "height_unit": args.height_unit,
-    }
     from afmdrift.runs import track_stack
 
-    frames = load_stack(args.ref, **read, stream=True)
+    frames, note = calibrated(
+        lambda px: load_stack(
+            args.ref,
+            pixel_size_nm=px,
+            channel=args.channel,
+            height_unit=args.height_unit,
+            stream=True,
+        ),
+        pixel_size_option(args.pixel_size_nm, override=args.override_pixel_size),
+        override=args.override_pixel_size,
+        pixel_of=lambda stack: stack[0].pixel_size_nm,
+    )
+    if note is not None:
+        print(f"afmdrift: {args.ref}: {note}", file=sys.stderr)
     report_channels(frames[:1], args.channel)
     if len(frames) < 2:
         raise InputError(f"{args.ref}: holds one image; give REF and CUR to measure a pair")
-    all_valid = True
+    docs: list[dict[str, Any]] = []
     track: list[tuple[int, float, float]] = [(0, 0.0, 0.0)]
     config = base.model_copy(update={"registration": registration})
-    for doc in track_stack(frames, config, dewarp=Path(args.dewarp) if args.dewarp else None):
+    for doc in track_stack(
+        frames,
+        config,
+        dewarp=Path(args.dewarp) if args.dewarp else None,
+        prior_px=prior_option(args),
+    ):
         print(json.dumps(doc), flush=True)
-        all_valid = all_valid and bool(doc["valid"])
+        docs.append({k: doc.get(k) for k in ("valid", "decided_by")})
         if doc["valid"]:
             track.append((doc["cur_frame"], doc["cumulative_dx_px"], doc["cumulative_dy_px"]))
+        warn_if_prior_decided(doc, what=f"{args.ref} frame {doc['cur_frame']}")
     if args.plot:
         _plot_track(track, frames[0], Path(args.plot))
-    return 0 if all_valid else 1
+    return exit_status(docs)
 
 
 # --------------------------------------------------------------------------- plots

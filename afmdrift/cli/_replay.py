@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from afmdrift.cli._options import add_prior_option, prior_option
+
 
 def register(sub: Any) -> None:
     p = sub.add_parser(
@@ -19,6 +21,7 @@ def register(sub: Any) -> None:
     p.add_argument(
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
+    add_prior_option(p)
     p.set_defaults(handler=_replay)
 
 
@@ -27,7 +30,7 @@ def _replay(args: argparse.Namespace) -> int:
     from afmdrift.runs import replay_session
 
     config = load_config(args.config)
-    summary = replay_session(args.session, args.out, config=config)
+    summary = replay_session(args.session, args.out, config=config, prior_px=prior_option(args))
     print(
         f"{summary.frames} frames replayed in {summary.wall_s:.1f} s "
         f"({summary.fed_model} fed the model); prediction error mean "

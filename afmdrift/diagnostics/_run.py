@@ -45,8 +45,10 @@ def prepare_run(
     effects: Sequence[str] | None = None,
     run_dir: str | Path | None = None,
     session_dir: str | Path | None = None,
+    prior_px: tuple[float, float] | None = None,
 ) -> RunData:
-    """Measurements of ``path``: read a run directory, or replay a session first.
+    """Measurements of ``path``: read a run directory, or replay a session first
+    (``prior_px``: the expected drift of its first frame after the first, px).
 
     Parameters
     ----------
@@ -82,10 +84,10 @@ def prepare_run(
 
     cfg = config_with_effects(config, effects)
     if run_dir is not None:
-        replay_session(p, run_dir, config=cfg)
+        replay_session(p, run_dir, config=cfg, prior_px=prior_px)
         return load_run(run_dir, session_dir=p)
     with tempfile.TemporaryDirectory(prefix="afmdrift-diagnose-") as tmp:
-        replay_session(p, tmp, config=cfg)
+        replay_session(p, tmp, config=cfg, prior_px=prior_px)
         return load_run(tmp, session_dir=p)
 
 
@@ -97,9 +99,15 @@ def diagnose_path(
     run_dir: str | Path | None = None,
     session_dir: str | Path | None = None,
     options: DiagnoseOptions | None = None,
+    prior_px: tuple[float, float] | None = None,
 ) -> tuple[Diagnosis, RunData]:
     """:func:`prepare_run` then :func:`diagnose` with the configured physics model."""
     data = prepare_run(
-        path, config=config, effects=effects, run_dir=run_dir, session_dir=session_dir
+        path,
+        config=config,
+        effects=effects,
+        run_dir=run_dir,
+        session_dir=session_dir,
+        prior_px=prior_px,
     )
     return diagnose(data, config.model.physics, effects=effects, options=options), data

@@ -13,7 +13,14 @@ software would (for the folder instrument's tests and benchmark).
 
 from afmdrift.io._channels import DEFAULT_CHANNEL, pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, MissingPixelSizeError, length_unit_to_nm
-from afmdrift.io._load import SUFFIXES, PixelSize, load_image, load_stack, parse_spec
+from afmdrift.io._load import (
+    SUFFIXES,
+    PixelSize,
+    calibrated,
+    load_image,
+    load_stack,
+    parse_spec,
+)
 from afmdrift.io._nanoscope import NanoscopeHeader, parse_nanoscope_header
 from afmdrift.io._sxm import write_sxm
 from afmdrift.io._write import write_tif
@@ -26,6 +33,7 @@ __all__ = [
     "MissingPixelSizeError",
     "NanoscopeHeader",
     "PixelSize",
+    "calibrated",
     "length_unit_to_nm",
     "load_image",
     "load_stack",

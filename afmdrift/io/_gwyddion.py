@@ -25,7 +25,13 @@ from typing import Any
 
 import numpy as np
 
-from afmdrift.io._image import AfmImage, ImageFileError, height_factor_nm, length_unit_to_nm
+from afmdrift.io._image import (
+    AfmImage,
+    ImageFileError,
+    MissingPixelSizeError,
+    height_factor_nm,
+    length_unit_to_nm,
+)
 
 __all__ = ["gwy_channels", "read_gwy"]
 
@@ -177,7 +183,7 @@ def read_gwy(
     if pixel_size_nm is None:
         xy_unit = _unit(field, "si_unit_xy")
         if not xy_unit:
-            raise ImageFileError(
+            raise MissingPixelSizeError(
                 f"{path}: channel {title!r} has no lateral unit "
                 f"(xreal={field.get('xreal')}); give pixel_size_nm (--pixel-size-nm)"
             )

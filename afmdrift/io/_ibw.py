@@ -58,7 +58,12 @@ from typing import Any
 import numpy as np
 
 from afmdrift.io._channels import pick_channel
-from afmdrift.io._image import AfmImage, ImageFileError, length_unit_to_nm
+from afmdrift.io._image import (
+    AfmImage,
+    ImageFileError,
+    MissingPixelSizeError,
+    length_unit_to_nm,
+)
 from afmdrift.records import ScanDirection
 
 __all__ = ["read_ibw"]
@@ -125,7 +130,7 @@ def read_ibw(
     note = _parse_note(wave.get("note", b""))
     pixel = _pixel_size(note, wave, rows, cols, path) or pixel_size_nm
     if pixel is None:
-        raise ImageFileError(
+        raise MissingPixelSizeError(
             f"{path}: .ibw file gives no scan size (note FastScanSize/SlowScanSize or wave "
             "scaling with length units); give pixel_size_nm (--pixel-size-nm)"
         )

@@ -41,7 +41,8 @@ class ImageFileError(InputError):
 
 
 class MissingPixelSizeError(ImageFileError):
-    """The file carries no pixel size (a bare array), and none was given."""
+    """The file carries no usable pixel size (a bare array, a channel without
+    a lateral unit, an implausible calibration), and none was given."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,7 +165,7 @@ def check_calibration(image: AfmImage, *, what: str = "pixel size", heights: boo
         ("y", image.pixel_size_nm[1], rows),
     ):
         if not (MIN_PIXEL_NM <= pixel <= MAX_PIXEL_NM and pixel * n <= MAX_SCAN_NM):
-            raise ImageFileError(
+            raise MissingPixelSizeError(
                 f"{where}: implausible {what} along {axis}: {pixel:.4g} nm per pixel "
                 f"({pixel * n:.4g} nm over {n} px); an AFM pixel is {MIN_PIXEL_NM:g} to "
                 f"{MAX_PIXEL_NM:g} nm and a scan at most {MAX_SCAN_NM:g} nm: the header "

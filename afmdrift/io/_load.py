@@ -44,10 +44,10 @@ import dataclasses
 import logging
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -69,7 +69,9 @@ from afmdrift.io._sxm import read_sxm
 from afmdrift.io._wsxm import read_stp
 from afmdrift.records import ScanDirection
 
-__all__ = ["SUFFIXES", "PixelSize", "load_image", "load_stack", "parse_spec"]
+__all__ = ["SUFFIXES", "PixelSize", "calibrated", "load_image", "load_stack", "parse_spec"]
+
+T = TypeVar("T")
 
 #: Suffixes understood by :func:`load_image` (plus ``.000``–``.999``).
 SUFFIXES = (
@@ -518,3 +520,45 @@ def _tiff_pixel_size(tif: Any, path: Path) -> tuple[float, float] | None:
     if not (0 < pixel[0] < _MAX_CALIBRATED_PIXEL_NM and 0 < pixel[1] < _MAX_CALIBRATED_PIXEL_NM):
         return None
     return pixel
+
+
+def calibrated(
+    read: Callable[[tuple[float, float] | None], T],
+    pixel_size_nm: tuple[float, float] | None,
+    *,
+    override: bool = False,
+    pixel_of: Callable[[T], tuple[float, float]],
+) -> tuple[T, str | None]:
+    """Read a file with the one meaning of a pixel size given by a user
+    (``--pixel-size-nm``): it serves a file whose header has no calibration,
+    and replaces a header's only with ``override`` (``--override-pixel-size``).
+
+    ``read(pixel_size_nm)`` reads the file (``None``: as its header says);
+    ``pixel_of`` gives the pixel size of what it read. Returns what was read,
+    and a note for the user when the given size differs from the header's
+    (kept, or replaced with ``override``), naming both values; else None.
+
+    Raises
+    ------
+    MissingPixelSizeError
+        The file has no calibration and none was given.
+    """
+    if pixel_size_nm is None:
+        return read(None), None
+    try:
+        own = read(None)
+    except MissingPixelSizeError:
+        return read(pixel_size_nm), None
+    header = pixel_of(own)
+    if all(math.isclose(a, b, rel_tol=1e-6) for a, b in zip(header, pixel_size_nm, strict=True)):
+        return own, None
+    given = f"{pixel_size_nm[0]:g} x {pixel_size_nm[1]:g} nm"
+    calibration = f"{header[0]:g} x {header[1]:g} nm"
+    if override:
+        note = f"pixel size {given} (--override-pixel-size) replaces the header's {calibration}"
+        return read(pixel_size_nm), note
+    note = (
+        f"the header's pixel size {calibration} is kept; --pixel-size-nm {given} serves only "
+        "files without one (--override-pixel-size replaces it)"
+    )
+    return own, note

@@ -35,7 +35,13 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.io._channels import pick_channel
-from afmdrift.io._image import AfmImage, ImageFileError, height_factor_nm, length_unit_to_nm
+from afmdrift.io._image import (
+    AfmImage,
+    ImageFileError,
+    MissingPixelSizeError,
+    height_factor_nm,
+    length_unit_to_nm,
+)
 from afmdrift.records import ScanDirection
 
 __all__ = ["read_netcdf"]
@@ -203,7 +209,7 @@ def _pixel_from_coords(
     sizes = []
     for dim in (dims[-1], dims[-2]):
         if dim not in coords:
-            raise ImageFileError(
+            raise MissingPixelSizeError(
                 f"{path}: no coordinate variable {dim!r} with 'units'; give pixel_size_nm "
                 "(--pixel-size-nm)"
             )

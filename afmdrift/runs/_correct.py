@@ -12,8 +12,9 @@ import numpy.typing as npt
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.model import FrameTrajectory
-from afmdrift.pipeline import FramePipeline, dewarp_frame, image_positions
+from afmdrift.pipeline import dewarp_frame, image_positions
 from afmdrift.records import EventKind
+from afmdrift.runs._session import session_pipeline
 from afmdrift.session import Session, write_session
 
 __all__ = ["CorrectionSummary", "correct_session"]
@@ -37,6 +38,7 @@ def correct_session(
     mode: Literal["smoothed", "causal"] = "smoothed",
     output: Literal["session", "npy"] = "session",
     fill: Literal["nan", "nearest"] = "nearest",
+    prior_px: tuple[float, float] | None = None,
 ) -> CorrectionSummary:
     """De-warp every frame of ``session`` with its drift trajectory.
 
@@ -49,10 +51,10 @@ def correct_session(
     directory (format v1; the same times, channels and truth, and no
     ``offset_move`` events, since the corrected frames no longer show them)
     or ``DIR/frames.npy`` (N, rows, cols) float32 with ``DIR/frames.csv``
-    (frame, t_start_s, t_end_s).
+    (frame, t_start_s, t_end_s). ``prior_px``: the expected drift of the
+    first frame after the first, px (:func:`session_pipeline`).
     """
-    pipeline = FramePipeline(config=config, keep_trajectory=True)
-    pipeline.push(session.channel_samples(), session.events)
+    pipeline = session_pipeline(session, config, keep_trajectory=True, prior_px=prior_px)
     causal: dict[int, FrameTrajectory] = {}
     records = []
     for k, outcome in enumerate(pipeline.run(session.iter_frames())):

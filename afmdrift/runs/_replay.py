@@ -22,9 +22,10 @@ from pathlib import Path
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
-from afmdrift.pipeline import FramePipeline
+from afmdrift.pipeline import FrameOutcome
 from afmdrift.runs._csv import trajectory_rows, write_trajectory_csv
 from afmdrift.runs._record import record_outcome
+from afmdrift.runs._session import session_pipeline
 from afmdrift.runs._store import RunStore
 from afmdrift.session import Session, read_session
 
@@ -42,6 +43,9 @@ class ReplaySummary:
     mean_pred_error_nm: float
     max_pred_error_nm: float
     wall_s: float
+    #: Frames whose shift the prior alone picked among lattice translations
+    #: (``decided_by == "prior"``): only as good as the prior.
+    prior_decided: int = 0
 
 
 def replay_session(
@@ -50,10 +54,12 @@ def replay_session(
     *,
     config: AfmdriftConfig,
     on_frame: Callable[[int], None] | None = None,
+    prior_px: tuple[float, float] | None = None,
 ) -> ReplaySummary:
     """Run the daemon's per-frame pipeline over ``session`` and record the run.
     ``on_frame`` is given the number of frames done after each frame is
-    recorded (a batch worker's progress).
+    recorded (a batch worker's progress); ``prior_px`` is the expected drift
+    of the first frame after the first, px (:func:`session_pipeline`).
 
     Raises
     ------
@@ -81,13 +87,14 @@ def replay_session(
                 "config": config.model_dump_json(),
             }
         )
-        pipeline = FramePipeline(config=config, keep_trajectory=True)
-        pipeline.push(s.channel_samples(), s.events)
+        pipeline = session_pipeline(s, config, keep_trajectory=True, prior_px=prior_px)
         errors: list[float] = []
         fed = 0
+        by_prior = 0
         for done, outcome in enumerate(pipeline.run(s.iter_frames()), start=1):
             record_outcome(store, outcome)
             fed += outcome.record.fed_model
+            by_prior += decided_by_prior(outcome)
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)
             if on_frame is not None:
@@ -109,4 +116,13 @@ def replay_session(
         mean_pred_error_nm=statistics.fmean(errors) if errors else math.nan,
         max_pred_error_nm=max(errors) if errors else math.nan,
         wall_s=time.perf_counter() - started,
+        prior_decided=by_prior,
     )
+
+
+def decided_by_prior(outcome: FrameOutcome) -> bool:
+    """Whether the prior alone picked the frame's shift among lattice
+    translations (:attr:`DriftResult.decided_by`)."""
+    pos = outcome.position
+    inc = None if pos is None else pos.increment
+    return bool(inc is not None and inc.valid and inc.decided_by == "prior")

@@ -11,12 +11,12 @@ import numpy as np
 from afmdrift.config import AfmdriftConfig
 from afmdrift.model import MeasuredSeries
 from afmdrift.pipeline import (
-    FramePipeline,
     FrameRecord,
     observation_from_record,
     reference_direction_of,
 )
 from afmdrift.records import ScanDirection
+from afmdrift.runs._session import session_pipeline
 from afmdrift.session import DriftLog, Session
 
 __all__ = ["measure_session", "series_from_drift_log", "series_from_records"]
@@ -66,12 +66,13 @@ def series_from_drift_log(log: DriftLog) -> MeasuredSeries:
     )
 
 
-def measure_session(session: Session, config: AfmdriftConfig) -> MeasuredSeries:
+def measure_session(
+    session: Session, config: AfmdriftConfig, *, prior_px: tuple[float, float] | None = None
+) -> MeasuredSeries:
     """Run every frame of ``session`` through :class:`FramePipeline`, as
     ``afmdrift replay`` and the daemon do (the session's channels and events
     known from the start, each reaching the model with the first frame that
     ends after it), and return what the frames gave the model."""
-    pipeline = FramePipeline(config=config)
-    pipeline.push(session.channel_samples(), session.events)
+    pipeline = session_pipeline(session, config, prior_px=prior_px)
     records = [outcome.record for outcome in pipeline.run(session.iter_frames())]
     return series_from_records(records)

@@ -9,8 +9,8 @@ from typing import TYPE_CHECKING, Any
 
 from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.model import make_predictor
-from afmdrift.pipeline import FramePipeline
 from afmdrift.runs._correct import correct_session
+from afmdrift.runs._session import session_pipeline
 from afmdrift.session import Session, SessionError, session_from_images
 
 if TYPE_CHECKING:
@@ -24,6 +24,7 @@ def track_stack(
     config: AfmdriftConfig | RegistrationConfig,
     *,
     dewarp: Path | None = None,
+    prior_px: tuple[float, float] | None = None,
 ) -> Iterator[dict[str, Any]]:
     """Track a stack or movie through the daemon's position component
     (:class:`afmdrift.pipeline.DriftPositions`: the keyframe policy of
@@ -53,19 +54,31 @@ def track_stack(
             raise
         session = session_from_images(frames, frame_time_s=1.0)
     timed = all(im.timestamp is not None for im in frames)
-    yield from track_session(session, cfg, timed=timed, dewarp=dewarp)
+    yield from track_session(session, cfg, timed=timed, dewarp=dewarp, prior_px=prior_px)
 
 
 def track_session(
-    session: Session, config: AfmdriftConfig, *, timed: bool = True, dewarp: Path | None = None
+    session: Session,
+    config: AfmdriftConfig,
+    *,
+    timed: bool = True,
+    dewarp: Path | None = None,
+    prior_px: tuple[float, float] | None = None,
 ) -> Iterator[dict[str, Any]]:
     """:func:`track_stack` on a session already read (a session directory, or
     the images of a stack); ``timed``: whether its frame times are the
-    instrument's (``ref_t_s`` and ``cur_t_s`` are reported then)."""
+    instrument's (``ref_t_s`` and ``cur_t_s`` are reported then). The
+    session's event log places each frame's block windows (commanded offset
+    moves) as in ``afmdrift replay`` (:func:`session_pipeline`), and
+    ``prior_px`` is the expected drift of the first frame after the first."""
     cfg = config
     # Positions do not depend on the model: the model stage is skipped.
-    pipeline = FramePipeline(
-        config=cfg, predictor=make_predictor("last_value", cfg.model), model=False
+    pipeline = session_pipeline(
+        session,
+        cfg,
+        predictor=make_predictor("last_value", cfg.model),
+        model=False,
+        prior_px=prior_px,
     )
     px, py = session.meta.pixel_size_nm
     for k, outcome in enumerate(pipeline.run(session.iter_frames())):
@@ -110,4 +123,4 @@ def track_session(
                 ]
         yield doc
     if dewarp is not None:
-        correct_session(session, dewarp, config=cfg, output="npy", fill="nan")
+        correct_session(session, dewarp, config=cfg, output="npy", fill="nan", prior_px=prior_px)

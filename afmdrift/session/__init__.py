@@ -5,10 +5,12 @@ from afmdrift.session._driftlog import DriftLog, is_drift_log, read_drift_log
 from afmdrift.session._format import (
     FORMAT_NAME,
     FORMAT_VERSION,
+    PRIOR_KEY,
     Session,
     SessionError,
     SessionMeta,
     read_session,
+    session_prior_px,
     write_session,
 )
 from afmdrift.session._import import attach_logs, import_files, session_from_images
@@ -16,6 +18,7 @@ from afmdrift.session._import import attach_logs, import_files, session_from_ima
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "PRIOR_KEY",
     "DriftLog",
     "Session",
     "SessionError",
@@ -26,5 +29,6 @@ __all__ = [
     "read_drift_log",
     "read_session",
     "session_from_images",
+    "session_prior_px",
     "write_session",
 ]

@@ -37,10 +37,12 @@ from afmdrift.records import ChannelSample, Event, Frame, ScanDirection, event_k
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
+    "PRIOR_KEY",
     "Session",
     "SessionError",
     "SessionMeta",
     "read_session",
+    "session_prior_px",
     "write_session",
 ]
 
@@ -93,6 +95,33 @@ class SessionMeta:
             }
         )
         return doc
+
+
+#: The key of ``session.json`` under which ``afmdrift import --prior-px``
+#: stores the expected drift of the first frame after the first, px.
+PRIOR_KEY = "prior_px"
+
+
+def session_prior_px(session: Session) -> tuple[float, float] | None:
+    """The expected first drift stored with ``session`` (:data:`PRIOR_KEY`), px.
+
+    Raises
+    ------
+    SessionError
+        The stored value is not two finite numbers.
+    """
+    value = session.meta.extra.get(PRIOR_KEY)
+    if value is None:
+        return None
+    try:
+        dx, dy = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise SessionError(
+            f"session.json: {PRIOR_KEY} must be [dx, dy] in px, got {value!r}"
+        ) from None
+    if not (math.isfinite(dx) and math.isfinite(dy)):
+        raise SessionError(f"session.json: {PRIOR_KEY} must be finite, got {value!r}")
+    return dx, dy
 
 
 @dataclass(slots=True)

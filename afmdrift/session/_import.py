@@ -18,6 +18,7 @@ header timestamps and timed relative to the first frame's start:
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from collections.abc import Sequence
 from datetime import datetime
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.io import AfmImage, PixelSize, load_stack
+from afmdrift.io import AfmImage, PixelSize, calibrated, load_stack
 from afmdrift.records import ScanDirection
 from afmdrift.session._format import (
     Session,
@@ -40,6 +41,8 @@ __all__ = ["attach_logs", "import_files", "session_from_images"]
 
 _REL_TOL = 1e-6
 
+log = logging.getLogger(__name__)
+
 
 def import_files(
     paths: Sequence[str | Path],
@@ -48,6 +51,7 @@ def import_files(
     channel: str = "Height",
     height_unit: str | None = None,
     frame_time_s: float | None = None,
+    override_pixel_size: bool = False,
 ) -> Session:
     """Read AFM image files into one in-memory :class:`Session`.
 
@@ -56,7 +60,9 @@ def import_files(
     paths : sequence of path-like
         Image files (any format :func:`afmdrift.io.load_stack` reads).
     pixel_size_nm : float or (float, float), optional
-        Pixel size (x, y) in nm, for files without one or to override theirs.
+        Pixel size (x, y) in nm, for files without one; a file's own
+        calibration is kept (a warning names both when they differ) unless
+        ``override_pixel_size`` (:func:`afmdrift.io.calibrated`).
     channel : str
         Channel to read from every file (``"Height"``; ``TP`` in ``.asd``).
     height_unit : str, optional
@@ -80,11 +86,29 @@ def import_files(
     if not paths:
         raise SessionError("import: no input files given")
     images: list[AfmImage] = []
+    given = _pixel_pair(pixel_size_nm)
     for p in paths:
-        images.extend(
-            load_stack(p, pixel_size_nm=pixel_size_nm, channel=channel, height_unit=height_unit)
+
+        def read(px: tuple[float, float] | None, p: str | Path = p) -> list[AfmImage]:
+            return load_stack(p, pixel_size_nm=px, channel=channel, height_unit=height_unit)
+
+        stack, note = calibrated(
+            read, given, override=override_pixel_size, pixel_of=lambda s: s[0].pixel_size_nm
         )
+        if note is not None:
+            log.warning("%s: %s", p, note)
+        images.extend(stack)
     return session_from_images(images, frame_time_s=frame_time_s)
+
+
+def _pixel_pair(pixel_size_nm: PixelSize | None) -> tuple[float, float] | None:
+    """A pixel size given as one number (square pixels) or a pair, as a pair."""
+    if pixel_size_nm is None:
+        return None
+    if isinstance(pixel_size_nm, int | float):
+        return (float(pixel_size_nm), float(pixel_size_nm))
+    px, py = pixel_size_nm
+    return (float(px), float(py))
 
 
 def session_from_images(

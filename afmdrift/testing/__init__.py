@@ -18,6 +18,9 @@ Runtime code (the service) never imports this package.
 * Drift logs from a second generator, different on purpose from the
   simulator (noise processes, effect shapes, parameter ranges):
   :func:`generate_drift_log`, :func:`write_drift_log`.
+* Image sessions from a second generator, different on purpose from the
+  simulator (samples, rigid frames, drift shape, logged offset moves), with
+  the image position registration should find: :func:`generate_track`.
 * A Dask cluster of real processes on loopback for ``afmdrift batch
   --scheduler``: :class:`afmdrift.testing._dask.LoopbackDaskCluster`
   (imported from its module, so this package does not load Dask).
@@ -43,10 +46,13 @@ from afmdrift.testing._images import (
     shifted_crop,
     terrace_texture,
 )
+from afmdrift.testing._tracks import TRACK_SAMPLES, GeneratedTrack, generate_track
 
 __all__ = [
     "DRIFTGEN_EFFECTS",
+    "TRACK_SAMPLES",
     "GeneratedLog",
+    "GeneratedTrack",
     "Particles",
     "TextureShifter",
     "add_line_offsets",
@@ -55,6 +61,7 @@ __all__ = [
     "band_limit",
     "fourier_shift",
     "generate_drift_log",
+    "generate_track",
     "lattice_texture",
     "particle_texture",
     "rough_texture",

@@ -154,7 +154,8 @@ def test_nanoscope_pair_cli(real_file: RealFile, capsys: pytest.CaptureFixture[s
     """Without an expected drift the pair is refused (exit status 1) as
     ambiguous, the README's shift and (2.2, 18.0) among the lattice
     translations named; with
-    ``--prior-px 0 28`` it is about 28 px along y and x within a pixel of zero."""
+    ``--prior-px 0 28`` it is about 28 px along y and x within a pixel of
+    zero, decided by the prior alone (exit status 3, the alternatives named)."""
     a, b = real_file("nanoscope3a_15um.002"), real_file("nanoscope3a_15um.004")
     assert main(["measure", str(a), str(b), "--json"]) == 1
     doc = json.loads(capsys.readouterr().out)
@@ -162,9 +163,12 @@ def test_nanoscope_pair_cli(real_file: RealFile, capsys: pytest.CaptureFixture[s
     assert doc["reason"].startswith("ambiguous")
     for d in (NANOSCOPE_PAIR_PX, NANOSCOPE_TRANSLATIONS_PX[0]):
         assert _names(doc["lattice_px"], d), (d, doc["lattice_px"])
-    assert main(["measure", str(a), str(b), "--json", "--prior-px", "0", "28"]) == 0
+    assert main(["measure", str(a), str(b), "--json", "--prior-px", "0", "28"]) == 3
     doc = json.loads(capsys.readouterr().out)
     assert doc["prior_px"] == [0.0, 28.0]
+    assert doc["given_prior_px"] == [0.0, 28.0]
+    assert doc["decided_by"] == "prior"
+    assert doc["ambiguity_px"] == pytest.approx(10.1, abs=0.5)
     assert doc["dy_px"] == pytest.approx(28.0, abs=1.0)
     assert doc["dx_px"] == pytest.approx(0.0, abs=1.0)
     assert doc["dy_nm"] == pytest.approx(doc["dy_px"] * 15000 / 256)

@@ -257,13 +257,17 @@ def test_stack_trajectory_samples_and_dewarped_frames(
         assert np.nanmax(np.abs(diff)) < 0.1 * np.ptp(base)
 
 
-def test_stack_refuses_options_of_a_pair(
+def test_stack_takes_a_prior_for_its_first_increment_and_refuses_dewarp_of_a_pair(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     stack = np.stack([_texture(seed=7)] * 3)
     path = _save(tmp_path / "stack.npy", stack)
-    assert main(["measure", path, "--pixel-size-nm", "1", "--prior-px", "1", "1"]) == 2
-    assert "--prior-px applies to a pair" in capsys.readouterr().err
+    assert main(["measure", path, "--pixel-size-nm", "1", "--prior-px", "1", "1"]) == 0
+    docs = _json_lines(capsys.readouterr().out)
+    assert docs[0]["prior"] == "given"
+    assert docs[0]["expected_px"] == [1.0, 1.0]
+    assert docs[1]["prior"] == "predicted"
+    assert all(d["decided_by"] == "content" for d in docs)
     one = _save(tmp_path / "one.npy", stack[0])
     assert main(["measure", one, one, "--pixel-size-nm", "1", "--dewarp", "d"]) == 2
     assert "--dewarp applies to a stack" in capsys.readouterr().err
