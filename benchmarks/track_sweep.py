@@ -4,7 +4,7 @@ The track of a session (``afmdrift measure STACK``, ``batch``, ``correct``:
 :func:`afmdrift.runs.track_session`) under the default configuration, on
 
 * the simulator: every scenario of ``config/scenarios/hidden/``, its scan
-  size kept and its pixel count set to 128, 200, 256 and 512 px, with the
+  size kept and its pixel count set to 64, 96, 128, 200, 256 and 512 px, with the
   scenario's offset moves and three more of 40–160 nm per axis (among them
   the (−120, +130) nm of issue 37), logged in the event log, made but not
   logged (a user's folder of images has no event log), or with none;
@@ -37,7 +37,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 HIDDEN = ROOT / "config" / "scenarios" / "hidden"
-SIZES = (128, 200, 256, 512)
+SIZES = (64, 96, 128, 200, 256, 512)
 #: Offset moves: logged in the session's event log, made but not logged, none.
 MOVES = ("logged", "unlogged", "none")
 #: Frames per simulated session (a frame every scenario frame period).

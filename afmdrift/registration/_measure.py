@@ -341,12 +341,25 @@ CHECK_VALID_SHARE = 0.5
 EVIDENCE_MARGIN = 0.1
 
 
+#: Frames of at most this many blocks (a 128² frame has 16, a 64² frame 12)
+#: have windows so alike that their votes count for little: a result there is
+#: checked from :data:`SMALL_CHECK_OFF_PX` off, or under
+#: :data:`SMALL_CHECK_VALID_SHARE` of its blocks (12 windows of a 64² frame put
+#: (+1.2, -1.4) px, 9 of them agreeing, where the content had jumped 14 px).
+SMALL_FRAME_BLOCKS = 16
+SMALL_CHECK_OFF_PX = 1.0
+SMALL_CHECK_VALID_SHARE = 0.8
+
+
 def _suspect(result: DriftResult, expected_px: tuple[float, float]) -> bool:
     """Whether a valid result around ``expected_px`` is checked (see
     :data:`CHECK_OFF_PX`); a coarse alignment costs tens of block passes,
     so a result where it was expected, on most of its blocks, is not."""
     off = max(abs(result.dx_px - expected_px[0]), abs(result.dy_px - expected_px[1]))
-    return off > CHECK_OFF_PX or result.valid_blocks < CHECK_VALID_SHARE * result.total_blocks
+    small = result.total_blocks <= SMALL_FRAME_BLOCKS
+    limit = SMALL_CHECK_OFF_PX if small else CHECK_OFF_PX
+    share = SMALL_CHECK_VALID_SHARE if small else CHECK_VALID_SHARE
+    return off > limit or result.valid_blocks < share * result.total_blocks
 
 
 def _check_by_coarse(
