@@ -2,7 +2,8 @@
 transport (loopback TCP or a pseudo-terminal), and a running service.
 
 Used by tests/unit/test_service_daemon.py, tests/integration/test_service_*.py and
-tests/soak/. Only the tests import the simulator; the service never does.
+tests/soak/, and :func:`run_afmdrift` by the tests that run the command line as a
+user does. Only the tests import the simulator; the service never does.
 """
 
 from __future__ import annotations
@@ -26,6 +27,15 @@ from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+def run_afmdrift(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    """``afmdrift ARGS`` run as a user runs it (a subprocess in ``cwd``), its
+    output captured as text."""
+    return subprocess.run(
+        [sys.executable, "-m", "afmdrift", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=timeout,
+    )  # fmt: skip
 
 
 def small_scenario(**options: Any) -> Scenario:

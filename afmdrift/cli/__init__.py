@@ -4,7 +4,9 @@ Each subcommand lives in its own module under :mod:`afmdrift.cli` and exposes
 ``register(subparsers)``. Modules import heavy dependencies (FFTW, torch) inside
 their handlers so that ``--help`` stays fast. A handler returns an exit code.
 Deliberate errors (:class:`afmdrift.errors.AfmdriftError`) are printed as one
-clear message with exit status 2, never as a traceback.
+clear message with exit status 2, never as a traceback; a recording too short
+for the result asked (:class:`afmdrift.errors.TooFewFramesError`) exits with
+status 1, as a result that could not be had (``measure``'s invalid result).
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from collections.abc import Sequence
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from afmdrift._version import __version__
-from afmdrift.errors import AfmdriftError
+from afmdrift.errors import AfmdriftError, TooFewFramesError
 
 __all__ = ["build_parser", "main"]
 
@@ -69,6 +71,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     _setup_logging(args.verbose)
     try:
         code: int = args.handler(args)
+    except TooFewFramesError as err:
+        print(f"afmdrift: error: {err}", file=sys.stderr)
+        return 1
     except AfmdriftError as err:
         print(f"afmdrift: error: {err}", file=sys.stderr)
         return 2

@@ -28,12 +28,18 @@ from afmdrift.runs._record import record_outcome
 from afmdrift.runs._store import RunStore
 from afmdrift.session import Session, read_session
 
-__all__ = ["ReplaySummary", "replay_session"]
+__all__ = ["MIN_REPLAY_FRAMES", "ReplaySummary", "replay_session"]
+
+#: The fewest frames with a valid measurement that give a prediction error:
+#: the first starts the model (nothing predicts it), the second is predicted
+#: from it.
+MIN_REPLAY_FRAMES = 2
 
 
 @dataclass(frozen=True, slots=True)
 class ReplaySummary:
-    """What a replay did (errors are Euclidean prediction errors, nm)."""
+    """What a replay did (errors are Euclidean prediction errors, nm; NaN
+    with fewer than :data:`MIN_REPLAY_FRAMES` valid frames)."""
 
     run_dir: Path
     measurements_csv: Path
@@ -42,6 +48,8 @@ class ReplaySummary:
     mean_pred_error_nm: float
     max_pred_error_nm: float
     wall_s: float
+    #: Frames with a valid measurement.
+    valid_frames: int = 0
 
 
 def replay_session(
@@ -84,10 +92,11 @@ def replay_session(
         pipeline = FramePipeline(config=config, keep_trajectory=True)
         pipeline.push(s.channel_samples(), s.events)
         errors: list[float] = []
-        fed = 0
+        fed = valid = 0
         for done, outcome in enumerate(pipeline.run(s.iter_frames()), start=1):
             record_outcome(store, outcome)
             fed += outcome.record.fed_model
+            valid += outcome.record.valid
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)
             if on_frame is not None:
@@ -109,4 +118,5 @@ def replay_session(
         mean_pred_error_nm=statistics.fmean(errors) if errors else math.nan,
         max_pred_error_nm=max(errors) if errors else math.nan,
         wall_s=time.perf_counter() - started,
+        valid_frames=valid,
     )
