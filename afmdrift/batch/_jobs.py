@@ -1,12 +1,13 @@
 """One recording of an archive: what a worker does with it, and how a later run
 knows that it is done.
 
-A :class:`Job` names a recording (a stack or movie file, or a session
-directory), the task and every option that changes its output. The worker
-reads the recording itself (frames are never shipped from the client), runs
-the task, writes its output under ``OUT/<stem>/`` and, last, ``result.json``
-with the job's fingerprint: a later run with the same input and configuration
-finds it and skips the recording, also after the first run was killed.
+A :class:`Job` names a recording (a stack or movie file, a series of
+single-image files, or a session directory), the task and every option that
+changes its output. The worker reads the recording itself (frames are never
+shipped from the client), runs the task, writes its output under
+``OUT/<stem>/`` and, last, ``result.json`` with the job's fingerprint: a later
+run with the same input and configuration finds it and skips the recording,
+also after the first run was killed.
 
 The tasks (:data:`TASKS`):
 
@@ -35,6 +36,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import time
 import traceback
@@ -64,7 +66,9 @@ class Job:
     """One recording and what to do with it (picklable: it travels to a worker).
 
     ``recording`` is the input as given, ``path`` its absolute path, ``out``
-    the recording's own output directory.
+    the recording's own output directory. ``files``: for a series of
+    single-image files (``recording`` their folder or glob), those files,
+    absolute, read as ``afmdrift import`` reads them; empty otherwise.
     """
 
     recording: str
@@ -80,6 +84,7 @@ class Job:
     #: (every :data:`PROGRESS_INTERVAL_S`); empty: no reports. Not part of the
     #: fingerprint: it changes no output.
     progress_topic: str = ""
+    files: tuple[str, ...] = ()
 
 
 #: Seconds between two reports of a recording's frames done (``progress_topic``).
@@ -120,7 +125,12 @@ def fingerprint(job: Job) -> str:
     """What makes a job's output: the input's files (size and modification time),
     the task, the options and the configuration, and afmdrift's version."""
     path = Path(job.path)
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    if job.files:
+        files = [Path(f) for f in job.files]
+    elif path.is_dir():
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+    else:
+        files = [path]
     stats = []
     for p in files:
         try:
@@ -184,10 +194,10 @@ def _work(job: Job, result: Result) -> None:
     out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
     _clear_result(out)
-    if job.task in SESSION_TASKS and not Path(job.path).is_dir():
+    if job.task in SESSION_TASKS and (job.files or not Path(job.path).is_dir()):
         raise InputError(
             f"{job.recording}: --task {job.task} needs a session directory "
-            "(format v1, with its channels and events), not a stack or movie file"
+            "(format v1, with its channels and events), not a stack, movie or image series"
         )
     session, timed = _read(job)
     config = AfmdriftConfig.model_validate(job.config)
@@ -213,26 +223,31 @@ def _read(job: Job) -> tuple[Any, bool]:
     from afmdrift.session import SessionError, read_session, session_from_images
 
     path = Path(job.path)
-    if path.is_dir():
+    if path.is_dir() and not job.files:
         return read_session(path, mmap=True), True
 
-    def read(pixel_size_nm: tuple[float, float] | None) -> list[Any]:
+    def read(file: Path, pixel_size_nm: tuple[float, float] | None) -> list[Any]:
         return load_stack(
-            path,
+            file,
             pixel_size_nm=pixel_size_nm,
             channel=job.channel,
             height_unit=job.height_unit,
             stream=True,
         )
 
-    try:
-        # a file whose header has a calibration keeps it; the given pixel size
-        # serves the files without one
-        images = read(None)
-    except MissingPixelSizeError:
-        if job.pixel_size_nm is None:
-            raise
-        images = read(job.pixel_size_nm)
+    def read_calibrated(file: Path) -> list[Any]:
+        try:
+            # a file whose header has a calibration keeps it; the given pixel
+            # size serves the files without one
+            return read(file, None)
+        except MissingPixelSizeError:
+            if job.pixel_size_nm is None:
+                raise
+            return read(file, job.pixel_size_nm)
+
+    # a series of single-image files is one recording, ordered and timed as
+    # `afmdrift import` orders and times them (session_from_images)
+    images = [im for file in job.files or (job.path,) for im in read_calibrated(Path(file))]
     if len(images) < 2:
         raise SessionError(f"{path}: holds one image; a recording needs two frames or more")
     try:
@@ -404,7 +419,8 @@ def stems(recordings: Iterable[str]) -> list[str]:
     for rec in recordings:
         p = Path(rec.rstrip("/"))
         base = p.name if p.is_dir() else p.stem
-        base = base or "recording"
+        # a series named by a glob: its name without the pattern's characters
+        base = re.sub(r"[*?\[\]]", "", base).strip("._- ") or "recording"
         n = taken.get(base, 0) + 1
         taken[base] = n
         out.append(base if n == 1 else f"{base}-{n}")

@@ -13,19 +13,31 @@ software would (for the folder instrument's tests and benchmark).
 
 from afmdrift.io._channels import DEFAULT_CHANNEL, pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, MissingPixelSizeError, length_unit_to_nm
-from afmdrift.io._load import SUFFIXES, PixelSize, load_image, load_stack, parse_spec
+from afmdrift.io._load import (
+    SINGLE_IMAGE_SUFFIXES,
+    SUFFIXES,
+    PixelSize,
+    holds_one_image,
+    is_image_file,
+    load_image,
+    load_stack,
+    parse_spec,
+)
 from afmdrift.io._nanoscope import NanoscopeHeader, parse_nanoscope_header
 from afmdrift.io._sxm import write_sxm
 from afmdrift.io._write import write_tif
 
 __all__ = [
     "DEFAULT_CHANNEL",
+    "SINGLE_IMAGE_SUFFIXES",
     "SUFFIXES",
     "AfmImage",
     "ImageFileError",
     "MissingPixelSizeError",
     "NanoscopeHeader",
     "PixelSize",
+    "holds_one_image",
+    "is_image_file",
     "length_unit_to_nm",
     "load_image",
     "load_stack",
