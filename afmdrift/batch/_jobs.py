@@ -34,13 +34,16 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import logging
 import math
 import os
 import re
 import shutil
+import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable
+import warnings
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -170,7 +173,7 @@ def run_job(job: Job) -> Result:
     started = time.perf_counter()
     result = Result(recording=job.recording, status="done", worker=_worker_address())
     try:
-        with job_heap():
+        with job_heap(), named_warnings(job.recording):
             _work(job, result)
     except (AfmdriftError, OSError, ValueError, MemoryError) as err:
         result.status = "failed"
@@ -358,6 +361,63 @@ def _diagnose(session_dir: Path, config: AfmdriftConfig, out: Path) -> None:
     _atomic_write(out / "diagnosis.json", json.dumps(doc, indent=2) + "\n")
     _atomic_write(out / "diagnosis.txt", diagnosis_text(doc) + "\n")
     write_report(diagnosis, data, out / "report.html", registration=config.registration)
+
+
+# --------------------------------------------------------------------------- warnings
+
+#: The recording of the job each thread of this process runs (a Dask worker
+#: runs one job per thread); :func:`named_warnings` keeps it.
+_running: dict[int, str] = {}
+_running_lock = threading.Lock()
+_warning_handler: logging.Handler | None = None
+_propagate = True  # the package logger's own setting, given back after the last job
+_log = logging.getLogger(__name__)
+
+
+class _RecordingFormatter(logging.Formatter):
+    """A warning line that starts with the recording its job reads."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        with _running_lock:
+            name = _running.get(record.thread or 0)
+            if name is None and len(_running) == 1:
+                # a helper thread of the job (the registration's look-ahead)
+                (name,) = _running.values()
+        return text if name is None or text.startswith(name) else f"{name}: {text}"
+
+
+@contextlib.contextmanager
+def named_warnings(recording: str) -> Iterator[None]:
+    """Every warning that afmdrift logs while this thread runs ``recording``'s
+    job, and every ``warnings.warn`` in it, printed to stderr as one line that
+    starts with ``recording``: in an archive, a warning without its recording
+    says nothing. Warnings the filters make errors still raise."""
+    global _warning_handler, _propagate
+    package = logging.getLogger("afmdrift")
+    with _running_lock:
+        _running[threading.get_ident()] = recording
+        if _warning_handler is None:
+            _warning_handler = logging.StreamHandler()
+            _warning_handler.setLevel(logging.WARNING)
+            _warning_handler.setFormatter(_RecordingFormatter("%(message)s"))
+            package.addHandler(_warning_handler)
+            _propagate = package.propagate
+            package.propagate = False  # one line per warning, the named one
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            yield
+    finally:
+        for w in caught:
+            _log.warning(
+                "%s", warnings.formatwarning(w.message, w.category, w.filename, w.lineno).strip()
+            )
+        with _running_lock:
+            del _running[threading.get_ident()]
+            if not _running and _warning_handler is not None:
+                package.removeHandler(_warning_handler)
+                package.propagate = _propagate
+                _warning_handler = None
 
 
 # --------------------------------------------------------------------------- helpers

@@ -291,7 +291,8 @@ def _local_cluster(workers: int | None) -> Any:
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
-            dashboard_address=":0" if _has_dashboard() else None,
+            # a free port: Dask's 8787 may be taken, and its warning names no recording
+            dashboard_address=":0",
             silence_logs=logging.ERROR,
             config=nanny_config,
         )
