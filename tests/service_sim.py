@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -247,6 +248,19 @@ async def running_service(
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+def committed_frames(run_dir: Path) -> int:
+    """Frames a running daemon has committed to ``run_dir``'s store (read-only,
+    beside its writes; 0 before the store and its schema exist)."""
+    db_path = run_dir / "run.sqlite"
+    if not db_path.is_file():
+        return 0
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)) as db:
+            return int(db.execute("SELECT COUNT(*) FROM frames").fetchone()[0])
+    except sqlite3.OperationalError:
+        return 0
 
 
 def closed_port() -> int:
