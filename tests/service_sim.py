@@ -2,7 +2,8 @@
 transport (loopback TCP or a pseudo-terminal), and a running service.
 
 Used by tests/unit/test_service_daemon.py, tests/integration/test_service_*.py and
-tests/soak/. Only the tests import the simulator; the service never does.
+tests/soak/, and :func:`run_afmdrift` by the tests that run the command line as a
+user does. Only the tests import the simulator; the service never does.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import asyncio
 import contextlib
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 from collections.abc import AsyncIterator
@@ -26,6 +28,15 @@ from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
 REPO = Path(__file__).resolve().parent.parent
+
+
+def run_afmdrift(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
+    """``afmdrift ARGS`` run as a user runs it (a subprocess in ``cwd``), its
+    output captured as text."""
+    return subprocess.run(
+        [sys.executable, "-m", "afmdrift", *args],
+        cwd=cwd, capture_output=True, text=True, timeout=timeout,
+    )  # fmt: skip
 
 
 def small_scenario(**options: Any) -> Scenario:
@@ -237,6 +248,19 @@ async def running_service(
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+def committed_frames(run_dir: Path) -> int:
+    """Frames a running daemon has committed to ``run_dir``'s store (read-only,
+    beside its writes; 0 before the store and its schema exist)."""
+    db_path = run_dir / "run.sqlite"
+    if not db_path.is_file():
+        return 0
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)) as db:
+            return int(db.execute("SELECT COUNT(*) FROM frames").fetchone()[0])
+    except sqlite3.OperationalError:
+        return 0
 
 
 def closed_port() -> int:

@@ -1,12 +1,13 @@
 """One recording of an archive: what a worker does with it, and how a later run
 knows that it is done.
 
-A :class:`Job` names a recording (a stack or movie file, or a session
-directory), the task and every option that changes its output. The worker
-reads the recording itself (frames are never shipped from the client), runs
-the task, writes its output under ``OUT/<stem>/`` and, last, ``result.json``
-with the job's fingerprint: a later run with the same input and configuration
-finds it and skips the recording, also after the first run was killed.
+A :class:`Job` names a recording (a stack or movie file, a series of
+single-image files, or a session directory), the task and every option that
+changes its output. The worker reads the recording itself (frames are never
+shipped from the client), runs the task, writes its output under
+``OUT/<stem>/`` and, last, ``result.json`` with the job's fingerprint: a later
+run with the same input and configuration finds it and skips the recording,
+also after the first run was killed.
 
 The tasks (:data:`TASKS`):
 
@@ -36,10 +37,13 @@ import json
 import logging
 import math
 import os
+import re
 import shutil
+import threading
 import time
 import traceback
-from collections.abc import Callable, Iterable
+import warnings
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -69,7 +73,9 @@ class Job:
     """One recording and what to do with it (picklable: it travels to a worker).
 
     ``recording`` is the input as given, ``path`` its absolute path, ``out``
-    the recording's own output directory.
+    the recording's own output directory. ``files``: for a series of
+    single-image files (``recording`` their folder or glob), those files,
+    absolute, read as ``afmdrift import`` reads them; empty otherwise.
     """
 
     recording: str
@@ -89,6 +95,7 @@ class Job:
     #: (every :data:`PROGRESS_INTERVAL_S`); empty: no reports. Not part of the
     #: fingerprint: it changes no output.
     progress_topic: str = ""
+    files: tuple[str, ...] = ()
 
 
 #: Seconds between two reports of a recording's frames done (``progress_topic``).
@@ -134,7 +141,12 @@ def fingerprint(job: Job) -> str:
     """What makes a job's output: the input's files (size and modification time),
     the task, the options and the configuration, and afmdrift's version."""
     path = Path(job.path)
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    if job.files:
+        files = [Path(f) for f in job.files]
+    elif path.is_dir():
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+    else:
+        files = [path]
     stats = []
     for p in files:
         try:
@@ -180,7 +192,7 @@ def run_job(job: Job) -> Result:
     started = time.perf_counter()
     result = Result(recording=job.recording, status="done", worker=_worker_address())
     try:
-        with job_heap():
+        with job_heap(), named_warnings(job.recording):
             _work(job, result)
     except (AfmdriftError, OSError, ValueError, MemoryError) as err:
         result.status = "failed"
@@ -204,10 +216,10 @@ def _work(job: Job, result: Result) -> None:
     out = Path(job.out)
     out.mkdir(parents=True, exist_ok=True)
     _clear_result(out)
-    if job.task in SESSION_TASKS and not Path(job.path).is_dir():
+    if job.task in SESSION_TASKS and (job.files or not Path(job.path).is_dir()):
         raise InputError(
             f"{job.recording}: --task {job.task} needs a session directory "
-            "(format v1, with its channels and events), not a stack or movie file"
+            "(format v1, with its channels and events), not a stack, movie or image series"
         )
     session, timed = _read(job)
     config = AfmdriftConfig.model_validate(job.config)
@@ -230,35 +242,36 @@ def _work(job: Job, result: Result) -> None:
 def _read(job: Job) -> tuple[Any, bool]:
     """The recording as a session, and whether its frame times are the instrument's."""
     from afmdrift.io import calibrated, load_stack
-    from afmdrift.session import SessionError, read_session, session_from_images
+    from afmdrift.session import SessionError, read_session, stack_session
 
     path = Path(job.path)
-    if path.is_dir():
+    if path.is_dir() and not job.files:
         return read_session(path, mmap=True), True
 
-    def read(pixel_size_nm: tuple[float, float] | None) -> list[Any]:
+    def read(file: Path, pixel_size_nm: tuple[float, float] | None) -> list[Any]:
         return load_stack(
-            path,
+            file,
             pixel_size_nm=pixel_size_nm,
             channel=job.channel,
             height_unit=job.height_unit,
             stream=True,
         )
 
-    images, note = calibrated(
-        read, job.pixel_size_nm, override=job.override_pixel_size,
-        pixel_of=lambda stack: stack[0].pixel_size_nm,
-    )  # fmt: skip
-    if note is not None:
-        log.warning("%s: %s", job.recording, note)
+    def read_calibrated(file: Path) -> list[Any]:
+        stack, note = calibrated(
+            lambda px: read(file, px), job.pixel_size_nm, override=job.override_pixel_size,
+            pixel_of=lambda images: images[0].pixel_size_nm,
+        )  # fmt: skip
+        if note is not None:
+            log.warning("%s: %s", file, note)
+        return stack
+
+    # a series of single-image files is one recording, ordered and timed as
+    # `afmdrift import` orders and times them (session_from_images)
+    images = [im for file in job.files or (job.path,) for im in read_calibrated(Path(file))]
     if len(images) < 2:
         raise SessionError(f"{path}: holds one image; a recording needs two frames or more")
-    try:
-        return session_from_images(images), all(im.timestamp is not None for im in images)
-    except SessionError as err:
-        if "no frame timing" not in str(err):
-            raise
-        return session_from_images(images, frame_time_s=1.0), False
+    return stack_session(images)
 
 
 def _measure(
@@ -391,6 +404,63 @@ def _diagnose(session_dir: Path, config: AfmdriftConfig, out: Path) -> None:
     write_report(diagnosis, data, out / "report.html", registration=config.registration)
 
 
+# --------------------------------------------------------------------------- warnings
+
+#: The recording of the job each thread of this process runs (a Dask worker
+#: runs one job per thread); :func:`named_warnings` keeps it.
+_running: dict[int, str] = {}
+_running_lock = threading.Lock()
+_warning_handler: logging.Handler | None = None
+_propagate = True  # the package logger's own setting, given back after the last job
+_log = logging.getLogger(__name__)
+
+
+class _RecordingFormatter(logging.Formatter):
+    """A warning line that starts with the recording its job reads."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        text = super().format(record)
+        with _running_lock:
+            name = _running.get(record.thread or 0)
+            if name is None and len(_running) == 1:
+                # a helper thread of the job (the registration's look-ahead)
+                (name,) = _running.values()
+        return text if name is None or text.startswith(name) else f"{name}: {text}"
+
+
+@contextlib.contextmanager
+def named_warnings(recording: str) -> Iterator[None]:
+    """Every warning that afmdrift logs while this thread runs ``recording``'s
+    job, and every ``warnings.warn`` in it, printed to stderr as one line that
+    starts with ``recording``: in an archive, a warning without its recording
+    says nothing. Warnings the filters make errors still raise."""
+    global _warning_handler, _propagate
+    package = logging.getLogger("afmdrift")
+    with _running_lock:
+        _running[threading.get_ident()] = recording
+        if _warning_handler is None:
+            _warning_handler = logging.StreamHandler()
+            _warning_handler.setLevel(logging.WARNING)
+            _warning_handler.setFormatter(_RecordingFormatter("%(message)s"))
+            package.addHandler(_warning_handler)
+            _propagate = package.propagate
+            package.propagate = False  # one line per warning, the named one
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            yield
+    finally:
+        for w in caught:
+            _log.warning(
+                "%s", warnings.formatwarning(w.message, w.category, w.filename, w.lineno).strip()
+            )
+        with _running_lock:
+            del _running[threading.get_ident()]
+            if not _running and _warning_handler is not None:
+                package.removeHandler(_warning_handler)
+                package.propagate = _propagate
+                _warning_handler = None
+
+
 # --------------------------------------------------------------------------- helpers
 
 
@@ -450,7 +520,8 @@ def stems(recordings: Iterable[str]) -> list[str]:
     for rec in recordings:
         p = Path(rec.rstrip("/"))
         base = p.name if p.is_dir() else p.stem
-        base = base or "recording"
+        # a series named by a glob: its name without the pattern's characters
+        base = re.sub(r"[*?\[\]]", "", base).strip("._- ") or "recording"
         n = taken.get(base, 0) + 1
         taken[base] = n
         out.append(base if n == 1 else f"{base}-{n}")

@@ -21,7 +21,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, NamedTuple, TextIO
 
 from afmdrift._cores import available_cores
 from afmdrift.batch._jobs import Job, Result, Task, fingerprint, load_result, run_job, stems
@@ -33,6 +33,7 @@ __all__ = [
     "DASK_SETTINGS",
     "SCHEDULER_ENV",
     "BatchReport",
+    "Recording",
     "dask_environ",
     "expand_inputs",
     "run_batch",
@@ -85,39 +86,54 @@ class BatchReport:
         return sum(r.status == "failed" for r in self.results)
 
 
-def expand_inputs(inputs: Sequence[str]) -> list[str]:
+class Recording(NamedTuple):
+    """One recording of the inputs: ``name`` as the user named it (a file, a
+    session directory, or the folder or glob of a series) and, for a series of
+    single-image files, those files (read as ``afmdrift import`` reads them)."""
+
+    name: str
+    files: tuple[str, ...] = ()
+
+
+def expand_inputs(inputs: Sequence[str]) -> list[Recording]:
     """Recordings named by ``inputs``: files and session directories as given,
     globs expanded (sorted), and the image files directly inside a directory that
-    is not a session. A name that matches nothing is kept: it becomes a failed
-    row naming it.
+    is not a session. The files of one folder or glob that each hold one image
+    (a NanoScope ``.000``–``.999`` series, 2-D ``.npy`` files) are one series:
+    one recording, named by the folder or glob. A name that matches nothing is
+    kept: it becomes a failed row naming it.
 
     Raises
     ------
     InputError
-        A glob matches nothing (a usage error).
+        A glob matches nothing, or a folder holds no image file (a usage error).
     """
-    from afmdrift.io import SUFFIXES
+    from afmdrift.io import holds_one_image, is_image_file
 
-    out: list[str] = []
+    out: list[Recording] = []
     for spec in inputs:
         if glob.has_magic(spec):
             matches = sorted(glob.glob(spec, recursive=True))
             if not matches:
                 raise InputError(f"{spec}: matches no file")
-            out.extend(matches)
         elif Path(spec).is_dir() and not (Path(spec) / "session.json").is_file():
-            files = sorted(
-                str(p) for p in Path(spec).iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES
-            )
-            if not files:
+            matches = sorted(str(p) for p in Path(spec).iterdir() if is_image_file(p))
+            if not matches:
                 raise InputError(f"{spec}: neither a session directory nor a folder of images")
-            out.extend(files)
         else:
-            out.append(spec)
-    seen: set[str] = set()
+            out.append(Recording(spec))
+            continue
+        series = tuple(m for m in matches if is_image_file(m) and holds_one_image(m))
+        alone = set(matches).difference(series)
+        out.extend(Recording(m) for m in matches if m in alone)
+        if len(series) == 1:
+            out.append(Recording(series[0]))
+        elif series:
+            out.append(Recording(spec, series))
+    seen: set[tuple[str, ...]] = set()
     unique = []
     for rec in out:
-        key = os.path.abspath(rec)
+        key = tuple(os.path.abspath(f) for f in (rec.files or (rec.name,)))
         if key not in seen:
             seen.add(key)
             unique.append(rec)
@@ -149,7 +165,8 @@ def run_batch(
     a header's only with ``override_pixel_size``; ``prior_px`` is the
     expected drift of each recording's first frame after the first.
     """
-    recordings = expand_inputs(inputs)
+    found = expand_inputs(inputs)
+    recordings = [rec.name for rec in found]
     out.mkdir(parents=True, exist_ok=True)
     # the workers report frames done to this run's own topic, for the terminal
     topic = f"afmdrift-batch-progress-{uuid.uuid4().hex[:12]}" if progress is not None else ""
@@ -157,10 +174,11 @@ def run_batch(
     registration = config.registration.model_copy(update={"threads": 1})
     cfg = config.model_copy(update={"registration": registration}).model_dump(mode="json")
     jobs = []
-    for rec, stem in zip(recordings, stems(recordings), strict=True):
+    for rec, stem in zip(found, stems(recordings), strict=True):
         job = Job(
-            recording=rec,
-            path=os.path.abspath(rec),
+            recording=rec.name,
+            path=os.path.abspath(rec.name),
+            files=tuple(os.path.abspath(f) for f in rec.files),
             out=str(out / stem),
             task=task,
             config=cfg,
@@ -280,7 +298,8 @@ def _local_cluster(workers: int | None) -> Any:
             threads_per_worker=1,
             processes=True,
             host="127.0.0.1",
-            dashboard_address=":0" if _has_dashboard() else None,
+            # a free port: Dask's 8787 may be taken, and its warning names no recording
+            dashboard_address=":0",
             silence_logs=logging.ERROR,
             config=nanny_config,
         )

@@ -4,7 +4,11 @@ Each subcommand lives in its own module under :mod:`afmdrift.cli` and exposes
 ``register(subparsers)``. Modules import heavy dependencies (FFTW, torch) inside
 their handlers so that ``--help`` stays fast. A handler returns an exit code.
 Deliberate errors (:class:`afmdrift.errors.AfmdriftError`) are printed as one
-clear message with exit status 2, never as a traceback.
+clear message with exit status 2, never as a traceback; a recording too short
+for the result asked (:class:`afmdrift.errors.TooFewFramesError`) exits with
+status 1, as a result that could not be had (``measure``'s invalid result).
+A closed pipe on standard output (``afmdrift config show | head``) ends every
+command quietly, with status 141 (:data:`EXIT_BROKEN_PIPE`).
 """
 
 from __future__ import annotations
@@ -25,9 +29,9 @@ from collections.abc import Sequence
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from afmdrift._version import __version__
-from afmdrift.errors import AfmdriftError
+from afmdrift.errors import AfmdriftError, TooFewFramesError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["EXIT_BROKEN_PIPE", "build_parser", "main"]
 
 #: Subcommand modules, in the order they appear in ``afmdrift --help``.
 COMMAND_MODULES: tuple[str, ...] = (
@@ -63,12 +67,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Exit status when the reader of the output went away (``afmdrift config show
+#: | head``): 128 + SIGPIPE, what the shell reports for a command that a closed
+#: pipe ended (``yes | head``), so ``set -o pipefail`` sees it as it sees theirs.
+EXIT_BROKEN_PIPE = 128 + 13
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command of ``argv``; return its exit status (see the module docstring).
+
+    A closed pipe on standard output ends any command quietly with
+    :data:`EXIT_BROKEN_PIPE`.
+    """
+    try:
+        try:
+            return _main(argv)
+        finally:
+            # what is still buffered meets the closed pipe here, not at exit
+            sys.stdout.flush()
+    except BrokenPipeError:
+        # The recipe of the Python documentation (signal, "Note on SIGPIPE"):
+        # the rest of the output goes nowhere, so the interpreter's own flush at
+        # exit cannot fail again with a traceback.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     _setup_logging(args.verbose)
     try:
         code: int = args.handler(args)
+    except TooFewFramesError as err:
+        print(f"afmdrift: error: {err}", file=sys.stderr)
+        return 1
     except AfmdriftError as err:
         print(f"afmdrift: error: {err}", file=sys.stderr)
         return 2

@@ -19,7 +19,9 @@ def register(sub: Any) -> None:
         help="Re-analyse many recordings on Dask (this machine or a cluster).",
         description="Run a task on every recording (stacks and movies in any format "
         "'afmdrift measure' reads, session directories, globs, folders of images) as "
-        "Dask tasks. Writes DIR/<stem>/ (per task, see --task), DIR/summary.csv (one row "
+        "Dask tasks. The single-image files of a folder or glob (a NanoScope series, 2-D "
+        ".npy files) are one recording, as 'afmdrift import' would make it. Writes "
+        "DIR/<stem>/ (per task, see --task), DIR/summary.csv (one row "
         "per recording, rewritten as each finishes) and DIR/archive.svg. A run started "
         "again skips the recordings done with the same input and configuration. "
         "A recording none of whose frames could be measured has status no_drift and "

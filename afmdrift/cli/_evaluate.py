@@ -13,7 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from afmdrift.session import DriftLog, Session
 
 
 def register(sub: Any) -> None:
@@ -42,7 +45,8 @@ def register(sub: Any) -> None:
         type=int,
         default=2,
         metavar="N",
-        help="score one-step errors from the N-th valid frame on (default 2)",
+        help="score one-step errors from the N-th valid frame on (N >= 1, default 2; "
+        "the session needs N + 1 valid frames)",
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
     p.set_defaults(handler=_evaluate)
@@ -50,8 +54,8 @@ def register(sub: Any) -> None:
 
 def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.errors import ConfigError
-    from afmdrift.model import PREDICTOR_NAMES, evaluate_series
+    from afmdrift.errors import ConfigError, TooFewFramesError
+    from afmdrift.model import FIRST_SCORED_FRAME, PREDICTOR_NAMES, evaluate_series
     from afmdrift.runs import measure_session, series_from_drift_log
     from afmdrift.session import is_drift_log, read_drift_log, read_session
 
@@ -67,18 +71,22 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"--predictors: unknown name(s) {', '.join(map(repr, unknown)) or '(none given)'} "
             f"(known: {', '.join(PREDICTOR_NAMES)})"
         )
-    if args.skip < 0:
-        raise ConfigError(f"--skip must be >= 0, got {args.skip}")
+    if args.skip < FIRST_SCORED_FRAME:
+        # a predictor predicts only from an observation: valid frame 0 is its first
+        raise ConfigError(f"--skip must be >= {FIRST_SCORED_FRAME}, got {args.skip}")
+    source: DriftLog | Session
     if is_drift_log(args.session):
-        log = read_drift_log(args.session)
-        series = series_from_drift_log(log)
-        report = evaluate_series(log, series, predictors=names, config=config.model, skip=args.skip)
+        source = read_drift_log(args.session)
+        series = series_from_drift_log(source)
     else:
-        session = read_session(args.session)
-        series = measure_session(session, config)
+        source = read_session(args.session)
+        series = measure_session(source, config)
+    try:
         report = evaluate_series(
-            session, series, predictors=names, config=config.model, skip=args.skip
+            source, series, predictors=names, config=config.model, skip=args.skip
         )
+    except TooFewFramesError as err:
+        raise TooFewFramesError(err.valid, err.needed, str(args.session), err.why) from None
     report["session"] = str(args.session)
     if args.json:
         print(json.dumps(report, indent=2, allow_nan=False, default=_nan_to_none))

@@ -14,7 +14,9 @@ def register(sub: Any) -> None:
         help="Run the daemon's pipeline over a recorded session, as fast as possible.",
         description="Feed every frame of SESSION (format v1) with its channels and events "
         "through the same per-frame code as `afmdrift run`; write the run store and "
-        "RUN_DIR/measurements.csv (columns in docs/service.md).",
+        "RUN_DIR/measurements.csv (columns in docs/service.md). Exit status 1 when fewer "
+        "than 2 frames have a valid measurement (no prediction error; the run is still "
+        "written), 2 on an error.",
     )
     p.add_argument("session", help="session directory (format v1)")
     p.add_argument("--out", required=True, help="run directory to write (must be empty)")
@@ -27,14 +29,29 @@ def register(sub: Any) -> None:
 
 def _replay(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.runs import replay_session
+    from afmdrift.errors import TooFewFramesError
+    from afmdrift.runs import MIN_REPLAY_FRAMES, replay_session
 
     config = load_config(args.config)
     summary = replay_session(args.session, args.out, config=config, prior_px=prior_option(args))
-    print(
+    line = (
         f"{summary.frames} frames replayed in {summary.wall_s:.1f} s "
-        f"({summary.fed_model} fed the model); prediction error mean "
-        f"{summary.mean_pred_error_nm:.2f} nm, max {summary.max_pred_error_nm:.2f} nm"
+        f"({summary.fed_model} fed the model)"
     )
+    enough = summary.valid_frames >= MIN_REPLAY_FRAMES
+    if enough:
+        line += (
+            f"; prediction error mean {summary.mean_pred_error_nm:.2f} nm, "
+            f"max {summary.max_pred_error_nm:.2f} nm"
+        )
+    print(line)
     print(f"run directory: {summary.run_dir}  measurements: {summary.measurements_csv}")
+    if not enough:
+        # the run is written (its frames are recorded); there is no error to give
+        raise TooFewFramesError(
+            summary.valid_frames,
+            MIN_REPLAY_FRAMES,
+            str(args.session),
+            "a prediction error needs a frame predicted from an earlier one",
+        )
     return 0

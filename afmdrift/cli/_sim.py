@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import sys
 from typing import Any
 
 #: Modules that add subcommands to ``afmdrift sim`` via ``register_sim_subcommand(ssub)``.
@@ -63,7 +64,9 @@ def _register_serve(ssub: Any) -> None:
         help="Serve the simulated AFM over a pty or loopback TCP.",
         description="Serve the instrument protocol (docs/protocol.md) backed by the simulated "
         "AFM. With --pty the slave path (e.g. /dev/pts/5) is printed on stdout; with --port the "
-        "bound TCP port on 127.0.0.1 is printed (--port 0 picks a free one). Connect with "
+        "bound TCP port on 127.0.0.1 is printed (--port 0 picks a free one), alone on the "
+        "first line; stderr says what is served (scenario, protocol, address, speed-up). "
+        "Connect with "
         "[driver] transport = that path or socket://127.0.0.1:PORT. With --protocol nanonis "
         "the same AFM speaks the Nanonis TCP protocol on --port (connect with "
         "nanonis://127.0.0.1:PORT; docs/instruments.md). Stops cleanly on SIGINT/SIGTERM.",
@@ -163,7 +166,9 @@ async def _serve_until_signal(
     try:
         async with server:
             if port is None and isinstance(server, SimulatorServer):
-                print(await server.start_pty(), flush=True)
+                path = await server.start_pty()
+                where, url = f"the pseudo-terminal {path}", path
+                print(path, flush=True)
             else:
                 assert port is not None
                 try:
@@ -172,8 +177,23 @@ async def _serve_until_signal(
                     raise ConfigError(
                         f"--port {port}: cannot listen on 127.0.0.1:{port}: {err.strerror}"
                     ) from None
+                scheme = "nanonis" if protocol == "nanonis" else "socket"
+                where, url = f"127.0.0.1:{bound}", f"{scheme}://127.0.0.1:{bound}"
+                # the first line on stdout is the port alone: scripts and tests read it
                 print(bound, flush=True)
+            print(_serving_text(sim, protocol=protocol, where=where, url=url, speed=speed),
+                  file=sys.stderr, flush=True)  # fmt: skip
             await stop.wait()
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+
+
+def _serving_text(sim: Any, *, protocol: str, where: str, url: str, speed: float) -> str:
+    """What ``sim serve`` serves, for the person who started it."""
+    name = "the Nanonis TCP protocol" if protocol == "nanonis" else "the line protocol"
+    return (
+        f"afmdrift sim serve: the simulated AFM of scenario {sim.scenario.name!r} "
+        f"(seed {sim.seed}) over {name} on {where}, at {speed:g}x real time; "
+        f"connect with --instrument {url}; SIGINT (Ctrl-C) or SIGTERM stops it"
+    )

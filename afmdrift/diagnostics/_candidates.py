@@ -65,6 +65,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.diagnostics._regression import (
+    MIN_FITTED_POINTS,
     WaldTest,
     aicc,
     cv_folds,
@@ -472,7 +473,7 @@ def _why_untestable(term: EffectTerm, history: History, n: int) -> str | None:
     why = term.missing(history)
     if why is not None:
         return why
-    if n < 10:
+    if n < MIN_FITTED_POINTS:
         return f"only {n + 1} measured frames"
     return None
 

@@ -44,6 +44,7 @@ from afmdrift.diagnostics._ranking import (
     rank_candidates,
     verify_online,
 )
+from afmdrift.diagnostics._regression import MIN_FITTED_POINTS
 from afmdrift.diagnostics._stats import (
     error_summary,
     find_episodes,
@@ -51,11 +52,18 @@ from afmdrift.diagnostics._stats import (
     lomb_scargle,
     up_down_difference,
 )
-from afmdrift.errors import ConfigError
+from afmdrift.errors import ConfigError, TooFewFramesError
 from afmdrift.model import EffectTerm, available_terms, resolve_terms, warm_up_effects
 from afmdrift.runs import TaskPool
 
-__all__ = ["DiagnoseOptions", "Diagnosis", "diagnose"]
+__all__ = ["MIN_DIAGNOSE_FRAMES", "DiagnoseOptions", "Diagnosis", "diagnose"]
+
+#: The fewest frames that fed the model a diagnosis is made on: the candidate
+#: tests fit :data:`~afmdrift.diagnostics._regression.MIN_FITTED_POINTS`
+#: AR(1) quasi-differences, one fewer than the frames. With fewer, no
+#: candidate can be tested, and "nothing is missing" would be said over no
+#: test at all.
+MIN_DIAGNOSE_FRAMES = MIN_FITTED_POINTS + 1
 
 
 def diagnose(
@@ -81,9 +89,18 @@ def diagnose(
     ------
     ConfigError
         Unknown or duplicate effect names.
-    InputError
-        Too few measured frames.
+    TooFewFramesError
+        Fewer than :data:`MIN_DIAGNOSE_FRAMES` frames fed the model.
     """
+    fed = int(np.count_nonzero(data.fed))
+    if fed < MIN_DIAGNOSE_FRAMES:
+        where = data.session_dir or data.run_dir
+        raise TooFewFramesError(
+            fed,
+            MIN_DIAGNOSE_FRAMES,
+            where="" if where is None else str(where),
+            why=f"the candidate tests fit {MIN_FITTED_POINTS} frame-to-frame steps",
+        )
     options = options or DiagnoseOptions()
     physics, known = _chosen_physics(physics, effects)
     # The re-runs' processes start now and import while the model runs here.

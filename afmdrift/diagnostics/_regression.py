@@ -19,6 +19,7 @@ import numpy.typing as npt
 from scipy import stats
 
 __all__ = [
+    "MIN_FITTED_POINTS",
     "PHI_GRID",
     "WaldTest",
     "aicc",
@@ -33,6 +34,15 @@ __all__ = [
 ]
 
 FloatArray = npt.NDArray[np.float64]
+
+
+#: The fewest points a test here is made on: the added-variable fits' AR(1)
+#: quasi-differences (frames − 1 per axis) and the Diebold–Mariano test's
+#: frames compared. Below it the Newey–West covariance has a single lag and
+#: a handful of residual degrees of freedom once the model's columns, the
+#: candidate's and its nonlinear parameters are fitted, so the tests' p-values
+#: and AICc mean nothing.
+MIN_FITTED_POINTS = 10
 
 
 def newey_west_lags(n: int) -> int:
@@ -53,7 +63,7 @@ def forecast_comparison(e_base: FloatArray, e_new: FloatArray) -> tuple[float, i
     are prequential (each frame predicted before the model saw it), so the
     test compares what the service would have predicted; for nested models it
     is conservative (Clark & McCracken 2001), which keeps its false-alarm level.
-    NaN when fewer than 10 frames or no variance.
+    NaN when fewer than :data:`MIN_FITTED_POINTS` frames or no variance.
     """
     from scipy.stats import t as student_t
 
@@ -62,7 +72,7 @@ def forecast_comparison(e_base: FloatArray, e_new: FloatArray) -> tuple[float, i
     ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
     d = np.sum(a[ok] ** 2, axis=1) - np.sum(b[ok] ** 2, axis=1)
     m = int(d.size)
-    if m < 10:
+    if m < MIN_FITTED_POINTS:
         return math.nan, m
     dc = d - d.mean()
     lags = min(newey_west_lags(m), m - 1)

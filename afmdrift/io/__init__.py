@@ -14,9 +14,12 @@ software would (for the folder instrument's tests and benchmark).
 from afmdrift.io._channels import DEFAULT_CHANNEL, pick_channel
 from afmdrift.io._image import AfmImage, ImageFileError, MissingPixelSizeError, length_unit_to_nm
 from afmdrift.io._load import (
+    SINGLE_IMAGE_SUFFIXES,
     SUFFIXES,
     PixelSize,
     calibrated,
+    holds_one_image,
+    is_image_file,
     load_image,
     load_stack,
     parse_spec,
@@ -27,6 +30,7 @@ from afmdrift.io._write import write_tif
 
 __all__ = [
     "DEFAULT_CHANNEL",
+    "SINGLE_IMAGE_SUFFIXES",
     "SUFFIXES",
     "AfmImage",
     "ImageFileError",
@@ -34,6 +38,8 @@ __all__ = [
     "NanoscopeHeader",
     "PixelSize",
     "calibrated",
+    "holds_one_image",
+    "is_image_file",
     "length_unit_to_nm",
     "load_image",
     "load_stack",

@@ -69,7 +69,17 @@ from afmdrift.io._sxm import read_sxm
 from afmdrift.io._wsxm import read_stp
 from afmdrift.records import ScanDirection
 
-__all__ = ["SUFFIXES", "PixelSize", "calibrated", "load_image", "load_stack", "parse_spec"]
+__all__ = [
+    "SINGLE_IMAGE_SUFFIXES",
+    "SUFFIXES",
+    "PixelSize",
+    "calibrated",
+    "holds_one_image",
+    "is_image_file",
+    "load_image",
+    "load_stack",
+    "parse_spec",
+]
 
 T = TypeVar("T")
 
@@ -88,6 +98,10 @@ SUFFIXES = (
     ".h5-jpk",
     ".stp",
 )
+
+#: Suffixes of the formats whose file holds one image (NanoScope also
+#: ``.000``–``.999``): a recording of them is a series of files, one per frame.
+SINGLE_IMAGE_SUFFIXES = (".spm", ".gwy", ".sxm", ".ibw", ".jpk", ".stp")
 
 #: A pixel size in nm: one number for square pixels or ``(x, y)``.
 PixelSize = float | Sequence[float]
@@ -108,6 +122,39 @@ def parse_spec(spec: str | Path) -> tuple[Path, int | None]:
     if m is None or Path(text).exists():
         return Path(text), None
     return Path(m.group("path")), int(m.group("frame"))
+
+
+def is_image_file(path: str | Path) -> bool:
+    """``path`` is a file whose suffix :func:`load_image` reads."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    return p.is_file() and (suffix in SUFFIXES or is_nanoscope_suffix(suffix))
+
+
+def holds_one_image(path: str | Path) -> bool:
+    """``path`` holds one image, not a stack or a movie: a format of one image
+    per file (:data:`SINGLE_IMAGE_SUFFIXES`, NanoScope ``.000``–``.999``) or a
+    2-D ``.npy`` or ``.tif`` array, told from its header alone. False for a
+    file it cannot tell (its reader names the fault when it is read)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix in SINGLE_IMAGE_SUFFIXES or is_nanoscope_suffix(suffix):
+        return True
+    if suffix == ".npy":
+        try:
+            return int(np.load(p, mmap_mode="r", allow_pickle=False).ndim) == 2
+        except (ValueError, OSError, EOFError, AttributeError):
+            return False
+    if suffix in (".tif", ".tiff"):
+        import tifffile
+
+        logging.getLogger("tifffile").setLevel(logging.CRITICAL)
+        try:
+            with tifffile.TiffFile(p) as tif:
+                return bool(tif.series) and len(tif.series[0].shape) == 2
+        except (tifffile.TiffFileError, ValueError, OSError, EOFError, KeyError, IndexError):
+            return False
+    return False
 
 
 def _pixel_pair(pixel_size_nm: PixelSize | None) -> tuple[float, float] | None:

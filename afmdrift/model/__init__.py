@@ -30,7 +30,7 @@ from afmdrift.model._effects import (
     warm_up_effects,
     windowed_design,
 )
-from afmdrift.model._evaluate import MeasuredSeries, evaluate_series
+from afmdrift.model._evaluate import FIRST_SCORED_FRAME, MeasuredSeries, evaluate_series
 from afmdrift.model._families import (
     CHANNEL_TAU_RANGE_S,
     ChannelResponse,
@@ -78,6 +78,7 @@ if TYPE_CHECKING:
 __all__ = [
     "CHANNEL_TAU_RANGE_S",
     "ENTRY_POINT_GROUP",
+    "FIRST_SCORED_FRAME",
     "LIBRARY",
     "PREDICTOR_NAMES",
     "BandConstraint",

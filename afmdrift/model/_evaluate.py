@@ -36,6 +36,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import ModelConfig
+from afmdrift.errors import TooFewFramesError
 from afmdrift.model._base import Observation
 from afmdrift.model._feed import HistoryFeed
 from afmdrift.model._reconstruct import OffsetCurve, build_offset_curve
@@ -43,7 +44,7 @@ from afmdrift.model._registry import make_predictor
 from afmdrift.records import ScanDirection
 from afmdrift.session import DriftLog, Session
 
-__all__ = ["MeasuredSeries", "evaluate_series"]
+__all__ = ["FIRST_SCORED_FRAME", "MeasuredSeries", "evaluate_series"]
 
 _log = logging.getLogger(__name__)
 
@@ -51,6 +52,12 @@ FloatArray = npt.NDArray[np.float64]
 
 #: Spacing of the dense truth comparison of d(t), s.
 DENSE_STEP_S = 2.0
+
+#: The first valid frame (counted from 0) whose one-step error can be scored,
+#: the least ``skip``: a predictor predicts only from an observation, and
+#: valid frame 0 is its first. Scoring from valid frame ``skip`` on needs
+#: ``skip + 1`` valid frames.
+FIRST_SCORED_FRAME = 1
 
 
 @dataclass(slots=True)
@@ -131,12 +138,27 @@ def evaluate_series(
     config : ModelConfig
     skip : int
         One-step errors are scored from the ``skip``-th valid frame on (every
-        predictor on the same frames).
+        predictor on the same frames); at least :data:`FIRST_SCORED_FRAME`.
     reconstructions : tuple of str
         Curve kinds compared with truth.
+
+    Raises
+    ------
+    ValueError
+        ``skip`` is below :data:`FIRST_SCORED_FRAME`.
+    TooFewFramesError
+        Fewer than ``skip + 1`` valid frames: no one-step error to score.
     """
+    if skip < FIRST_SCORED_FRAME:
+        raise ValueError(f"skip must be >= {FIRST_SCORED_FRAME}, got {skip}")
     valid = np.all(np.isfinite(series.xy_nm), axis=1)
     idx = np.nonzero(valid)[0]
+    if idx.size < skip + 1:
+        raise TooFewFramesError(
+            int(idx.size),
+            skip + 1,
+            why=f"one-step errors are scored from valid frame {skip} on",
+        )
     period = float(np.median(np.diff(series.t_s))) if series.t_s.size > 1 else 1.0
     truth_t = truth_xy = None
     ref = np.zeros(2)

@@ -22,7 +22,7 @@ from afmdrift.runs._correct import CorrectionSummary, correct_session
 from afmdrift.runs._csv import TRAJECTORY_COLUMNS, trajectory_rows, write_trajectory_csv
 from afmdrift.runs._parallel import TaskPool, available_cores
 from afmdrift.runs._record import process_and_record, record_outcome
-from afmdrift.runs._replay import ReplaySummary, replay_session
+from afmdrift.runs._replay import MIN_REPLAY_FRAMES, ReplaySummary, replay_session
 from afmdrift.runs._schema import DB_NAME, STORE_SCHEMA_VERSION, StoreError
 from afmdrift.runs._series import measure_session, series_from_drift_log, series_from_records
 from afmdrift.runs._store import RunStore
@@ -30,6 +30,7 @@ from afmdrift.runs._track import track_session, track_stack
 
 __all__ = [
     "DB_NAME",
+    "MIN_REPLAY_FRAMES",
     "STORE_SCHEMA_VERSION",
     "TRAJECTORY_COLUMNS",
     "CorrectionSummary",

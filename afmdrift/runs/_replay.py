@@ -29,12 +29,18 @@ from afmdrift.runs._session import session_pipeline
 from afmdrift.runs._store import RunStore
 from afmdrift.session import Session, read_session
 
-__all__ = ["ReplaySummary", "replay_session"]
+__all__ = ["MIN_REPLAY_FRAMES", "ReplaySummary", "replay_session"]
+
+#: The fewest frames with a valid measurement that give a prediction error:
+#: the first starts the model (nothing predicts it), the second is predicted
+#: from it.
+MIN_REPLAY_FRAMES = 2
 
 
 @dataclass(frozen=True, slots=True)
 class ReplaySummary:
-    """What a replay did (errors are Euclidean prediction errors, nm)."""
+    """What a replay did (errors are Euclidean prediction errors, nm; NaN
+    with fewer than :data:`MIN_REPLAY_FRAMES` valid frames)."""
 
     run_dir: Path
     measurements_csv: Path
@@ -46,6 +52,8 @@ class ReplaySummary:
     #: Frames whose shift the prior alone picked among lattice translations
     #: (``decided_by == "prior"``): only as good as the prior.
     prior_decided: int = 0
+    #: Frames with a valid measurement.
+    valid_frames: int = 0
 
 
 def replay_session(
@@ -89,11 +97,12 @@ def replay_session(
         )
         pipeline = session_pipeline(s, config, keep_trajectory=True, prior_px=prior_px)
         errors: list[float] = []
-        fed = 0
+        fed = valid = 0
         by_prior = 0
         for done, outcome in enumerate(pipeline.run(s.iter_frames()), start=1):
             record_outcome(store, outcome)
             fed += outcome.record.fed_model
+            valid += outcome.record.valid
             by_prior += decided_by_prior(outcome)
             if math.isfinite(outcome.record.pred_error_nm):
                 errors.append(outcome.record.pred_error_nm)
@@ -117,6 +126,7 @@ def replay_session(
         max_pred_error_nm=max(errors) if errors else math.nan,
         wall_s=time.perf_counter() - started,
         prior_decided=by_prior,
+        valid_frames=valid,
     )
 
 

@@ -11,7 +11,7 @@ from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.model import make_predictor
 from afmdrift.runs._correct import correct_session
 from afmdrift.runs._session import session_pipeline
-from afmdrift.session import Session, SessionError, session_from_images
+from afmdrift.session import Session, stack_session
 
 if TYPE_CHECKING:
     from afmdrift.io import AfmImage
@@ -47,13 +47,7 @@ def track_stack(
     ``frames.csv``) once the stack is done.
     """
     cfg = config if isinstance(config, AfmdriftConfig) else AfmdriftConfig(registration=config)
-    try:
-        session = session_from_images(frames)
-    except SessionError as err:
-        if "no frame timing" not in str(err):
-            raise
-        session = session_from_images(frames, frame_time_s=1.0)
-    timed = all(im.timestamp is not None for im in frames)
+    session, timed = stack_session(frames)
     yield from track_session(session, cfg, timed=timed, dewarp=dewarp, prior_px=prior_px)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import signal
+from collections.abc import Callable
 from pathlib import Path
 
 import zmq.asyncio
@@ -44,11 +45,16 @@ async def run_until_signalled(
     config_path: str | Path | None = None,
     ctx: zmq.asyncio.Context | None = None,
     predictor: Predictor | None = None,
+    on_ready: Callable[[DriftService], None] | None = None,
+    on_stop: Callable[[DriftService], None] | None = None,
 ) -> int:
     """Run :class:`DriftService` until SIGINT or SIGTERM; return the exit code.
 
     A signal cancels the service task; its ``finally`` closes the instrument,
     the sockets and the store. A task that died is reported and gives exit 1.
+    ``on_ready`` is given the service once its sockets are bound and its
+    store is open (what ``afmdrift run`` says it serves), ``on_stop`` after
+    it has stopped, if it was ready, however it stopped.
     """
     loop = asyncio.get_running_loop()
     pipeline = FramePipeline(config=config, predictor=predictor)
@@ -56,6 +62,7 @@ async def run_until_signalled(
         config=config, instrument=instrument, ctx=ctx, config_path=config_path, pipeline=pipeline
     )
     task = asyncio.create_task(service.run(), name="afmdrift-service")
+    announce = asyncio.create_task(_when_ready(service, on_ready), name="afmdrift-ready")
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, task.cancel)
     try:
@@ -73,4 +80,16 @@ async def run_until_signalled(
     finally:
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.remove_signal_handler(sig)
+        announce.cancel()
+        await asyncio.gather(announce, return_exceptions=True)
+        if on_stop is not None and service.ready.is_set():
+            on_stop(service)
     return 0
+
+
+async def _when_ready(
+    service: DriftService, on_ready: Callable[[DriftService], None] | None
+) -> None:
+    await service.ready.wait()
+    if on_ready is not None:
+        on_ready(service)

@@ -13,13 +13,20 @@ from afmdrift.session._format import (
     session_prior_px,
     write_session,
 )
-from afmdrift.session._import import attach_logs, import_files, session_from_images
+from afmdrift.session._import import (
+    NoFrameTimingError,
+    attach_logs,
+    import_files,
+    session_from_images,
+    stack_session,
+)
 
 __all__ = [
     "FORMAT_NAME",
     "FORMAT_VERSION",
     "PRIOR_KEY",
     "DriftLog",
+    "NoFrameTimingError",
     "Session",
     "SessionError",
     "SessionMeta",
@@ -30,5 +37,6 @@ __all__ = [
     "read_session",
     "session_from_images",
     "session_prior_px",
+    "stack_session",
     "write_session",
 ]

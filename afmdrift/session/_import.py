@@ -37,7 +37,13 @@ from afmdrift.session._format import (
     _read_events,
 )
 
-__all__ = ["attach_logs", "import_files", "session_from_images"]
+__all__ = [
+    "NoFrameTimingError",
+    "attach_logs",
+    "import_files",
+    "session_from_images",
+    "stack_session",
+]
 
 _REL_TOL = 1e-6
 
@@ -241,10 +247,33 @@ def _scan_times(
         notes.append(f"frame scan time = median frame interval {interval:g} s (back to back)")
         return [im.frame_time_s or interval for im in images]
     untimed = next(im for im in images if im.frame_time_s is None)
-    raise SessionError(
+    raise NoFrameTimingError(
         f"{untimed.source}: the file gives no frame timing; give the frame scan time "
         "(frame_time_s=..., --frame-time-s)"
     )
+
+
+class NoFrameTimingError(SessionError):
+    """Images whose files give no frame timing, and none was given."""
+
+
+#: Frame scan time taken for a stack whose files give no timing at all, s
+#: (positions do not depend on it; trajectory times do).
+UNTIMED_FRAME_S = 1.0
+
+
+def stack_session(images: Sequence[AfmImage]) -> tuple[Session, bool]:
+    """The session of a stack or movie (or a series of single images) as
+    ``afmdrift measure STACK`` and ``batch`` track it: timed as
+    :func:`session_from_images` times it, or, when the files give no timing
+    at all, frames :data:`UNTIMED_FRAME_S` apart, back to back. Returns the
+    session and whether its frame times are the instrument's (every image
+    has a timestamp)."""
+    timed = all(im.timestamp is not None for im in images)
+    try:
+        return session_from_images(images), timed
+    except NoFrameTimingError:
+        return session_from_images(images, frame_time_s=UNTIMED_FRAME_S), timed
 
 
 def attach_logs(

@@ -13,22 +13,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from service_sim import run_afmdrift
 
 pytestmark = pytest.mark.slow
-
-
-def _afmdrift(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "afmdrift", *args],
-        cwd=cwd, capture_output=True, text=True, timeout=240,
-    )  # fmt: skip
 
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small session recorded with ``afmdrift sim record`` (channels, events, truth)."""
     root = tmp_path_factory.mktemp("recorded")
-    done = _afmdrift("sim", "record", "default", "--frames", "14", "--out", "sess", cwd=root)
+    done = run_afmdrift("sim", "record", "default", "--frames", "14", "--out", "sess", cwd=root)
     assert done.returncode == 0, done.stderr
     return root / "sess"
 
@@ -39,10 +33,10 @@ def test_batch_replay_writes_what_afmdrift_replay_writes(session: Path, tmp_path
     movie = tmp_path / "movie.npy"
     np.save(movie, np.random.default_rng(1).normal(size=(3, 64, 64)).astype(np.float32))
     out = tmp_path / "out"
-    done = _afmdrift("batch", str(session), str(movie), "--out", str(out), "--task", "replay",
+    done = run_afmdrift("batch", str(session), str(movie), "--out", str(out), "--task", "replay",
                      "--pixel-size-nm", "1", "--workers", "1", cwd=tmp_path)  # fmt: skip
     assert done.returncode == 1, done.stderr
-    alone = _afmdrift("replay", str(session), "--out", str(tmp_path / "alone"), cwd=tmp_path)
+    alone = run_afmdrift("replay", str(session), "--out", str(tmp_path / "alone"), cwd=tmp_path)
     assert alone.returncode == 0, alone.stderr
     for name in ("measurements.csv", "trajectory.csv", "trajectory_smoothed.csv"):
         ours = (out / "sess" / "run" / name).read_text(encoding="utf-8")
@@ -83,8 +77,8 @@ def test_a_diagnose_job_equals_afmdrift_diagnose_without_loading_the_daemon(
     assert ran.returncode == 0, ran.stderr
     report = json.loads(ran.stdout.splitlines()[-1])
     assert report == {"status": "done", "error": "", "loaded": []}
-    as_json = _afmdrift("diagnose", str(session), "--json", cwd=tmp_path)
-    as_text = _afmdrift("diagnose", str(session), cwd=tmp_path)
+    as_json = run_afmdrift("diagnose", str(session), "--json", cwd=tmp_path)
+    as_text = run_afmdrift("diagnose", str(session), cwd=tmp_path)
     assert as_json.returncode == 0, as_json.stderr
     assert (tmp_path / "out" / "diagnosis.json").read_text(encoding="utf-8") == as_json.stdout
     assert (tmp_path / "out" / "diagnosis.txt").read_text(encoding="utf-8") == as_text.stdout

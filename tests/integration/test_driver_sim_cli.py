@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import select
 import signal
 import socket
 import subprocess
@@ -89,6 +90,24 @@ async def test_serve_tcp_then_sigterm_exits_cleanly(
     await _session(url)  # a second client after the first has gone
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(timeout=30) == 0
+
+
+@pytest.mark.slow
+def test_serve_says_what_it_serves_beside_the_port_line(
+    serve_tcp: tuple[subprocess.Popen[str], str],
+) -> None:
+    """Regression: ``sim serve`` printed only a port number. The port stays the
+    first line on stdout (scripts read it); the description goes to stderr."""
+    proc, url = serve_tcp
+    assert proc.stderr is not None
+    ready, _, _ = select.select([proc.stderr], [], [], 30)
+    assert ready, "sim serve said nothing on stderr"
+    said = proc.stderr.readline()
+    host_port = url.removeprefix("socket://")
+    assert "scenario 'cli-test' (seed 3)" in said
+    assert f"over the line protocol on {host_port}" in said
+    assert "at 20x real time" in said
+    assert f"--instrument {url}" in said
 
 
 @pytest.mark.slow

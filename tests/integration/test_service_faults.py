@@ -5,12 +5,10 @@ slow, the daemon itself is SIGKILLed, or the configuration is bad."""
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import logging
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
 from collections.abc import Callable
@@ -21,6 +19,7 @@ import zmq
 import zmq.asyncio
 from service_sim import (
     SimProcess,
+    committed_frames,
     driver,
     running_service,
     scenario_data,
@@ -168,20 +167,9 @@ def _write_config(path: Path, run_dir: Path, **service: object) -> Path:
     return path
 
 
-def _frame_count(run_dir: Path) -> int:
-    db_path = run_dir / "run.sqlite"
-    if not db_path.is_file():
-        return 0
-    try:
-        with contextlib.closing(sqlite3.connect(f"file:{db_path}?mode=ro", uri=True)) as db:
-            return int(db.execute("SELECT COUNT(*) FROM frames").fetchone()[0])
-    except sqlite3.OperationalError:
-        return 0
-
-
 async def _wait_frames(run_dir: Path, n: int, proc: asyncio.subprocess.Process) -> None:
     for _ in range(600):
-        if _frame_count(run_dir) >= n:
+        if committed_frames(run_dir) >= n:
             return
         assert proc.returncode is None, "daemon exited early"
         await asyncio.sleep(0.1)

@@ -57,3 +57,26 @@ def test_config_check_reports_bad_key_without_traceback(tmp_path: Path) -> None:
     assert "registration.block_size = 4" in proc.stderr
     assert ">= 8" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize("argv", [["config", "show"], ["--help"]])
+def test_a_closed_pipe_ends_the_command_quietly(argv: list[str]) -> None:
+    """Regression: ``afmdrift config show | head`` ended in a BrokenPipeError
+    traceback. The reader is gone before the command writes (a real pipe whose
+    read end is closed), as when ``head`` has had its lines. ``--help`` exits 0:
+    argparse drops a failed write of its help itself."""
+    from afmdrift.cli import EXIT_BROKEN_PIPE
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "afmdrift", *argv],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    assert proc.stdout is not None
+    proc.stdout.close()
+    _, err = proc.communicate(timeout=60)
+    assert "Traceback" not in err
+    assert "BrokenPipeError" not in err
+    assert err == ""
+    assert proc.returncode == (0 if argv == ["--help"] else EXIT_BROKEN_PIPE)

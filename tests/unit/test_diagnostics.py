@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from afmdrift.diagnostics import DiagnoseOptions, RunData, Thresholds, diagnose
+from afmdrift.diagnostics._diagnose import MIN_DIAGNOSE_FRAMES
 from afmdrift.diagnostics._regression import cv_folds, forecast_comparison
 from afmdrift.diagnostics._stats import (
     cusum,
@@ -17,7 +18,7 @@ from afmdrift.diagnostics._stats import (
     lomb_scargle,
     robust_z,
 )
-from afmdrift.errors import ConfigError, InputError
+from afmdrift.errors import ConfigError, InputError, TooFewFramesError
 from afmdrift.model import PhysicsConfig, PhysicsPredictor
 from afmdrift.records import ChannelSample, Event, EventKind
 
@@ -208,6 +209,17 @@ def test_unknown_effect_is_a_config_error() -> None:
 def test_too_few_frames_is_an_input_error() -> None:
     with pytest.raises(InputError, match="at least two frames"):
         RunData.from_arrays(t_s=[0.0], xy_nm=[[0.0, 0.0]])
+
+
+def test_fewer_frames_than_the_candidate_tests_fit_are_refused_not_called_complete() -> None:
+    """Regression: ten frames gave "Nothing is missing ... over 0 tests"."""
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=16, n=MIN_DIAGNOSE_FRAMES - 1)
+    with pytest.raises(TooFewFramesError, match="too few frames: 10 valid, 11 needed") as info:
+        diagnose(data, PhysicsConfig(terms=["trend"]))
+    assert (info.value.valid, info.value.needed) == (10, 11)
+    data, _ = _synthetic(humidity_nm_per_pct=0.0, seed=16, n=MIN_DIAGNOSE_FRAMES)
+    tested = diagnose(data, PhysicsConfig(terms=["trend"]))
+    assert any(c.testable for c in tested.candidates)
 
 
 def test_thresholds_are_documented_in_the_json() -> None:
