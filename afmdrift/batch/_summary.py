@@ -69,6 +69,9 @@ _WIDTH, _ROW, _TOP, _BOTTOM, _GAP = 1100.0, 16.0, 44.0, 44.0, 24.0
 #: Axis ends: these times a power of ten.
 _ROUND = (1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0)
 _DONE, _FAILED, _GRID, _FONT = "#1f77b4", "#d62728", "#d9d9d9", "DejaVu Sans, Arial, sans-serif"
+_NO_DRIFT = "#7f7f7f"
+#: What a recording's bars say instead of a drift, by status.
+_MARKS = {"failed": "failed", "no_drift": "no drift measured"}
 
 
 def plot_archive(path: Path, rows: Sequence[Result | None], stems: Sequence[str]) -> None:
@@ -82,14 +85,17 @@ def plot_archive(path: Path, rows: Sequence[Result | None], stems: Sequence[str]
     on the command's serial path. Vector, so a 300-row archive stays sharp and
     its names searchable in a browser."""
     done = [(s, r) for s, r in zip(stems, rows, strict=True) if r is not None]
-    total = [math.hypot(r.drift_x_nm, r.drift_y_nm) if r.status == "done" else 0.0
+    # no drift (a failed recording, or one none of whose frames was measured)
+    # is no bar, never a bar of zero
+    total = [math.hypot(r.drift_x_nm, r.drift_y_nm) if r.status == "done" else math.nan
              for _, r in done]  # fmt: skip
     rate = [
-        t / (r.duration_s / 60.0) if r.status == "done" and r.duration_s > 0 else 0.0
+        t / (r.duration_s / 60.0) if r.status == "done" and r.duration_s > 0 else math.nan
         for t, (_, r) in zip(total, done, strict=True)
     ]
     share = [r.valid_frames / r.frames if r.frames else 0.0 for _, r in done]
     failed = [r.status == "failed" for _, r in done]
+    marks = [_MARKS.get(r.status, "") for _, r in done]
     label_w = min(14.0 + 7.2 * max((len(n) for n, _ in done), default=4), 0.4 * _WIDTH)
     panel_w = (_WIDTH - label_w - 10.0 - 2 * _GAP - 16.0) / 3
     height = _TOP + _ROW * max(len(done), 1) + _BOTTOM
@@ -106,13 +112,13 @@ def plot_archive(path: Path, rows: Sequence[Result | None], stems: Sequence[str]
         out.append(f'<text x="{label_w:.1f}" y="{y + 4:.1f}" text-anchor="end">{_esc(name)}</text>')
     for i, (values, label, unit, top) in enumerate(
         (
-            (rate, "drift rate (nm/min)", "nm/min", _nice(max(rate, default=0.0))),
-            (total, "total drift (nm)", "nm", _nice(max(total, default=0.0))),
+            (rate, "drift rate (nm/min)", "nm/min", _nice(_finite_max(rate))),
+            (total, "total drift (nm)", "nm", _nice(_finite_max(total))),
             (share, "valid frames (share)", "", 1.0),
         )
     ):
         x0 = label_w + 10.0 + i * (panel_w + _GAP)
-        out.extend(_panel(x0, panel_w, len(done), values, failed, [n for n, _ in done],
+        out.extend(_panel(x0, panel_w, len(done), values, marks, [n for n, _ in done],
                           label, unit, top))  # fmt: skip
     out.append("</svg>")
     tmp = path.with_name(path.name + ".tmp")
@@ -125,7 +131,7 @@ def _panel(
     width: float,
     n: int,
     values: Sequence[float],
-    failed: Sequence[bool],
+    marks: Sequence[str],
     names: Sequence[str],
     label: str,
     unit: str,
@@ -143,18 +149,23 @@ def _panel(
                    f"{_tick(top * t / 5)}</text>")  # fmt: skip
     out.append(f'<text x="{x0 + width / 2:.1f}" y="{y1 + 32:.1f}" text-anchor="middle">'
                f"{label}</text>")  # fmt: skip
-    for k, (v, bad, name) in enumerate(zip(values, failed, names, strict=True)):
+    for k, (v, mark, name) in enumerate(zip(values, marks, names, strict=True)):
         y = y0 + _ROW * k + 2
         w = width * min(max(v, 0.0) / top, 1.0) if top > 0 and math.isfinite(v) else 0.0
-        tip = f"{_esc(name)}: failed" if bad else f"{_esc(name)}: {v:.4g} {unit}".rstrip()
-        colour = _FAILED if bad else _DONE
+        shown = mark == "failed" or (bool(mark) and not math.isfinite(v))
+        tip = f"{_esc(name)}: {mark}" if shown else f"{_esc(name)}: {v:.4g} {unit}".rstrip()
+        colour = _FAILED if mark == "failed" else _NO_DRIFT if mark else _DONE
         out.append(f'<rect x="{x0:.1f}" y="{y:.1f}" width="{w:.1f}" height="{_ROW - 4:.0f}" '
                    f'fill="{colour}"><title>{tip}</title></rect>')  # fmt: skip
-        if bad and unit == "nm":
-            out.append(f'<text x="{x0 + 3:.1f}" y="{y + 9:.1f}" fill="{_FAILED}" '
-                       'font-size="9">failed</text>')  # fmt: skip
+        if shown and unit == "nm":
+            out.append(f'<text x="{x0 + 3:.1f}" y="{y + 9:.1f}" fill="{colour}" '
+                       f'font-size="9">{mark}</text>')  # fmt: skip
     out.append(f'<line x1="{x0:.1f}" y1="{y0:.1f}" x2="{x0:.1f}" y2="{y1:.1f}" stroke="black"/>')
     return out
+
+
+def _finite_max(values: Sequence[float]) -> float:
+    return max((v for v in values if math.isfinite(v)), default=0.0)
 
 
 def _nice(peak: float) -> float:

@@ -64,6 +64,19 @@ def test_a_row_of_three_bars_per_recording_with_failed_ones_in_red(tmp_path: Pat
     assert "not yet" not in text
 
 
+def test_a_recording_with_no_drift_measured_has_no_drift_bar_not_a_zero(tmp_path: Path) -> None:
+    """Regression (issue 37): a refusal is never a number, in the picture too."""
+    none = Result(recording="n", status="no_drift", frames=2, valid_frames=0, duration_s=60.0,
+                  error="no frame was measured")  # fmt: skip
+    path = tmp_path / "archive.svg"
+    plot_archive(path, [result(1), none], ["a", "n"])
+    rate, total, share = bars(path)[0:2], bars(path)[2:4], bars(path)[4:6]
+    assert total[1] == (0.0, "#7f7f7f", "n: no drift measured")
+    assert rate[1][2] == "n: no drift measured"
+    assert share[1][2] == "n: 0"
+    assert "no drift measured</text>" in path.read_text(encoding="utf-8")
+
+
 def test_an_empty_or_degenerate_archive_still_gives_a_picture(tmp_path: Path) -> None:
     path = tmp_path / "archive.svg"
     plot_archive(path, [None, None], ["a", "b"])
