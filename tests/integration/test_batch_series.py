@@ -51,7 +51,7 @@ def test_a_folder_of_single_npy_images_is_one_recording_beside_a_stack(tmp_path:
     rows = _summary(out)
     assert set(rows) == {"series", "series/stack.npy"}
     assert rows["series"]["frames"] == "4"
-    assert rows["series"]["valid_frames"] == "4"
+    assert rows["series"]["valid_frames"] == "3"  # the first is the reference, not measured
     assert rows["series/stack.npy"]["frames"] == "3"
     assert float(rows["series"]["drift_x_nm"]) == pytest.approx(3 * STEP_PX[0] * PIXEL_NM, abs=0.05)
     assert float(rows["series"]["drift_y_nm"]) == pytest.approx(3 * STEP_PX[1] * PIXEL_NM, abs=0.05)
@@ -79,12 +79,20 @@ def test_a_folder_of_a_nanoscope_series_is_one_recording_as_import_makes_it(
     for name in ("nanoscope3a_15um.004", "nanoscope3a_15um.002"):
         shutil.copy(real_file(name), folder / name)
     done = run_afmdrift("batch", "ns", "--out", "out", "--workers", "1", cwd=tmp_path)
-    assert done.returncode == 0, done.stderr
+    # the pair is a lattice the content cannot decide: one recording, refused
+    assert done.returncode == 1, done.stderr
     rows = _summary(tmp_path / "out")
     assert set(rows) == {"ns"}
-    assert rows["ns"]["status"] == "done"
+    assert rows["ns"]["status"] == "no_drift"
     assert rows["ns"]["frames"] == "2"
     (line,) = _track(tmp_path / "out" / "ns" / "track.jsonl")
     # import's timing: header dates put .002 first, its capture 639 s before .004's
     assert line["ref_t_s"] == 0.0
     assert line["cur_t_s"] == pytest.approx(639.0)
+    # with the expected drift given, the prior decides, and the row says so
+    done = run_afmdrift("batch", "ns", "--out", "given", "--workers", "1", "--prior-px", "0",
+                        "28", cwd=tmp_path)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    row = _summary(tmp_path / "given")["ns"]
+    assert (row["status"], row["valid_frames"], row["prior_decided"]) == ("done", "1", "1")
+    assert float(row["drift_y_nm"]) == pytest.approx(28.26 * 15000 / 256, abs=60.0)
