@@ -268,6 +268,7 @@ def register(
     source: str,
     pixel_size_nm: tuple[float, float],
     check: Callable[[FrameStats], None] | None = None,
+    miss_px: float = 0.0,
 ) -> Registration:
     """The one registration path of :func:`measure_drift`, :class:`DriftTracker`
     and ``afmdrift measure``: prior → block pass → refine → combine, with the
@@ -321,7 +322,9 @@ def register(
         at.lattice = at.coarse.lattice_px
     if not at.result.valid and ref_heights is not None:
         _retry(at, pair, expected_px=expected_px, textured=textured)
-    elif expected_px is not None and at.search is None and _suspect(at.result, expected_px):
+    elif (
+        expected_px is not None and at.search is None and _suspect(at.result, expected_px, miss_px)
+    ):
         _check_by_coarse(at, pair, expected_px=expected_px, textured=textured)
     return at.registration()
 
@@ -351,13 +354,22 @@ SMALL_CHECK_OFF_PX = 1.0
 SMALL_CHECK_VALID_SHARE = 0.8
 
 
-def _suspect(result: DriftResult, expected_px: tuple[float, float]) -> bool:
+#: ... and, where the expectation is a prediction, from this many times the
+#: robust spread of its recent misses: a drift that is hard to predict (a
+#: fast curved path misses a constant-velocity prediction by 2-9 px every
+#: frame) would otherwise send every frame through the coarse alignment.
+CHECK_MISS_K = 3.0
+
+
+def _suspect(result: DriftResult, expected_px: tuple[float, float], miss_px: float) -> bool:
     """Whether a valid result around ``expected_px`` is checked (see
-    :data:`CHECK_OFF_PX`); a coarse alignment costs tens of block passes,
-    so a result where it was expected, on most of its blocks, is not."""
+    :data:`CHECK_OFF_PX`; ``miss_px``: the robust spread of the recent
+    prediction misses, 0 for a given prior); a coarse alignment costs tens
+    of block passes, so a result where it was expected, on most of its
+    blocks, is not."""
     off = max(abs(result.dx_px - expected_px[0]), abs(result.dy_px - expected_px[1]))
     small = result.total_blocks <= SMALL_FRAME_BLOCKS
-    limit = SMALL_CHECK_OFF_PX if small else CHECK_OFF_PX
+    limit = max(SMALL_CHECK_OFF_PX if small else CHECK_OFF_PX, CHECK_MISS_K * miss_px)
     share = SMALL_CHECK_VALID_SHARE if small else CHECK_VALID_SHARE
     return off > limit or result.valid_blocks < share * result.total_blocks
 

@@ -438,6 +438,7 @@ class DriftTracker:
             source="given" if self._given is not None and not self._motion_known else "predicted",
             pixel_size_nm=self.pixel_size_nm,
             check=functools.partial(self._check, heights, grad),
+            miss_px=self._miss_spread_px() if motion_known else 0.0,
         )
         meas, top, left = found.result, found.top, found.left
         if meas.valid and motion_known and moved == (0.0, 0.0):
@@ -467,6 +468,12 @@ class DriftTracker:
             reanchored=reanchor and cfg.reference == "keyframe",
         )
 
+    def _miss_spread_px(self) -> float:
+        """Robust spread of the recent prediction misses, px (0 before three)."""
+        if len(self._innovations) < 3:
+            return 0.0
+        return 1.4826 * float(statistics.median(self._innovations))
+
     def hold_limit_px(self) -> float:
         """Farthest a step may land from the predicted position and be accepted
         at once, px: ``max(floor, HOLD_K · 1.4826 · median |error|)`` over the
@@ -477,10 +484,7 @@ class DriftTracker:
         floor = HOLD_MIN_PX
         if self._engine is not None:
             floor = max(floor, 0.5 * float(min(self._engine.layout.max_shift)))
-        if len(self._innovations) < 3:
-            return floor
-        spread = 1.4826 * float(statistics.median(self._innovations))
-        return max(floor, HOLD_K * spread)
+        return max(floor, HOLD_K * self._miss_spread_px())
 
     def _confirm(
         self, meas: DriftResult, prior: tuple[float, float], index: int
