@@ -354,10 +354,11 @@ SMALL_CHECK_OFF_PX = 1.0
 SMALL_CHECK_VALID_SHARE = 0.8
 
 
-#: ... and, where the expectation is a prediction, from this many times the
-#: robust spread of its recent misses: a drift that is hard to predict (a
-#: fast curved path misses a constant-velocity prediction by 2-9 px every
-#: frame) would otherwise send every frame through the coarse alignment.
+#: ... and, on frames of more blocks, where the expectation is a prediction,
+#: from this many times the robust spread of its recent misses: a drift that
+#: is hard to predict (a fast curved path misses a constant-velocity
+#: prediction by 2-9 px every frame) would otherwise send every 512² frame
+#: through the coarse alignment.
 CHECK_MISS_K = 3.0
 
 
@@ -369,7 +370,9 @@ def _suspect(result: DriftResult, expected_px: tuple[float, float], miss_px: flo
     blocks, is not."""
     off = max(abs(result.dx_px - expected_px[0]), abs(result.dy_px - expected_px[1]))
     small = result.total_blocks <= SMALL_FRAME_BLOCKS
-    limit = max(SMALL_CHECK_OFF_PX if small else CHECK_OFF_PX, CHECK_MISS_K * miss_px)
+    # small frames are checked whatever the misses: their blocks' agreement
+    # says least, and their coarse alignment costs least
+    limit = SMALL_CHECK_OFF_PX if small else max(CHECK_OFF_PX, CHECK_MISS_K * miss_px)
     share = SMALL_CHECK_VALID_SHARE if small else CHECK_VALID_SHARE
     return off > limit or result.valid_blocks < share * result.total_blocks
 
