@@ -64,6 +64,7 @@ fail around the one it found).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -373,16 +374,25 @@ def _overlap_score(a: F64, b: F64, dx: int, dy: int) -> float:
 
 
 def overlap_evidence(
-    reference: npt.NDArray[np.floating], current: npt.NDArray[np.floating], dx: int, dy: int
-) -> float:
-    """Evidence that ``current`` shows ``reference`` moved by ``(dx, dy)`` px:
-    the normalised cross-correlation of the levelled heights over their
-    overlap times the square root of its share (:func:`_overlap_score`);
-    ``-inf`` when they do not overlap by :data:`MIN_OVERLAP_PX` per axis."""
+    reference: npt.NDArray[np.floating],
+    current: npt.NDArray[np.floating],
+    shifts: Sequence[tuple[float, float]],
+) -> list[float]:
+    """Evidence that ``current`` shows ``reference`` moved by each of
+    ``shifts`` (px, rounded): the normalised cross-correlation of the
+    levelled heights over their overlap times the square root of its share
+    (:func:`_overlap_score`); ``-inf`` where they do not overlap by
+    :data:`MIN_OVERLAP_PX` per axis. The frames are levelled once."""
     rows, cols = reference.shape
-    if cols - abs(dx) < MIN_OVERLAP_PX or rows - abs(dy) < MIN_OVERLAP_PX:
-        return -math.inf
-    return _overlap_score(levelled(reference), levelled(current), dx, dy)
+    a, b = levelled(reference), levelled(current)
+    out = []
+    for sx, sy in shifts:
+        dx, dy = round(sx), round(sy)
+        if cols - abs(dx) < MIN_OVERLAP_PX or rows - abs(dy) < MIN_OVERLAP_PX:
+            out.append(-math.inf)
+        else:
+            out.append(_overlap_score(a, b, dx, dy))
+    return out
 
 
 def _unwrap(a: F64, b: F64, dx: int, dy: int) -> tuple[int, int]:

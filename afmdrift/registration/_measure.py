@@ -406,27 +406,27 @@ def _check_by_coarse(
         return
     kept = (at.result, at.top, at.left, at.prior, at.how, at.lattice)
     at.coarse = coarse
-
-    def evidence(dx: float, dy: float) -> float:
-        assert pair.ref_heights is not None
-        return overlap_evidence(pair.ref_heights, pair.heights, round(dx), round(dy))
-
-    e_first = evidence(first.dx_px, first.dy_px)
-    e_coarse = evidence(cx, cy)
+    e_first, e_coarse = overlap_evidence(
+        pair.ref_heights, pair.heights, [(first.dx_px, first.dy_px), (cx, cy)]
+    )
     where = (
         f"the blocks around the expected position give ({first.dx_px:+.1f}, "
         f"{first.dy_px:+.1f}) px, the whole-frame alignment ({cx:+.0f}, {cy:+.0f}) px"
     )
-    if _measure_around(at, pair, coarse, textured):
-        if e_coarse > e_first + EVIDENCE_MARGIN:
-            at.how = f"{at.how}; {where}: the overlap decides"
-            return
-        at.result, at.top, at.left, at.prior, at.how, at.lattice = kept
-        if e_first > e_coarse + EVIDENCE_MARGIN:
-            return
-    elif not e_coarse > e_first + EVIDENCE_MARGIN:
+    measured = _measure_around(at, pair, coarse, textured)
+    if measured and e_coarse > e_first + EVIDENCE_MARGIN:
+        at.how = f"{at.how}; {where}: the overlap decides"
         return
     at.result, at.top, at.left, at.prior, at.how, at.lattice = kept
+    # both measured: the first stands only where its overlap is clearly
+    # better; the coarse alignment's blocks disagreeing: where the coarse
+    # overlap is not clearly better
+    if (
+        (e_first > e_coarse + EVIDENCE_MARGIN)
+        if measured
+        else not (e_coarse > e_first + EVIDENCE_MARGIN)
+    ):
+        return
     at.result = invalid_result(
         first.field,
         f"two shifts fit: {where} (overlap evidence {e_first:.2f} and {e_coarse:.2f}); "
