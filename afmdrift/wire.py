@@ -216,12 +216,19 @@ class StatusMsg(_Published):
     operation failed and has not worked since), ``instrument_silent`` (a request
     unanswered, no byte arriving, for more than ``instrument_silence_s``),
     ``clamped`` (the last offset was limited), ``paused``.
+    ``store_error`` (the run store cannot write: ``store_problem`` gives the
+    path and the reason; measuring and publishing go on, and the frames are
+    held in memory, ``frames_held``, and written when it can again) and
+    ``frame_error`` (the last frame's processing failed: ``frame_problem``).
     ``dropped_offset_ticks`` counts offset samples skipped since the daemon
     started because its event loop fell more than 50 ms behind
     the offset schedule (the stream then restarts from now instead of
-    bursting). A status inside a control reply is a snapshot: its ``seq`` is
-    that of the last published heartbeat, so replies never take numbers from
-    the ``status`` topic.
+    bursting). ``frames_unstored`` counts frames measured and published but
+    let go unstored (held past ``service.store_hold_mb``), ``frames_failed``
+    frames whose processing failed, since the daemon started. A status
+    inside a control reply is a snapshot: its ``seq`` is that of the last
+    published heartbeat, so replies never take numbers from the ``status``
+    topic.
     """
 
     topic: Literal["status"] = "status"
@@ -237,6 +244,11 @@ class StatusMsg(_Published):
     rolling_max_error_nm: float | None
     rolling_window: int
     dropped_offset_ticks: int = Field(0, ge=0)
+    store_problem: str | None = None
+    frames_held: int = Field(0, ge=0)
+    frames_unstored: int = Field(0, ge=0)
+    frames_failed: int = Field(0, ge=0)
+    frame_problem: str | None = None
 
 
 Message = Annotated[OffsetMsg | ModelMsg | FrameMsg | StatusMsg, Field(discriminator="topic")]

@@ -111,6 +111,14 @@ class ServiceConfig(BaseModel):
         description="Also keep every measured image de-warped by the causal drift trajectory "
         "(each row moved back by the drift at its scan time) as corrected/NNNNNN.npy.",
     )
+    store_hold_mb: float = Field(
+        64.0,
+        ge=1.0,
+        le=65536.0,
+        description="Memory for frames the run store cannot write yet (a full disk, an I/O "
+        "error), MB: they are written once it can again. Past it, images go first, then "
+        "whole frames, oldest first; the daemon never stops measuring and publishing.",
+    )
     keep_model_states: int = Field(
         100, ge=0, le=10_000_000, description="Predictor states kept in the store (0: all)."
     )

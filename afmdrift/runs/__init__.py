@@ -10,9 +10,10 @@ the daemon, replay, the dashboard and the diagnostics read and write
 (:class:`RunStore`); and :class:`TaskPool`, which runs a command's independent
 tasks (diagnose's online re-runs) on this machine's cores or, inside a Dask
 worker, on its cluster. The daemon (:mod:`afmdrift.service`) commits each new
-frame with :func:`process_and_record`; a replayed recording goes through
-:meth:`~afmdrift.pipeline.FramePipeline.run` and :func:`record_outcome`, so
-both record exactly the same rows.
+frame through :class:`HeldWrites` (which holds frames in bounded memory while
+the store cannot write, a full disk); a replayed recording goes through
+:meth:`~afmdrift.pipeline.FramePipeline.run`; both end in
+:func:`record_outcome`, so both record exactly the same rows.
 
 Nothing here imports :mod:`afmdrift.service` or ZeroMQ (import-linter keeps
 it so), so a Dask worker of ``afmdrift batch`` never loads the daemon.
@@ -21,7 +22,7 @@ it so), so a Dask worker of ``afmdrift batch`` never loads the daemon.
 from afmdrift.runs._correct import CorrectionSummary, correct_session
 from afmdrift.runs._csv import TRAJECTORY_COLUMNS, trajectory_rows, write_trajectory_csv
 from afmdrift.runs._parallel import TaskPool, available_cores
-from afmdrift.runs._record import process_and_record, record_outcome
+from afmdrift.runs._record import HeldWrites, process_and_record, record_outcome
 from afmdrift.runs._replay import MIN_REPLAY_FRAMES, ReplaySummary, replay_session
 from afmdrift.runs._schema import DB_NAME, STORE_SCHEMA_VERSION, StoreError
 from afmdrift.runs._series import measure_session, series_from_drift_log, series_from_records
@@ -34,6 +35,7 @@ __all__ = [
     "STORE_SCHEMA_VERSION",
     "TRAJECTORY_COLUMNS",
     "CorrectionSummary",
+    "HeldWrites",
     "ReplaySummary",
     "RunStore",
     "StoreError",

@@ -10,6 +10,7 @@ date when it is opened; any other version is refused.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sqlite3
 import time
@@ -119,7 +120,22 @@ class Transaction:
         self._db.execute("BEGIN IMMEDIATE")
 
     def __exit__(self, exc_type: object, *rest: object) -> None:
-        self._db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+        if exc_type is None:
+            try:
+                self._db.execute("COMMIT")
+            except sqlite3.Error:
+                self._rollback()  # a COMMIT that failed (a full disk) leaves nothing
+                raise
+        else:
+            self._rollback()
+
+    def _rollback(self) -> None:
+        # SQLite ends the transaction itself on some errors (a full disk):
+        # then there is nothing to roll back, and the caller must see the
+        # error that happened, not this one.
+        if self._db.in_transaction:
+            with contextlib.suppress(sqlite3.Error):
+                self._db.execute("ROLLBACK")
 
 
 def meta_get(db: sqlite3.Connection, key: str) -> str | None:

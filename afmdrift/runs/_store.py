@@ -15,8 +15,11 @@ tracker measures the next frame against the same image. With
 
 from __future__ import annotations
 
+import itertools
 import json
 import logging
+import os
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -33,14 +36,22 @@ from afmdrift.runs._schema import (
     FRAME_FIELDS,
     StoreError,
     Transaction,
+    meta_get,
     meta_set,
     nan_to_none,
     open_database,
 )
 
-__all__ = ["RunStore"]
+__all__ = ["UNSTORED_KEY", "RunStore", "SeqRanges"]
 
 log = logging.getLogger(__name__)
+
+#: ``meta`` key: the frames the daemon measured but could not store (a full
+#: disk held them longer than its memory bound), as ``SeqRanges`` text.
+UNSTORED_KEY = "unstored_frames"
+
+#: trajectory.csv rows kept while the file cannot be appended to (the table has them all).
+_CSV_BACKLOG_ROWS = 100_000
 
 
 class RunStore:
@@ -79,6 +90,9 @@ class RunStore:
         self._db = open_database(self.path, check_same_thread=check_same_thread)
         self._pending_channels: list[ChannelSample] = []
         self._pending_events: list[tuple[int, int, Event]] = []
+        # trajectory.csv rows committed but not yet appended (a full disk)
+        self._csv_backlog: list[tuple[float, ...]] = []
+        self._csv_failing = False
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -122,13 +136,25 @@ class RunStore:
         reference: npt.NDArray[np.floating] | None = None,
         trajectory: FrameTrajectory | None = None,
         corrected: npt.NDArray[np.floating] | None = None,
+        channels: Iterable[ChannelSample] = (),
+        events: Iterable[LoggedEvent] = (),
+        meta: dict[str, str] | None = None,
     ) -> None:
         """Commit one frame atomically with everything queued since the last one.
 
-        ``reference`` is the tracker's reference image when it changed with this
-        frame; it is written (atomically) before the transaction, and the
-        transaction records which frame it belongs to, so the two never
-        disagree after a crash.
+        ``channels``, ``events`` and ``meta`` are written in the frame's
+        transaction too. ``reference`` is the tracker's reference image when it
+        changed with this frame; it is written (atomically) before the
+        transaction, and the transaction records which frame it belongs to, so
+        the two never disagree after a crash.
+
+        All or nothing: when a write fails (``sqlite3.Error``, or ``OSError``
+        from an image file) nothing of the frame is committed and nothing
+        queued is forgotten, so the same call can be made again
+        (:class:`~afmdrift.runs.HeldWrites` does, after a full disk). What
+        follows the commit (``trajectory.csv``, removing an older reference
+        file) never raises: a failure there is logged and retried with the
+        next frame.
         """
         if self.archive_frames and image is not None:
             save_image(self.run_dir / "frames" / f"{record.seq:06d}.npy", image)
@@ -137,7 +163,9 @@ class RunStore:
         if reference is not None:
             save_image(self._reference_path(record.seq), reference)
         with self._transaction():
-            self._flush_pending()
+            self._write_pending(channels, events)
+            for k, v in (meta or {}).items():
+                self._meta_set(k, v)
             values = [nan_to_none(getattr(record, n)) for n in FRAME_FIELDS]
             placeholders = ", ".join("?" for _ in FRAME_FIELDS)
             self._db.execute(
@@ -171,15 +199,41 @@ class RunStore:
                 self._meta_set("reference_seq", str(record.seq))
                 self._meta_set("reference_x_nm", repr(record.image_x_nm))
                 self._meta_set("reference_y_nm", repr(record.image_y_nm))
-        if samples:
-            # The committed samples, also as a file a user can open while the
-            # run goes on (the table stays the record).
-            write_trajectory_csv(self.run_dir / "trajectory.csv", samples, append=True)
+        self._pending_channels.clear()
+        self._pending_events.clear()
+        # The committed samples, also as a file a user can open while the run
+        # goes on (the table stays the record).
+        self._csv_backlog.extend(samples)
+        self._append_trajectory_csv()
         if reference is not None:
             # Only now is the new reference committed; older images can go.
+            keep = self._reference_path(record.seq)
             for old in self.run_dir.glob("reference-*.npy"):
-                if old != self._reference_path(record.seq):
-                    old.unlink(missing_ok=True)
+                if old != keep:
+                    try:
+                        old.unlink(missing_ok=True)
+                    except OSError as err:
+                        log.warning("run store: cannot remove %s (%s)", old, err)
+
+    def _append_trajectory_csv(self) -> None:
+        """Append the committed samples not yet in ``trajectory.csv``; on a
+        failure (a full disk) they wait for the next frame."""
+        if not self._csv_backlog:
+            return
+        path = self.run_dir / "trajectory.csv"
+        size = path.stat().st_size if path.exists() else None
+        try:
+            write_trajectory_csv(path, self._csv_backlog, append=True)
+        except OSError as err:
+            _truncate(path, size)  # no half-written line stays behind
+            if not self._csv_failing:
+                log.warning("run store: cannot append to %s (%s); retried with the next frame",
+                            path, err)  # fmt: skip
+            self._csv_failing = True
+            del self._csv_backlog[: max(0, len(self._csv_backlog) - _CSV_BACKLOG_ROWS)]
+            return
+        self._csv_backlog.clear()
+        self._csv_failing = False
 
     def _reference_path(self, seq: int) -> Path:
         return self.run_dir / f"reference-{seq:06d}.npy"
@@ -325,7 +379,9 @@ class RunStore:
         if ok != "ok":
             problems.append(f"integrity_check: {ok}")
         seqs = [int(r[0]) for r in self._db.execute("SELECT seq FROM frames ORDER BY seq")]
-        if seqs and seqs != list(range(seqs[0], seqs[0] + len(seqs))):
+        # frames the daemon measured but had to let go (a full disk) are no gap
+        unstored = SeqRanges.parse(meta_get(self._db, UNSTORED_KEY) or "")
+        if seqs and [s for s in range(seqs[0], seqs[-1] + 1) if s not in unstored] != seqs:
             problems.append("frames: sequence numbers have gaps")
         orphans = self._db.execute(
             "SELECT COUNT(*) FROM model_state WHERE seq NOT IN (SELECT seq FROM frames)"
@@ -349,9 +405,18 @@ class RunStore:
         meta_set(self._db, key, value)
 
     def _flush_pending(self) -> None:
+        self._write_pending((), ())
+        self._pending_channels.clear()
+        self._pending_events.clear()
+
+    def _write_pending(
+        self, channels: Iterable[ChannelSample], events: Iterable[LoggedEvent]
+    ) -> None:
+        """Insert the queued channels and events and the given ones (inside the
+        caller's transaction; the queues are cleared once it commits)."""
         rows = [
             (s.t_s, name, nan_to_none(float(v)))
-            for s in self._pending_channels
+            for s in itertools.chain(self._pending_channels, channels)
             for name, v in s.values.items()
         ]
         self._db.executemany("INSERT INTO channels (t_s, name, value) VALUES (?, ?, ?)", rows)
@@ -360,11 +425,20 @@ class RunStore:
             "VALUES (?, ?, ?, ?, ?, ?)",
             [
                 (epoch, idx, e.t_s, str(e.kind), e.x_nm, e.y_nm)
-                for epoch, idx, e in self._pending_events
+                for epoch, idx, e in itertools.chain(self._pending_events, events)
             ],
         )
-        self._pending_channels.clear()
-        self._pending_events.clear()
+
+
+def _truncate(path: Path, size: int | None) -> None:
+    """Put ``path`` back to ``size`` bytes (``None``: it did not exist)."""
+    try:
+        if size is None:
+            path.unlink(missing_ok=True)
+        else:
+            os.truncate(path, size)
+    except OSError as err:
+        log.warning("run store: cannot restore %s after a failed write (%s)", path, err)
 
 
 def _meta_int(meta: dict[str, str], key: str) -> int | None:
@@ -372,3 +446,37 @@ def _meta_int(meta: dict[str, str], key: str) -> int | None:
         return int(meta[key])
     except (KeyError, ValueError):
         return None
+
+
+class SeqRanges:
+    """A set of frame numbers kept as ranges, written ``"3-7,12"``."""
+
+    def __init__(self, ranges: list[list[int]] | None = None) -> None:
+        self._ranges: list[list[int]] = ranges or []
+
+    @classmethod
+    def parse(cls, text: str) -> SeqRanges:
+        out: list[list[int]] = []
+        for part in filter(None, (p.strip() for p in text.split(","))):
+            a, _, b = part.partition("-")
+            try:
+                out.append([int(a), int(b or a)])
+            except ValueError:
+                log.warning("run store: %s entry %r is not a frame range; ignored",
+                            UNSTORED_KEY, part)  # fmt: skip
+        return cls(out)
+
+    def add(self, seq: int) -> None:
+        if self._ranges and self._ranges[-1][1] + 1 == seq:
+            self._ranges[-1][1] = seq
+        elif seq not in self:
+            self._ranges.append([seq, seq])
+
+    def __contains__(self, seq: object) -> bool:
+        return any(a <= seq <= b for a, b in self._ranges)  # type: ignore[operator]
+
+    def __len__(self) -> int:
+        return sum(b - a + 1 for a, b in self._ranges)
+
+    def text(self) -> str:
+        return ",".join(str(a) if a == b else f"{a}-{b}" for a, b in self._ranges)

@@ -9,7 +9,8 @@ Parts, each with one job:
     polls frames, channels and events into one batch per frame;
 :class:`~afmdrift.pipeline.FramePipeline`
     measures, predicts and rebuilds d(t) for each frame, in the worker thread
-    (:func:`~afmdrift.runs.process_and_record` commits it to the run store);
+    (:class:`~afmdrift.runs.HeldWrites` commits it to the run store, or holds
+    it in bounded memory while the store cannot write);
 :class:`~afmdrift.service._publish.Publishing`
     the wire messages, the offset limiter, the flags and the status;
 :class:`~afmdrift.service._control.Controller`
@@ -20,11 +21,14 @@ Parts, each with one job:
 
 :class:`DriftService` owns the sockets, the run store and the worker thread,
 resumes from the store, and runs the loops (one :class:`asyncio.TaskGroup`;
-any task that dies logs why and the group re-raises, cancelling the others):
+any task that dies logs why and the group re-raises, cancelling the others;
+no failure of one frame's steps ends a task: a frame whose processing fails
+is reported and skipped, a store that cannot write holds the frames):
 ``connect``, ``clock``, ``frames``, ``channels``, ``events`` (the link and
 acquisition), ``process`` (the worker), ``offset`` and ``status``
 (publishing), ``control`` (the control socket) and, in closed loop,
-``closed`` (applies the offset on the instrument).
+``closed`` (applies the offset on the instrument), and ``store`` (retries
+writing held frames while the run store cannot write).
 """
 
 from __future__ import annotations
@@ -49,10 +53,10 @@ from afmdrift.errors import ConfigError
 from afmdrift.model import (
     warm_up_effects,
 )
-from afmdrift.pipeline import FramePipeline
+from afmdrift.pipeline import FrameOutcome, FramePipeline
 from afmdrift.records import InstrumentInfo
 from afmdrift.registration import warm_up
-from afmdrift.runs import RunStore, process_and_record
+from afmdrift.runs import HeldWrites, RunStore
 from afmdrift.service._acquire import Acquisition, FrameBatch
 from afmdrift.service._closed_loop import ClosedLoop
 from afmdrift.service._control import Controller
@@ -66,6 +70,9 @@ __all__ = ["INSTRUMENT_ERRORS", "DriftService"]
 log = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
+
+#: While the run store cannot write, held frames are retried this often, s.
+_STORE_RETRY_S = 5.0
 
 
 class DriftService:
@@ -149,6 +156,8 @@ class DriftService:
             pipeline=self.pipeline,
         )
         self._store: RunStore | None = None
+        self._writer: HeldWrites | None = None
+        self._failures_logged: set[str] = set()
         self._control: ControlSocket | None = None
         self._executor: concurrent.futures.ThreadPoolExecutor | None = None
 
@@ -198,6 +207,11 @@ class DriftService:
                 keep_model_states=self.svc.keep_model_states,
                 check_same_thread=False,
             )
+            self._writer = HeldWrites(
+                self._store,
+                max_bytes=int(self.svc.store_hold_mb * 1e6),
+                archive=self.svc.archive_frames,
+            )
             self._executor = concurrent.futures.ThreadPoolExecutor(
                 max_workers=1, thread_name_prefix="afmdrift-worker"
             )
@@ -240,8 +254,7 @@ class DriftService:
                 await asyncio.shield(asyncio.to_thread(self._executor.shutdown, wait=True))
             await self.link.close()
             self.controller.stop()
-            if self._store is not None:
-                self._store.close()
+            self._close_store()
             for sock in (publisher, self._control):
                 if sock is not None:
                     sock.close()
@@ -268,6 +281,7 @@ class DriftService:
             ),
             "status": lambda: every(svc.heartbeat_interval_s, self._status_tick),
             "control": self._serve_control,
+            "store": lambda: every(_STORE_RETRY_S, self._store_retry),
         }
         if svc.closed_loop:
             loops["closed"] = lambda: every(svc.closed_loop_interval_s, self.closed_loop.tick)
@@ -313,14 +327,14 @@ class DriftService:
     def _on_connected(self, info: InstrumentInfo, t_s: float, offset: tuple[float, float]) -> None:
         self.publishing.connected(t_s)
         self.closed_loop.connected(t_s, offset)
-        if self._store is not None and self._executor is not None:
+        if self._writer is not None and self._executor is not None:
             ident = {f"instrument_{k}": str(v) for k, v in dataclasses.asdict(info).items()}
-            self._executor.submit(self._store.set_meta, ident)
+            self._executor.submit(self._writer.set_meta, ident)
 
     def _new_epoch(self, epoch: int, t_offset_s: float) -> None:
         self.pipeline.request_reset()
-        if self._store is not None and self._executor is not None:
-            self._executor.submit(self._store.set_meta, {"t_offset_s": repr(t_offset_s)})
+        if self._writer is not None and self._executor is not None:
+            self._executor.submit(self._writer.set_meta, {"t_offset_s": repr(t_offset_s)})
 
     async def _clock_tick(self) -> None:
         await self.link.now_s()
@@ -339,30 +353,108 @@ class DriftService:
             await self._handle(await self.acquisition.batches.get())
 
     async def _handle(self, batch: FrameBatch) -> None:
+        """One frame through the worker: measure, model, store; then publish.
+
+        A step that fails ends neither the frame loop nor the daemon: a run
+        store that cannot write holds the frame (:class:`HeldWrites`); a frame
+        whose processing fails is reported (log, status ``frame_error``),
+        counted and skipped, and the next frame takes a new reference.
+        """
         pub = self.publishing
         seq, epoch, paused = pub.frames_seen, self.link.epoch, pub.paused
         pub.frames_seen += 1
-        assert self._store is not None
-        store = self._store
+        writer = self._writer
+        assert writer is not None
         t_now = self.link.clock.at(time.time())
-        outcome = await self._in_worker(
-            lambda: process_and_record(
-                self.pipeline,
-                store,
+        hold = batch.hold or ("paused" if paused else None)
+
+        def process() -> FrameOutcome:
+            self.pipeline.push(batch.channels, batch.events)
+            outcome = self.pipeline.process(
                 batch.frame,
-                channels=batch.channels,
-                events=batch.events,
                 seq=seq,
                 epoch=epoch,
                 detected_wall_s=batch.detected_wall_s,
                 t_now_s=t_now,
-                hold=batch.hold or ("paused" if paused else None),
+                hold=hold,
             )
-        )
+            writer.record(outcome)
+            return outcome
+
+        try:
+            outcome = await self._in_worker(process)
+        except Exception as err:
+            self._frame_failed(seq, batch, err)
+            return
+        finally:
+            self._store_state()
+        self.flags.discard("frame_error")
+        pub.faults.frame_problem = None
         self.frames_processed += 1
         self._frame_done.set()
         self.link.see_frame_end(outcome.record.t_end_s)
-        self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
+        try:
+            self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
+        except Exception as err:
+            self._log_once("publish", f"frame {seq}: not published ({err!r})", err)
+
+    def _frame_failed(self, seq: int, batch: FrameBatch, err: Exception) -> None:
+        """A frame's processing raised: say so (once per kind of failure, with
+        its traceback), count it, and start a new reference with the next frame."""
+        problem = f"frame {seq} (instrument frame {batch.frame.index}): processing failed ({err!r})"
+        self._log_once(f"frame:{type(err).__name__}:{err}", problem, err)
+        faults = self.publishing.faults
+        faults.frames_failed += 1
+        faults.frame_problem = problem
+        self.flags.add("frame_error")
+        # What the failure left half-done is not trusted: a new reference.
+        self.pipeline.request_reset()
+        self.link.see_frame_end(batch.frame.t_end_s)
+
+    def _log_once(self, key: str, message: str, err: BaseException) -> None:
+        if key in self._failures_logged:
+            log.error("%s", message)
+            return
+        self._failures_logged.add(key)
+        log.error("%s; the daemon goes on", message, exc_info=err)
+
+    def _store_state(self) -> None:
+        """The writer's state into the status (flag ``store_error`` and counts)."""
+        w = self._writer
+        if w is None:
+            return
+        faults = self.publishing.faults
+        faults.store_problem = w.problem
+        faults.frames_held = w.held
+        faults.frames_unstored = w.frames_dropped
+        if w.problem is None:
+            self.flags.discard("store_error")
+        else:
+            self.flags.add("store_error")
+
+    async def _store_retry(self) -> None:
+        """While frames are held, try to write them even if no frame comes."""
+        w = self._writer
+        if w is None or w.problem is None:
+            return
+        await self._in_worker(w.flush)
+        self._store_state()
+
+    def _close_store(self) -> None:
+        """Write what is held one last time, then close the store."""
+        w, store = self._writer, self._store
+        if store is None:
+            return
+        if w is not None and w.problem is not None and not w.flush():
+            log.error(
+                "run store %s: %d measured frame(s) could not be stored before the daemon "
+                "stopped (%s); what was stored before is intact",
+                store.path, w.held, w.problem,
+            )  # fmt: skip
+        try:
+            store.close()
+        except Exception as err:
+            log.error("run store %s: not closed cleanly (%s)", store.path, err)
 
     async def wait_for_frames(self, n: int) -> None:
         """Return once this run has processed at least ``n`` frames (bound it with a timeout)."""

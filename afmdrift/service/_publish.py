@@ -17,6 +17,7 @@ import statistics
 import time
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -91,6 +92,8 @@ class Publishing:
         self._frame_ends: deque[float] = deque(maxlen=16)
         self._errors_nm: deque[float] = deque(maxlen=config.rolling_window)
         self._seq = {"offset": 0, "model": 0, "frame": 0, "status": 0}
+        #: The frame path's faults (set by the daemon, reported in the status).
+        self.faults = PathFaults()
 
     def _next(self, topic: str) -> int:
         n = self._seq[topic]
@@ -300,9 +303,31 @@ class Publishing:
             rolling_max_error_nm=max(errs) if errs else None,
             rolling_window=self.config.rolling_window,
             dropped_offset_ticks=self.dropped_offset_ticks,
+            store_problem=self.faults.store_problem,
+            frames_held=self.faults.frames_held,
+            frames_unstored=self.faults.frames_unstored,
+            frames_failed=self.faults.frames_failed,
+            frame_problem=self.faults.frame_problem,
             run_id=self.run_id,
             epoch=self.epoch(),
         )
+
+
+@dataclass(slots=True)
+class PathFaults:
+    """What failed on the frame path and has not worked since (the status
+    reply's ``store_problem``, ``frame_problem`` and counts)."""
+
+    #: ``"PATH: reason"`` while the run store cannot write.
+    store_problem: str | None = None
+    #: Frames measured and published but not stored yet (held in memory).
+    frames_held: int = 0
+    #: Frames measured and published but never stored (let go past the bound).
+    frames_unstored: int = 0
+    #: Frames whose processing failed (none of their numbers published).
+    frames_failed: int = 0
+    #: The last frame's failure while it lasts: ``"frame N: reason"``.
+    frame_problem: str | None = None
 
 
 def _set_flag(flags: set[str], name: str, on: bool) -> None:

@@ -94,16 +94,27 @@ def test_channels_and_events_are_committed_with_the_next_frame(tmp_path: Path) -
 
 
 def test_failed_frame_transaction_leaves_no_partial_rows(tmp_path: Path) -> None:
-    """Regression guard: a frame that fails mid-write must not leave its channels behind."""
+    """A frame that fails mid-write commits nothing of itself; what was queued
+    with it stays queued (a full disk must not lose the channel log), and goes
+    with the next frame that commits."""
     with RunStore(tmp_path) as store:
         store.record_frame(make_record(0), predictor="p", predictor_state={}, curve=None)
         store.add_channels(ChannelSample(t_s=3.0, values={"temperature_c": 21.0}))
         with pytest.raises(sqlite3.IntegrityError):
-            store.record_frame(make_record(0), predictor="p", predictor_state={}, curve=None)
+            store.record_frame(
+                make_record(0),
+                predictor="p",
+                predictor_state={},
+                curve=None,
+                channels=[ChannelSample(t_s=4.0, values={"temperature_c": 22.0})],
+            )
         assert store.frame_count() == 1
         assert store.check_consistency() == []
-    with RunStore(tmp_path) as store:
         assert store.channels() == []
+        store.record_frame(make_record(1), predictor="p", predictor_state={}, curve=None)
+    with RunStore(tmp_path) as store:
+        # the queued sample, not the one given with the failed call
+        assert [c.t_s for c in store.channels()] == [3.0]
 
 
 def test_resume_state_holds_model_reference_and_event_cursor(tmp_path: Path) -> None:

@@ -321,7 +321,9 @@
       badge($("service-state"), "service " + st.state + ", " + st.frames + " frames", st.state === "running" ? "ok" : "warn");
       for (const f of st.flags) {
         const b = document.createElement("span");
-        badge(b, f, f === "instrument_error" || f === "stale" ? "bad" : "warn");
+        badge(b, f, f === "instrument_error" || f === "stale" || f === "store_error" || f === "frame_error" ? "bad" : "warn");
+        if (f === "store_error" && st.store_problem) b.title = st.store_problem + " (" + st.frames_held + " frames held)";
+        if (f === "frame_error" && st.frame_problem) b.title = st.frame_problem;
         flags.appendChild(b);
       }
     } else {
