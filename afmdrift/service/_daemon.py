@@ -404,6 +404,8 @@ class DriftService:
         problem = f"frame {seq} (instrument frame {batch.frame.index}): processing failed ({err!r})"
         self._log_once(f"frame:{type(err).__name__}:{err}", problem, err)
         faults = self.publishing.faults
+        # Nothing of it is stored: its number goes to the next frame.
+        self.publishing.frames_seen -= 1
         faults.frames_failed += 1
         faults.frame_problem = problem
         self.flags.add("frame_error")
