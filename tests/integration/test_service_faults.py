@@ -7,13 +7,18 @@ from __future__ import annotations
 import asyncio
 import itertools
 import logging
+import math
 import os
+import random
 import signal
+import socket
 import subprocess
 import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
+import psutil
 import pytest
 import zmq
 import zmq.asyncio
@@ -29,7 +34,7 @@ from service_sim import (
     write_scenario,
 )
 
-from afmdrift.client import Subscriber
+from afmdrift.client import Subscriber, control
 from afmdrift.drivers import NanoScopeDriver
 from afmdrift.drivers.sim._server import ServerFaults
 from afmdrift.service import RunStore
@@ -419,3 +424,182 @@ async def test_a_lying_or_flooding_event_log_does_not_starve_the_frames(tmp_path
     assert held >= flood - 1  # moves may hide in the unread entries: not fed to the model
     assert len(said) == 1, said
     assert "announced 1000000000 entries" in said[0]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _truth_error_nm(records: list, sim: Any) -> float:  # type: ignore[type-arg]
+    """Largest distance of the stored drift positions from the simulator's
+    true drift (both zero at the session reference)."""
+    ref = records[0]
+    x0, y0 = sim.truth_at(ref.t_mid_s)
+    worst = 0.0
+    for r in records:
+        if r.valid and math.isfinite(r.x_nm):
+            x, y = sim.truth_at(r.t_mid_s)
+            worst = max(worst, math.hypot(r.x_nm - (x - x0), r.y_nm - (y - y0)))
+    return worst
+
+
+@pytest.mark.asyncio
+async def test_a_frozen_daemon_resumes_at_once_and_its_offsets_stay_continuous(
+    tmp_path: Path,
+) -> None:
+    """SIGSTOP for ten frame periods, then SIGCONT (a suspended VM): the daemon
+    measures again within two frame periods, stores no frame twice, and the
+    offset stream it publishes goes on without a step beyond its rate limit."""
+    run = tmp_path / "run"
+    pub = f"tcp://127.0.0.1:{_free_port()}"
+    rate_limit = 50.0
+    cfg = _write_config(
+        tmp_path / "svc.toml", run, pub_endpoint=pub, max_offset_rate_nm_s=rate_limit
+    )
+    speed, period_s = 50.0, 32.0
+    frame_wall_s = period_s / speed
+    ctx = zmq.asyncio.Context()
+    try:
+        async with sim_server(small_scenario(frame_period_s=period_s), speed=speed) as (
+            server,
+            url,
+        ):
+            proc = await _daemon(cfg, url)
+            sub = Subscriber(pub, topics=("offset",), ctx=ctx)
+            offsets: list[OffsetMsg] = []
+
+            async def collect() -> None:
+                while True:
+                    msg = await sub.recv()
+                    assert isinstance(msg, OffsetMsg)
+                    offsets.append(msg)
+
+            collector = asyncio.create_task(collect())
+            try:
+                await _wait_frames(run, 6, proc)
+                proc.send_signal(signal.SIGSTOP)
+                await asyncio.sleep(10 * frame_wall_s)
+                stopped_at = committed_frames(run)
+                proc.send_signal(signal.SIGCONT)
+                t_cont = asyncio.get_running_loop().time()
+                await _wait_frames(run, stopped_at + 1, proc)
+                resumed_after_s = asyncio.get_running_loop().time() - t_cont
+                await _wait_frames(run, stopped_at + 4, proc)
+                proc.send_signal(signal.SIGTERM)
+                assert await asyncio.wait_for(proc.wait(), 20) == 0
+            finally:
+                collector.cancel()
+                await asyncio.gather(collector, return_exceptions=True)
+                sub.close()
+                if proc.returncode is None:
+                    proc.kill()
+                    await proc.wait()
+            records = _check_store(run)
+            truth_error = _truth_error_nm(records, server.sim)
+    finally:
+        ctx.term()
+    assert resumed_after_s < 2 * frame_wall_s + 0.5, resumed_after_s
+    seqs = [o.seq for o in offsets]
+    assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
+    for a, b in itertools.pairwise(o for o in offsets if o.valid):
+        step = math.hypot(b.x_nm - a.x_nm, b.y_nm - a.y_nm)
+        assert step <= rate_limit * max(b.t_s - a.t_s, 0.0) + 1e-6, (a, b)
+    assert truth_error < 3.0
+
+
+@pytest.mark.asyncio
+async def test_killed_ten_times_the_store_stays_whole_and_the_position_follows_the_truth(
+    tmp_path: Path,
+) -> None:
+    """SIGKILL at a random moment, restart on the same run directory, ten
+    times: SQLite's integrity check passes each time, no frame is stored
+    twice, and the stored positions stay on the simulator's true drift."""
+    run = tmp_path / "run"
+    cfg = _write_config(tmp_path / "svc.toml", run)
+    rng = random.Random(42)
+    async with sim_server(small_scenario(warmup_nm=(60.0, 30.0)), speed=50.0) as (server, url):
+        for _ in range(10):
+            before = committed_frames(run)
+            proc = await _daemon(cfg, url)
+            try:
+                await _wait_frames(run, before + 2, proc)
+                await asyncio.sleep(rng.uniform(0.0, 0.64))
+                proc.send_signal(signal.SIGKILL)
+                assert await proc.wait() == -signal.SIGKILL
+            finally:
+                if proc.returncode is None:
+                    proc.kill()
+                    await proc.wait()
+            with RunStore(run) as store:
+                assert store.check_consistency() == []
+        records = _check_store(run)
+        truth_error = _truth_error_nm(records, server.sim)
+    assert len(records) >= 20
+    # every restart measured against the stored reference: one session reference
+    assert [r.reason for r in records].count("reference") == 1
+    assert not [r for r in records if "new reference" in r.reason]
+    assert truth_error < 3.0
+
+
+@pytest.mark.asyncio
+async def test_a_flood_of_control_clients_neither_slows_the_frames_nor_goes_unanswered(
+    tmp_path: Path,
+) -> None:
+    """Twenty clients asking ``status`` as fast as they can: frames keep at
+    least 80 % of their rate without them, every request is answered, and the
+    daemon's memory stays flat."""
+    run = tmp_path / "run"
+    control_ep = f"tcp://127.0.0.1:{_free_port()}"
+    cfg = _write_config(tmp_path / "svc.toml", run, control_endpoint=control_ep)
+    ctx = zmq.asyncio.Context()
+    try:
+        async with sim_server(small_scenario(), speed=50.0) as (_, url):
+            proc = await _daemon(cfg, url)
+            try:
+                await _wait_frames(run, 3, proc)
+                healthy = await _frame_rate(run, proc, 4.0)
+                rss0 = psutil.Process(proc.pid).memory_info().rss
+                answered = [0] * 20
+                stop = asyncio.Event()
+                clients = [
+                    asyncio.create_task(_ask_status(ctx, control_ep, answered, k, stop))
+                    for k in range(20)
+                ]
+                try:
+                    flooded = await _frame_rate(run, proc, 4.0)
+                    rss1 = psutil.Process(proc.pid).memory_info().rss
+                finally:
+                    stop.set()
+                    await asyncio.gather(*clients)
+                proc.send_signal(signal.SIGTERM)
+                assert await asyncio.wait_for(proc.wait(), 20) == 0
+            finally:
+                if proc.returncode is None:
+                    proc.kill()
+                    await proc.wait()
+    finally:
+        ctx.term()
+    assert flooded >= 0.8 * healthy, (flooded, healthy)
+    assert min(answered) >= 10, answered
+    assert rss1 < rss0 * 1.2 + 20e6, (rss0, rss1)
+    _check_store(run)
+
+
+async def _frame_rate(run: Path, proc: asyncio.subprocess.Process, seconds: float) -> float:
+    """Frames the daemon commits per second over ``seconds``."""
+    n0 = committed_frames(run)
+    await asyncio.sleep(seconds)
+    assert proc.returncode is None, "daemon exited"
+    return (committed_frames(run) - n0) / seconds
+
+
+async def _ask_status(
+    ctx: zmq.asyncio.Context, endpoint: str, answered: list[int], k: int, stop: asyncio.Event
+) -> None:
+    """Ask ``status`` until ``stop``; every request must be answered."""
+    while not stop.is_set():
+        reply = await control(endpoint, "status", timeout_s=10.0, ctx=ctx)
+        assert reply.ok
+        answered[k] += 1
