@@ -13,6 +13,15 @@ delayed and stale replies, disconnects), and a hostile local client sends
 malformed and unauthorised messages to the control socket every 0.1 s; the
 daemon must answer each, keep every frame it receives, and stay flat.
 
+The machine misbehaves too: the daemon is frozen (SIGSTOP, then SIGCONT)
+``FREEZES`` times for ``FREEZE_S`` wall seconds each (about two frame periods
+of instrument time: the frames the instrument replaced meanwhile are reported,
+and the budget for frames never seen allows for them), and, where the test may
+mount a small file system (root), the run directory lives on one that is
+filled up ``DISK_FULLS`` times for ``DISK_FULL_S`` wall seconds: the daemon
+holds the frames it cannot store and writes them when space returns, so the
+no-loss check covers them.
+
 Small frames (128² px) at a high simulator speed keep the wall time to a few
 minutes (about 20 with the line's faults): ``make soak`` or ``pytest -m soak``.
 """
@@ -24,10 +33,13 @@ import contextlib
 import itertools
 import logging
 import math
+import os
+import signal
 import sqlite3
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import psutil
@@ -53,6 +65,10 @@ SPEED = 500.0
 FRAMES = math.ceil(DAYS * 86400.0 / FRAME_PERIOD_S) + 1
 RATE_LIMIT_NM_S = 5.0
 FAULT_RATE = 0.001  # of the simulator's replies
+FREEZES = 5
+FREEZE_S = 1.0  # wall seconds: 500 s of instrument time, about two frame periods
+DISK_FULLS = 3
+DISK_FULL_S = 20.0  # wall seconds: 10,000 s of instrument time, about 40 frames
 
 #: What the hostile client sends, in turn (frames of one message).
 HOSTILE: tuple[list[bytes], ...] = (
@@ -119,10 +135,47 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+@contextlib.contextmanager
+def _run_parent(tmp_path: Path) -> Iterator[tuple[Path, bool]]:
+    """Where the run directory goes: a small file system of its own when this
+    process may mount one (root), else the test's directory."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mounted = os.geteuid() == 0 and (
+        subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=256m", "tmpfs", str(disk)],
+            capture_output=True,
+            check=False,
+        ).returncode
+        == 0
+    )
+    if not mounted:
+        log.warning("soak: not root or no tmpfs; the disk-full episodes are left out")
+    try:
+        yield disk, mounted
+    finally:
+        if mounted:
+            subprocess.run(["umount", "-l", str(disk)], check=False)
+
+
+def _fill(path: Path) -> None:
+    """Write ``path`` until its file system has no space left."""
+    with path.open("wb", buffering=0) as fh:
+        for size in (1 << 20, 4096, 64):
+            with contextlib.suppress(OSError):
+                while True:
+                    fh.write(b"\0" * size)
+
+
 @pytest.mark.asyncio
 async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     tmp_path: Path,
 ) -> None:
+    with _run_parent(tmp_path) as (disk, mounted):
+        await _soak(tmp_path, disk, mounted)
+
+
+async def _soak(tmp_path: Path, disk: Path, mounted: bool) -> None:
     data = scenario_data(
         pixels=128,
         frame_period_s=FRAME_PERIOD_S,
@@ -134,7 +187,7 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     sim = SimProcess(
         write_scenario(tmp_path / "scenario.toml", data), speed=SPEED, faults=FAULT_RATE
     )
-    run = tmp_path / "run"
+    run = disk / "run"
     pub_port, control_port = _free_port(), _free_port()
     cfg = _config(tmp_path / "soak.toml", run, pub_port, control_port)
     ctx = zmq.asyncio.Context()
@@ -144,6 +197,8 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     log_file = daemon_log.open("w", encoding="utf-8")
     offsets: list[OffsetMsg] = []
     frame_seqs: list[int] = []
+    frozen = disk_fulls = held_max = 0
+    store_errors: set[int] = set()  # the disk-full episodes the status reported
     try:
         url = sim.start()
         daemon = subprocess.Popen(  # noqa: ASYNC220 (started once; not awaited on)
@@ -172,11 +227,34 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
         )
         try:
             wall_needed = 1.5 * DAYS * 86400.0 / SPEED + 30.0  # upper bound only
+            wall_expected = DAYS * 86400.0 / SPEED
+            freezes = [wall_expected * (k + 1) / (FREEZES + 2) for k in range(FREEZES)]
+            fulls = [wall_expected * (k + 1.5) / (DISK_FULLS + 2) for k in range(DISK_FULLS)]
+            if not mounted:
+                fulls = []
+            filler: Path | None = None
+            full_since = 0.0
             t0 = time.monotonic()
             next_sample = t0
             last_status: StatusMsg | None = None
             while time.monotonic() - t0 < wall_needed:
                 assert daemon.poll() is None, "daemon died"
+                now = time.monotonic() - t0
+                if freezes and now >= freezes[0]:
+                    freezes.pop(0)
+                    daemon.send_signal(signal.SIGSTOP)
+                    await asyncio.sleep(FREEZE_S)
+                    daemon.send_signal(signal.SIGCONT)
+                    frozen += 1
+                if filler is None and fulls and now >= fulls[0]:
+                    fulls.pop(0)
+                    filler = disk / "filler"
+                    await asyncio.to_thread(_fill, filler)
+                    full_since = now
+                if filler is not None and now - full_since >= DISK_FULL_S:
+                    filler.unlink()
+                    filler = None
+                    disk_fulls += 1
                 with contextlib.suppress(TimeoutError):
                     msg = await sub.recv(timeout_s=1.0)
                     if isinstance(msg, OffsetMsg):
@@ -185,6 +263,9 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
                         frame_seqs.append(msg.seq)
                     elif isinstance(msg, StatusMsg):
                         last_status = msg
+                        if "store_error" in msg.flags:
+                            store_errors.add(disk_fulls)
+                            held_max = max(held_max, msg.frames_held)
                 if time.monotonic() >= next_sample:
                     rss.append((time.monotonic() - t0, proc.memory_info().rss))
                     next_sample += 2.0
@@ -228,7 +309,16 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
         if "were replaced before they were read" in w
     )
     assert skipped == reported, warnings[:10]
-    assert skipped <= 0.005 * len(records), f"{skipped} frames never seen: {warnings[:10]}"
+    # each freeze may cost the frames its instrument time holds, and one more
+    frozen_frames = frozen * (math.ceil(FREEZE_S * SPEED / FRAME_PERIOD_S) + 1)
+    assert skipped <= 0.005 * len(records) + frozen_frames, (
+        f"{skipped} frames never seen: {warnings[:10]}"
+    )
+    assert frozen == FREEZES
+    # every disk-full episode was reported in the status, and nothing was lost
+    # (the no-loss check above covers the frames held meanwhile)
+    assert store_errors == set(range(disk_fulls)), (store_errors, disk_fulls)
+    assert "frames were let go" not in daemon_log.read_text()
     assert sum(r.fed_model for r in records) >= 0.99 * len(records)
     with contextlib.closing(sqlite3.connect(run / "run.sqlite")) as db:
         assert db.execute("SELECT COUNT(*) FROM model_state").fetchone()[0] <= 100
@@ -238,7 +328,8 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
     growth = (max(warm) - warm[0]) / warm[0]
     log.info(
         "soak: %d frames over %.2f days (%d never seen), RSS %.1f MiB after warm-up, "
-        "%+.2f %% growth; %d offsets; faults at %.1f %% of simulator replies",
+        "%+.2f %% growth; %d offsets; faults at %.1f %% of simulator replies; %d freezes "
+        "of %.1f s; %d disk-full episodes of %.0f s (at most %d frames held)",
         len(records),
         (records[-1].t_end_s - records[0].t_start_s) / 86400.0,
         skipped,
@@ -246,6 +337,11 @@ async def test_one_week_of_frames_no_loss_flat_memory_continuous_offsets(
         100 * growth,
         len(offsets),
         100 * FAULT_RATE,
+        frozen,
+        FREEZE_S,
+        disk_fulls,
+        DISK_FULL_S,
+        held_max,
     )
     assert growth < 0.05, f"RSS grew {100 * growth:.1f} % after warm-up"
     # every hostile message was answered, and none stopped anything above
