@@ -94,6 +94,7 @@ class InstrumentLink:
         self._failing: set[str] = set()
         self._last_seen_s: float | None = None
         self._epoch_listeners: list[Callable[[int, float], None]] = []
+        self._bugs_logged: set[tuple[str, str]] = set()
         self._connect_listeners: list[
             Callable[[InstrumentInfo, float, tuple[float, float]], Any]
         ] = []
@@ -134,6 +135,16 @@ class InstrumentLink:
         try:
             result = await fn(*args)
         except INSTRUMENT_ERRORS as err:
+            self._failing.add(name)
+            self._failed(fn, err)
+            raise InstrumentDownError from err
+        except Exception as err:
+            # Not a failure an instrument is expected to have: its traceback
+            # once (per call and kind), then handled as a failed call.
+            key = (name, type(err).__name__)
+            if key not in self._bugs_logged:
+                self._bugs_logged.add(key)
+                log.error("instrument call %s raised unexpectedly", name, exc_info=err)
             self._failing.add(name)
             self._failed(fn, err)
             raise InstrumentDownError from err

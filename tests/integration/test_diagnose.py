@@ -19,8 +19,9 @@ the full 10-seed sweep with the acceptance criteria, and
 ``benchmarks/bench_diagnose.py`` reports the same figures over this simulator,
 a second generator and the shared validation logs. ``make test`` keeps the
 end-to-end CLI case below (one session of 50 frames, its finding and its
-report). The acceptance criteria of the full sweep: the hidden effect (or its driver) ranked first and
-significant, with adding it cutting the one-step RMS error by at least 30 %, in
+report). The acceptance criteria of the full sweep: the hidden effect (or its
+driver) ranked first and significant, with adding it cutting the one-step RMS
+error by at least 30 %, in
 at least 8 of 10 seeds, and each control raises no significant finding in at
 least 9 of 10 seeds.
 """

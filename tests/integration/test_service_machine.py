@@ -212,19 +212,30 @@ class _Once:
 
 
 @pytest.mark.asyncio
-@pytest.mark.parametrize("step", ["register", "model", "store", "reference_file", "publish"])
+@pytest.mark.parametrize(
+    "step", ["acquire", "register", "model", "store", "reference_file", "publish"]
+)
 async def test_a_failure_in_any_step_of_the_frame_path_does_not_end_the_daemon(
     tmp_path: Path, step: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """One injected failure in one step of one frame (acquisition's faults are
-    the simulator's: tests/integration/test_service_faults.py): the daemon says
-    so, and the frames after it are measured, stored and published."""
+    """One injected failure in one step of one frame (the instrument's own
+    faults, garbled or late replies, are the simulator's:
+    tests/integration/test_service_faults.py): the daemon says so, and the
+    frames after it are measured, stored and published."""
     run = tmp_path / "run"
     async with _daemon(run) as service:
         async with asyncio.timeout(30):
             await service.wait_for_frames(3)
         pipeline = service.pipeline
-        if step == "register":
+        if step == "acquire":
+            # a driver's bug, not an instrument error: the call is failed and retried
+            instrument = service.instrument
+            monkeypatch.setattr(
+                instrument,
+                "latest_frame",
+                _Once(instrument.latest_frame, ValueError("injected"), 1),
+            )
+        elif step == "register":
             positions = pipeline.positions
             monkeypatch.setattr(
                 positions, "locate", _Once(positions.locate, RuntimeError("injected"), 1)
@@ -269,6 +280,7 @@ async def test_a_failure_in_any_step_of_the_frame_path_does_not_end_the_daemon(
             await service.wait_for_frames(before + 3)
         status = await _status(service)
         assert "frame_error" not in status.flags
+        assert "instrument_error" not in status.flags
         assert "store_error" not in status.flags
         if step in ("register", "model"):
             assert status.frames_failed == 1
