@@ -4,7 +4,7 @@
 ``docs/wire.md``): the offset stream d(t) through the safety limiter, the
 ``model`` and ``frame`` messages after each frame, and the ``status``
 heartbeat with its state and flags (stale, paused, clamped, low confidence,
-instrument error, no model). It keeps the per-topic sequence numbers, the
+instrument error, instrument changed, no model). It keeps the per-topic sequence numbers, the
 rolling prediction error and the frame timing that staleness is judged by.
 """
 
@@ -56,6 +56,8 @@ class Publishing:
         The d(t) being published.
     paused : bool
         Set by the ``pause`` control command: offsets are published invalid.
+    chain : int
+        The position chain of the last frame processed (``chain`` on the wire).
     """
 
     def __init__(
@@ -87,6 +89,7 @@ class Publishing:
         self.last_offset: OffsetMsg | None = None
         self.last_frame_t_s: float | None = None
         self.frames_seen = 0
+        self.chain = 0
         self.publisher: Publisher | None = None
         self._frame_ends: deque[float] = deque(maxlen=16)
         self._errors_nm: deque[float] = deque(maxlen=config.rolling_window)
@@ -123,6 +126,8 @@ class Publishing:
         """Update the state after a processed frame, publish ``model`` (when the
         frame fed the model) and ``frame``; return the frame's latency, s."""
         r = outcome.record
+        if outcome.position is not None:
+            self.chain = outcome.position.chain
         self._frame_ends.append(r.t_end_s)
         self.last_frame_t_s = r.t_end_s
         if outcome.low_confidence:
@@ -154,6 +159,7 @@ class Publishing:
                 max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
             await self.publisher.send(self.last_model)
         latency = time.time() - detected_wall_s
@@ -182,6 +188,7 @@ class Publishing:
                 trajectory=_samples(outcome),
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
         )
         return latency
@@ -225,6 +232,7 @@ class Publishing:
                 valid=False,
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
         target = self.curve.at([t_s]).reshape(-1)
         tx, ty = float(target[0]), float(target[1])
@@ -247,6 +255,7 @@ class Publishing:
             clamped=out.clamped,
             run_id=self.run_id,
             epoch=self.epoch(),
+            chain=self.chain,
         )
 
     async def offset_tick(self) -> None:
