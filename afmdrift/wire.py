@@ -82,6 +82,18 @@ class _Published(_Msg):
     epoch: int = Field(0, ge=0)
 
 
+class _Chained(_Published):
+    """``chain`` numbers the chain of drift positions a value belongs to: 0
+    for the chain the daemon started (or resumed) in, one more for each new
+    registration reference whose position was estimated (a reset, a new scan
+    geometry, an instrument restart or another instrument); a scan geometry
+    taken up again goes back to its own chain's number. Positions of two
+    chains differ by an estimate, not by a measurement. Absent in older
+    messages: 0."""
+
+    chain: int = Field(0, ge=0)
+
+
 class ClockSync(BaseModel):
     """Mapping from the publisher's wall clock to the instrument clock.
 
@@ -101,12 +113,12 @@ class ClockSync(BaseModel):
         return self.instrument_s + self.rate * (wall_s - self.wall_s)
 
 
-class OffsetMsg(_Published):
+class OffsetMsg(_Chained):
     """One sample of the offset stream d(t) (topic ``offset``).
 
     ``valid`` is false before the first model, while the stream is stale, or
     when the service is paused; ``clamped`` is true when the safety limits
-    changed the value.
+    changed the value; ``chain`` is that of the last frame processed.
     """
 
     topic: Literal["offset"] = "offset"
@@ -119,7 +131,7 @@ class OffsetMsg(_Published):
     clamped: bool = False
 
 
-class ModelMsg(_Published):
+class ModelMsg(_Chained):
     """The current model after a frame (topic ``model``).
 
     ``curve`` is ``OffsetCurve.to_dict()``; a subscriber rebuilds it with
@@ -168,7 +180,7 @@ class TrajectorySample(BaseModel):
     sigma_y_nm: float
 
 
-class FrameMsg(_Published):
+class FrameMsg(_Chained):
     """One frame's measurement (topic ``frame``).
 
     ``dx_nm, dy_nm`` is the measured increment, ``x_nm, y_nm`` the drift
@@ -215,11 +227,14 @@ class StatusMsg(_Published):
     ``stale_factor`` expected intervals), ``instrument_error`` (an instrument
     operation failed and has not worked since), ``instrument_silent`` (a request
     unanswered, no byte arriving, for more than ``instrument_silence_s``),
-    ``clamped`` (the last offset was limited), ``paused``.
-    ``store_error`` (the run store cannot write: ``store_problem`` gives the
-    path and the reason; measuring and publishing go on, and the frames are
-    held in memory, ``frames_held``, and written when it can again) and
-    ``frame_error`` (the last frame's processing failed: ``frame_problem``).
+    ``instrument_changed`` (the instrument on the connection was found to be
+    another one than before in this run: another identity or pixel size;
+    raised for the rest of the daemon's run), ``clamped`` (the last offset was
+    limited), ``paused``, ``store_error`` (the run store cannot write:
+    ``store_problem`` gives the path and the reason; measuring and publishing
+    go on, and the frames are held in memory, ``frames_held``, and written
+    when it can again) and ``frame_error`` (the last frame's processing
+    failed: ``frame_problem``).
     ``dropped_offset_ticks`` counts offset samples skipped since the daemon
     started because its event loop fell more than 50 ms behind
     the offset schedule (the stream then restarts from now instead of

@@ -36,6 +36,15 @@ under
   model term keeps seeing it;
 * the gauge p(t_ref) = 0 at the session reference's mid-scan time.
 
+A new reference whose position is not measured (:meth:`DriftTrajectory.add_reference`)
+starts a new *chain*: its mid-scan p is the causal estimate continued from
+the frames before it (the smoothness prior), and is then held there by a
+gauge of its own, so the frames measured against it (and against the later
+keyframes of its chain) never re-estimate it: their p is the reference's plus
+their measured displacement from it. Each position's σ is the root-sum-square
+of its chain reference's σ (0 for the session reference; a resumed anchor's
+stored σ) and of its displacement's σ.
+
 The constraints link frames as far apart as a keyframe and its later frames,
 so this also ties the chain of frames together ("frame-to-frame links").
 
@@ -149,6 +158,10 @@ class _Frame:
     sigma: FloatArray = field(default_factory=lambda: np.zeros(0))
     fixed: bool = False
     anchor: bool = False  # known, not measured: never re-solved
+    #: The key of the frame that started the frame's chain (see add_reference).
+    chain: int = -1
+    #: A chain reference's reported mid-scan p, held there (None otherwise).
+    gauge_nm: FloatArray | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -199,6 +212,8 @@ class DriftTrajectory:
         self.bias = np.zeros(2)
         self.bias_var = BIAS_PRIOR_NM**2
         self.breaks: list[float] = []
+        #: σ² of each chain's reference position, by the chain's key.
+        self.chain_var: dict[int, float] = {}
         # Causal state: information form over the free unknowns (index 0 is
         # the bias), their indices, and the last two knots in time.
         self._h = np.array([[1.0 / BIAS_PRIOR_NM**2]])
@@ -255,10 +270,56 @@ class DriftTrajectory:
         frame.sigma = np.zeros(t.size)
         if self.origin is None:
             self.origin = (key, float(t_mid_s))
+            self.chain_var[key] = 0.0
+        frame.chain = self._chain_of(key, constraints)
         self.frames[key] = frame
         self.order.append(key)
         self._filter_add(frame)
         return self.estimate(key)
+
+    def _chain_of(self, key: int, constraints: list[BandConstraint]) -> int:
+        """The chain a new frame belongs to: its references' (one chain: a
+        frame is measured against one tracker's frames), else the latest
+        frame's, else its own."""
+        if constraints:
+            return self.frames[constraints[0].ref_key].chain
+        if self.order:
+            return self.frames[self.order[-1]].chain
+        return key
+
+    def add_reference(
+        self, key: int, knot_times_s: npt.ArrayLike, *, sign: int, t_mid_s: float
+    ) -> FrameTrajectory:
+        """Add a new reference whose position is not measured: it starts a new
+        chain (see the module docstring) and returns its estimate.
+
+        Its mid-scan p is the causal trajectory continued to it (the frames
+        before it and the smoothness prior) with that estimate's σ, and is held
+        there: later frames measure their displacement from it but do not move
+        it. Positions of its chain carry its σ in root-sum-square.
+        """
+        if not self.order:
+            return self.add_frame(key, knot_times_s, sign=sign, t_mid_s=t_mid_s, constraints=[])
+        est = self.add_frame(key, knot_times_s, sign=sign, t_mid_s=t_mid_s, constraints=[])
+        frame = self.frames[key]
+        frame.chain = key
+        frame.gauge_nm = est.mid_nm.copy()
+        self.chain_var[key] = est.mid_sigma_nm**2
+        cols = self._cols.get(key)
+        if cols is not None:
+            # The gauge p + ds·b = the estimate at mid-scan, into the
+            # information form: the solution already satisfies it (it is
+            # that solution), so only the uncertainties it leaves change.
+            row = np.zeros(self._h.shape[0])
+            i, j, wi, wj = knot_weights(frame.t_s, frame.t_mid_s)
+            row[cols[i]] += wi
+            if wj != 0.0:
+                row[cols[j]] += wj
+            row[0] += self._bias_shift(frame)
+            row /= GAUGE_SIGMA_NM
+            self._h += np.outer(row, row)
+            self._g += np.outer(row, est.mid_nm / GAUGE_SIGMA_NM)
+        return est
 
     # ------------------------------------------------------------------ causal
 
@@ -351,7 +412,8 @@ class DriftTrajectory:
         scale = max(1.0, self._chi2 / self._chi2_n) if self._chi2_n else 1.0
         for k, cols in self._cols.items():
             self.frames[k].p[:] = sol[cols]
-        frame.sigma[:] = np.sqrt(np.maximum(var[1:], 0.0) * scale)
+        chain_var = self.chain_var.get(frame.chain, 0.0)
+        frame.sigma[:] = np.sqrt(np.maximum(var[1:], 0.0) * scale + chain_var)
         self.bias = np.asarray(sol[0], dtype=np.float64)
         self.bias_var = max(float(var[0]) * scale, 1e-12)
         # marginalise what no future frame can refer to
@@ -367,11 +429,9 @@ class DriftTrajectory:
         t: float,
         scale: float,
         index: dict[tuple[int, int], int],
-        fixed_var: list[float],
     ) -> tuple[list[tuple[int, float]], FloatArray]:
         """Terms of scale·p(t) in frame ``key``'s knots: knots in ``index``
-        as terms, the others (fixed or anchored) as constants, whose
-        variances are appended to ``fixed_var``."""
+        as terms, the others (fixed or anchored) as constants."""
         f = self.frames[key]
         i, j, wi, wj = knot_weights(f.t_s, t)
         terms: list[tuple[int, float]] = []
@@ -382,7 +442,6 @@ class DriftTrajectory:
             c = index.get((key, idx))
             if c is None:
                 const = const + scale * w * f.p[idx]
-                fixed_var.append(float(f.sigma[idx]) ** 2)
             else:
                 terms.append((c, scale * w))
         return terms, const
@@ -421,6 +480,8 @@ class DriftTrajectory:
             for key in forget:
                 del self.frames[key]
             self.order = [k for k in self.order if k not in forget]
+            chains = {f.chain for f in self.frames.values()}
+            self.chain_var = {c: v for c, v in self.chain_var.items() if c in chains}
 
     def add_anchor(
         self,
@@ -433,7 +494,9 @@ class DriftTrajectory:
         sigma_nm: float,
     ) -> None:
         """Add a frame whose drift is known, not measured (a resumed service's
-        stored reference): its knots are fixed at ``p_nm`` (2,) with ``sigma_nm``."""
+        stored reference): its knots are fixed at ``p_nm`` (2,) with
+        ``sigma_nm``. It starts a chain: the positions measured from it carry
+        ``sigma_nm`` in root-sum-square."""
         t = np.sort(np.asarray(knot_times_s, dtype=np.float64).reshape(-1))
         frame = _Frame(
             key=key,
@@ -443,7 +506,9 @@ class DriftTrajectory:
             constraints=[],
             fixed=True,
             anchor=True,
+            chain=key,
         )
+        self.chain_var[key] = float(sigma_nm) ** 2
         frame.p = np.tile(np.asarray(p_nm, dtype=np.float64).reshape(1, 2), (t.size, 1))
         frame.sigma = np.full(t.size, float(sigma_nm))
         self._tail = [(float(t[i]), (key, i)) for i in range(t.size)][-2:]
@@ -516,7 +581,6 @@ class DriftTrajectory:
         vals: list[float] = []
         rhs: list[FloatArray] = []
         wts: list[float] = []
-        anchor_var: list[float] = []
 
         def add_row(terms: list[tuple[int, float]], value: FloatArray, sigma: float) -> None:
             r = len(rhs)
@@ -534,8 +598,8 @@ class DriftTrajectory:
         for k in active:
             f = self.frames[k]
             for con in f.constraints:
-                t1, c1 = self._terms_at(k, con.t_s, 1.0, col, anchor_var)
-                t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0, col, anchor_var)
+                t1, c1 = self._terms_at(k, con.t_s, 1.0, col)
+                t2, c2 = self._terms_at(con.ref_key, con.t_ref_s, -1.0, col)
                 ds = 0.5 * (f.sign - self.frames[con.ref_key].sign)
                 terms = t1 + t2
                 if ds != 0.0:
@@ -566,10 +630,19 @@ class DriftTrajectory:
                     terms.append((node[1], w))
             if terms:
                 add_row(terms, -const, math.sqrt(self.q * 0.5 * (h1 + h2)))
-        # Gauge, and the bias prior.
+        # Gauges (the session reference's, and each chain reference's), and
+        # the bias prior.
         if self.origin is not None and self.origin[0] in active:
-            terms, const = self._terms_at(self.origin[0], self.origin[1], 1.0, col, anchor_var)
+            terms, const = self._terms_at(self.origin[0], self.origin[1], 1.0, col)
             add_row(terms, -const, GAUGE_SIGMA_NM)
+        for k in active:
+            f = self.frames[k]
+            if f.gauge_nm is not None:
+                terms, const = self._terms_at(k, f.t_mid_s, 1.0, col)
+                ds = self._bias_shift(f)
+                if ds != 0.0:
+                    terms.append((b_col, ds))
+                add_row(terms, f.gauge_nm - const, GAUGE_SIGMA_NM)
         add_row([(b_col, 1.0)], self.bias, math.sqrt(self.bias_var))
         m = len(rhs)
         row_w = np.asarray(wts)
@@ -593,14 +666,14 @@ class DriftTrajectory:
         resid = aw @ sol - y
         dof = max(1, m - n)
         scale = max(1.0, float(np.sum(resid**2)) / (2 * dof))
-        anchor = float(np.mean(anchor_var)) if anchor_var else 0.0
         for (k, i), c in col.items():
             f = self.frames[k]
             f.p[i] = sol[c]
-            # the variance of the reported p + ds·b (see _filter_add)
+            # the variance of the reported p + ds·b (see _filter_add), and
+            # that of its chain's reference position
             ds = self._bias_shift(f)
             v = cov_diag[c] + ds * ds * cov_diag[b_col] + 2.0 * ds * cov_bias[c]
-            f.sigma[i] = math.sqrt(max(0.0, float(v) * scale) + anchor)
+            f.sigma[i] = math.sqrt(max(0.0, float(v) * scale) + self.chain_var.get(f.chain, 0.0))
         var = cov_diag * scale
         self.bias = np.asarray(sol[b_col], dtype=np.float64)
         self.bias_var = max(float(var[b_col]), 1e-12)

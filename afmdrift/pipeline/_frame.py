@@ -19,10 +19,12 @@ Positions (see ``afmdrift.model._positions`` for the sign convention)::
     p_k = m_k + O(t_k) − O(t_ref)      drift position, p(t_ref) = 0
 
 When the registration reference is replaced (``reset_reference``, a changed
-frame shape or pixel size, an instrument restart, a resumed service without
-its reference image) the new reference's drift position is not measured; it
-is taken from the model's prediction (or the last position) so p stays
-continuous, and the frame does not feed the model.
+frame shape or pixel size, an instrument restart or another instrument, a
+resumed service without its reference image) the new reference's drift
+position is not measured; it is estimated from the drift trajectory (the
+model's prediction, or the last position, if the trajectory has none) so p
+stays continuous, and the frame does not feed the model. It starts a new
+chain of positions, held at that estimate (``DriftPositions``).
 """
 
 from __future__ import annotations

@@ -28,16 +28,23 @@ Positions (sign convention of ``afmdrift.model._positions``)::
     m  image position relative to the session reference (what registration sees)
     p = m + O(t) − O(t_ref)          drift position, p(t_ref) = 0
 
-A new reference (a reset, a changed frame shape or pixel size) has no
-measurement of its own: its trajectory samples continue the curve from the
-frames before it (the smoothness prior), so p stays continuous; it does not
-feed the model.
+A new reference (a reset, a changed frame shape or pixel size, another
+instrument) has no measurement of its own: its position is estimated, the
+trajectory continued from the frames before it (the smoothness prior), so p
+stays continuous; it does not feed the model. It starts a new *chain* of
+positions (:meth:`DriftTrajectory.add_reference`): the estimate is held, never
+re-estimated by the frames measured against it, so their p is the estimate
+plus their measured displacement from it, and their σ is the root-sum-square
+of the estimate's σ and the displacement's. Chains are numbered (``chain`` of
+:class:`FramePosition`, on the wire): 0 for the session's first reference (or
+the one a resumed service continues), then one more for each new reference.
 
 Each scan geometry (frame shape and pixel size) keeps its own reference: a
 frame of another size now and then, or a zoom in and back out, is measured
 against the reference of its own geometry when there is one (its position
-chain goes on where it stopped), and only a geometry seen for the first time
-takes a new reference, with the position carried across from the trajectory.
+chain, and its chain number, go on where they stopped), and only a geometry
+seen for the first time takes a new reference, with the position carried
+across from the trajectory.
 At most ``_GEOMETRIES_KEPT`` geometries are kept; a reset forgets them all.
 """
 
@@ -85,12 +92,15 @@ GeometryKey = tuple[tuple[int, int], tuple[float, float]]
 @dataclass(slots=True)
 class _Parked:
     """The reference of a scan geometry not in use: its tracker, the image
-    position m of its reference, its frame keys and its last frame's time."""
+    position m of its reference, its frame keys, its last frame's time and
+    its chain number."""
 
     tracker: DriftTracker
     base_nm: FloatArray
     keys: dict[int, int]
     last_t_s: float | None
+    chain: int
+    chain_sigma_nm: float
 
 
 @dataclass(slots=True)
@@ -120,6 +130,8 @@ class FramePosition:
     #: The registration's σ of the frame's block mean against its reference,
     #: nm (``sigma`` is the trajectory's σ of p, which grows along the chain).
     measurement_sigma: float = math.nan
+    #: The number of the frame's position chain (see the module docstring).
+    chain: int = 0
 
 
 @dataclass(frozen=True, slots=True)
@@ -187,6 +199,10 @@ class DriftPositions:
         self.t_ref_s: float | None = None  # session reference time (p = 0)
         self.last_p_nm: FloatArray | None = None
         self._reset_requested = False
+        #: The current tracker's chain number, and the chains started so far.
+        self.chain = 0
+        self._chains = 0
+        self._chain_sigma_nm = 0.0  # σ of the current chain's reference position
         q = config.model.trajectory_q
         self._q_set = q is not None
         self.trajectory = DriftTrajectory(
@@ -266,6 +282,7 @@ class DriftPositions:
         self._keys = {0: r.seq}
         self._timings = {r.seq: timing}
         self._last_t_s = r.t_mid_s
+        self._chain_sigma_nm = r.sigma_nm if math.isfinite(r.sigma_nm) else 0.0
 
     # ------------------------------------------------------------------ a frame
 
@@ -304,6 +321,7 @@ class DriftPositions:
             self._place_reference(frame, seq, tracker, pos, prediction_nm, n_fed, held, events)
         elif step is not None and tracker is not None:
             self._place_measured(frame, seq, tracker, step, pos, events, held)
+        pos.chain = self.chain
         pos.p = pos.m + offset
         if np.all(np.isfinite(pos.p)):
             self.last_p_nm = pos.p
@@ -353,7 +371,12 @@ class DriftPositions:
         if self._tracker is None or self._tracker_key is None:
             return
         self._parked[self._tracker_key] = _Parked(
-            self._tracker, self._base_nm, self._keys, self._last_t_s
+            self._tracker,
+            self._base_nm,
+            self._keys,
+            self._last_t_s,
+            self.chain,
+            self._chain_sigma_nm,
         )
         while len(self._parked) > _GEOMETRIES_KEPT:
             self._parked.pop(next(iter(self._parked)))
@@ -365,6 +388,7 @@ class DriftPositions:
         back = self._parked.pop(key)
         self._tracker, self._tracker_key = back.tracker, key
         self._base_nm, self._keys, self._last_t_s = back.base_nm, back.keys, back.last_t_s
+        self.chain, self._chain_sigma_nm = back.chain, back.chain_sigma_nm
         log.info(
             "frame %d: scan geometry %s again: measured against its reference (frame %s)",
             seq, _geometry(key), self._keys.get(back.tracker.keyframe_index, "?"),
@@ -429,7 +453,12 @@ class DriftPositions:
         knots: FloatArray,
         constraints: list[BandConstraint],
         events: Sequence[Event],
+        *,
+        reference: bool = False,
     ) -> FrameTrajectory | None:
+        """Add the frame to the drift trajectory (``reference``: a new
+        reference whose position is estimated, which starts a chain); None
+        if it cannot be added."""
         for e in events:
             # A tip change shifts the image at once: the trajectory may jump there.
             if (
@@ -443,6 +472,10 @@ class DriftPositions:
             self.trajectory.q = default_q(frame.t_end_s - frame.t_start_s)
             self._q_set = True
         try:
+            if reference:
+                return self.trajectory.add_reference(
+                    seq, knots, sign=_sign(frame.direction), t_mid_s=frame.t_mid_s
+                )
             return self.trajectory.add_frame(
                 seq,
                 knots,
@@ -466,21 +499,23 @@ class DriftPositions:
         events: Sequence[Event],
     ) -> None:
         """The frame is the new reference: p = 0 for the session reference;
-        otherwise the trajectory continued from the frames before it."""
+        otherwise a new chain, its p estimated from the trajectory continued
+        from the frames before it and held there (see the module docstring)."""
         self._remember(tracker.frames_seen - 1, seq, frame)
         knots = self._knot_times(tracker, self._timings[seq], 0.0)
         first = self.last_p_nm is None and n_fed == 0 and len(self.trajectory) == 0
         # A reference has no measurement of its own: its samples are not
         # known yet, so it reports none (the smoothed trajectory has them).
-        traj = self._add_to_trajectory(seq, frame, knots, [], events)
         if first:
+            self._add_to_trajectory(seq, frame, knots, [], events)
             p_est = np.zeros(2)
             pos.reason = "reference"
             pos.fed = not held
             pos.sigma = 0.0
         else:
+            traj = self._add_to_trajectory(seq, frame, knots, [], events, reference=True)
             if traj is not None:
-                p_est = traj.mid_nm
+                p_est, pos.sigma = traj.mid_nm, traj.mid_sigma_nm
             elif np.all(np.isfinite(prediction_nm)):
                 p_est = prediction_nm
             elif self.last_p_nm is not None:
@@ -488,6 +523,9 @@ class DriftPositions:
             else:
                 p_est = np.zeros(2)
             pos.reason = "new reference (position estimated)"
+            self._chains += 1
+            self.chain = self._chains
+            self._chain_sigma_nm = pos.sigma
         pos.m = p_est - pos.offset
         self._base_nm = pos.m.copy()
         pos.reference_image = np.asarray(frame.heights_nm, dtype=np.float32)
@@ -587,7 +625,9 @@ class DriftPositions:
         pos.increment = inc
         pos.reference_key = self._keys.get(step.reference_index)
         pos.dx, pos.dy = float(inc.dx_nm), float(inc.dy_nm)
-        pos.sigma = pos.measurement_sigma = float(meas.sigma_nm)
+        pos.measurement_sigma = float(meas.sigma_nm)
+        # without the trajectory: the measurement's σ, and the chain reference's
+        pos.sigma = math.hypot(self._chain_sigma_nm, pos.measurement_sigma)
         pos.valid_blocks, pos.total_blocks = int(meas.valid_blocks), int(meas.total_blocks)
         pos.keyframe_index = int(step.keyframe_index)
         pos.reanchored = bool(step.reanchored)

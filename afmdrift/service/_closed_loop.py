@@ -6,10 +6,17 @@ offset is set to the offset it had at the reference frame plus the published
 d(t), through the play of the offset actuator when the model has fitted one
 (``closed_loop_actuator = "offset"``), or a velocity is set that keeps the
 offset on that path (``"velocity"``, an instrument's own drift compensation).
+
+When the position chain changes (``Publishing.chain``: a new reference whose
+position was estimated) or the instrument was found to be another one
+(:meth:`ClosedLoop.rebaseline`), the loop does not act on the difference:
+it takes the instrument's offset as it stands, less d(t) now, as the new
+offset at the reference, and follows only how d moves from there.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import numpy as np
@@ -25,6 +32,8 @@ from afmdrift.service._link import InstrumentLink
 from afmdrift.service._publish import Publishing
 
 __all__ = ["ClosedLoop"]
+
+log = logging.getLogger(__name__)
 
 
 class ClosedLoop:
@@ -65,6 +74,17 @@ class ClosedLoop:
         # offset_move steps of the event log (n, 2), and the log length they are of
         self._play_steps: tuple[int, npt.NDArray[np.float64]] = (-1, np.zeros((0, 2)))
         self._last_velocity: tuple[float, float, float] | None = None  # t_s, vx, vy
+        # The chain the hold is for, the hold taken at a chain change (None:
+        # the offset at the session reference), and a re-baseline asked for.
+        self._chain = 0
+        self._hold: tuple[float, float] | None = None
+        self._rebaseline = False
+
+    def rebaseline(self) -> None:
+        """Take the instrument's offset as it stands as the baseline at the
+        next tick (another instrument answers: its offset is not the one the
+        hold was taken from)."""
+        self._rebaseline = True
 
     def connected(self, t_s: float, offset: tuple[float, float]) -> None:
         """The instrument connected with absolute ``offset`` at ``t_s``."""
@@ -73,11 +93,14 @@ class ClosedLoop:
 
     def hold_offset(self) -> tuple[float, float] | None:
         """The instrument's absolute offset at the reference frame (where d = 0
-        puts it), or ``None`` while there is no valid prediction to follow."""
+        puts it; after a chain change, the baseline taken then), or ``None``
+        while there is no valid prediction to follow."""
         last = self.publishing.last_offset
         base = self.absolute_offset_base
         if last is None or not last.valid or base is None or self.publishing.curve is None:
             return None
+        if self._hold is not None:
+            return self._hold
         t_ref = self.pipeline.t_ref_s
         if t_ref is None:
             return None
@@ -87,6 +110,8 @@ class ClosedLoop:
     async def tick(self) -> None:
         """Move the instrument's XY offset so the image stays on the same spot."""
         hold = self.hold_offset()
+        if hold is not None and (self._rebaseline or self.publishing.chain != self._chain):
+            hold = await self._take_baseline()
         if self.svc.closed_loop_actuator == "velocity":
             await self._velocity_tick(hold)
             return
@@ -104,6 +129,21 @@ class ClosedLoop:
             return
         await self.link.set_offset(x, y)
         self._last_command = (x, y)
+
+    async def _take_baseline(self) -> tuple[float, float]:
+        """The hold at a chain change: the instrument's offset now less the
+        published d now, so the jump between the chains moves nothing."""
+        last = self.publishing.last_offset
+        assert last is not None
+        ox, oy = await self.link.call(self.link.instrument.get_offset)
+        self._hold = (ox - last.x_nm, oy - last.y_nm)
+        self._last_command = (ox, oy)
+        self._chain, self._rebaseline = self.publishing.chain, False
+        log.info(
+            "closed loop: position chain %d: the offset (%.3f, %.3f) nm is the new baseline",
+            self._chain, ox, oy,
+        )  # fmt: skip
+        return self._hold
 
     def _through_play(self, x: float, y: float) -> tuple[float, float]:
         """The offset to command so the image lands where ``(x, y)`` would put

@@ -145,6 +145,7 @@ class DriftService:
         )
         self.link.on_epoch(self._new_epoch)
         self.link.on_connected(self._on_connected)
+        self.link.on_instrument_changed(self._instrument_changed)
         self.frames_processed = 0
         self.latencies_s: deque[float] = deque(maxlen=1000)
         self._frame_done = asyncio.Event()
@@ -300,12 +301,16 @@ class DriftService:
         records = store.last_frames(max(self.svc.training_window, 1) * 2)
         logged = store.events()
         channels = store.channels()
-        t_offset_s = float(store.meta().get("t_offset_s", "0"))
+        meta = store.meta()
+        t_offset_s = float(meta.get("t_offset_s", "0"))
         await self._in_worker(
             lambda: self.pipeline.resume(state, records=records, channels=channels, events=logged)
         )
         last = state.last
-        self.link.resume(epoch=state.epoch, t_offset_s=t_offset_s, last_seen_s=last.t_end_s)
+        self.link.resume(
+            epoch=state.epoch, t_offset_s=t_offset_s, last_seen_s=last.t_end_s,
+            info=_stored_instrument(meta), pixel_size_nm=(last.pixel_x_nm, last.pixel_y_nm),
+        )  # fmt: skip
         self.acquisition.resume(
             events=[e for _, _, e in logged],
             event_cursor=state.event_cursor,
@@ -330,6 +335,13 @@ class DriftService:
         if self._writer is not None and self._executor is not None:
             ident = {f"instrument_{k}": str(v) for k, v in dataclasses.asdict(info).items()}
             self._executor.submit(self._writer.set_meta, ident)
+
+    def _instrument_changed(self, what: str) -> None:
+        # Another instrument: a new chain of positions (its references, and
+        # the other geometries' of the old one, are no use), and the closed
+        # loop takes the new instrument's offset as it stands.
+        self.pipeline.request_reset()
+        self.closed_loop.rebaseline()
 
     def _new_epoch(self, epoch: int, t_offset_s: float) -> None:
         self.pipeline.request_reset()
@@ -474,6 +486,14 @@ class DriftService:
     async def _serve_control(self) -> None:
         assert self._control is not None
         await self.controller.serve(self._control)
+
+
+def _stored_instrument(meta: dict[str, str]) -> InstrumentInfo | None:
+    """The instrument a run store was recorded with (its ``instrument_*`` meta)."""
+    names = [f.name for f in dataclasses.fields(InstrumentInfo)]
+    if not all(f"instrument_{n}" in meta for n in names):
+        return None
+    return InstrumentInfo(**{n: meta[f"instrument_{n}"] for n in names})
 
 
 async def _supervised(name: str, fn: Callable[[], Awaitable[None]]) -> None:

@@ -12,6 +12,13 @@ restarted: the link starts a new *epoch*, shifts the instrument's times so the
 service's time axis goes on from where its clock stands (through the outage,
 increasing), and tells its listeners (who re-read the event log from the start
 and take a new registration reference).
+
+The link also checks that the instrument on the other end is still the one
+it was (:meth:`InstrumentLink.on_instrument_changed`): another identity
+(vendor, model or serial) when it (re)connects, or another calibration (the
+pixel size of the first frame after a reconnection differs from the last
+frame's before it) is logged as a warning, raises the ``instrument_changed``
+flag and tells the listeners (who start a new chain of positions).
 """
 
 from __future__ import annotations
@@ -49,6 +56,15 @@ _T = TypeVar("_T")
 #: ``fn(info, t_s, offset_nm)``, called (and awaited if it returns an awaitable) on connect.
 ConnectListener = Callable[[InstrumentInfo, float, tuple[float, float]], Any]
 
+#: The fields of :class:`InstrumentInfo` that tell one instrument from another
+#: (a firmware update leaves it the same instrument).
+_IDENTITY_FIELDS = ("vendor", "model", "serial")
+
+
+def _describe(info: InstrumentInfo) -> str:
+    """``vendor model (serial S)``: the instrument as the log names it."""
+    return f"{info.vendor} {info.model} (serial {info.serial})"
+
 
 class InstrumentDownError(Exception):
     """An instrument call failed; the link's reconnect loop takes over."""
@@ -76,6 +92,9 @@ class InstrumentLink:
         Added to every instrument time to place it on the service axis.
     connected : asyncio.Event
         Set while the connection is up.
+    info : InstrumentInfo or None
+        The identity of the instrument connected last (or of the one a
+        resumed run was recorded with, until the first connection).
     """
 
     def __init__(
@@ -98,6 +117,12 @@ class InstrumentLink:
         self._connect_listeners: list[
             Callable[[InstrumentInfo, float, tuple[float, float]], Any]
         ] = []
+        self._changed_listeners: list[Callable[[str], None]] = []
+        self.info: InstrumentInfo | None = None
+        # the pixel size of the last frame, and whether the next frame is the
+        # first since a (re)connection (its pixel size is then checked)
+        self._pixel_size_nm: tuple[float, float] | None = None
+        self._check_calibration = False
 
     # ------------------------------------------------------------------ wiring
 
@@ -110,11 +135,28 @@ class InstrumentLink:
         connection, with the instrument's time on the service axis and its XY offset."""
         self._connect_listeners.append(fn)
 
-    def resume(self, *, epoch: int, t_offset_s: float, last_seen_s: float) -> None:
-        """Continue the time axis of a run restored from the store."""
+    def on_instrument_changed(self, fn: Callable[[str], None]) -> None:
+        """Call ``fn(what)`` when the instrument is another one than before
+        (``what`` says how, ``old -> new``)."""
+        self._changed_listeners.append(fn)
+
+    def resume(
+        self,
+        *,
+        epoch: int,
+        t_offset_s: float,
+        last_seen_s: float,
+        info: InstrumentInfo | None = None,
+        pixel_size_nm: tuple[float, float] | None = None,
+    ) -> None:
+        """Continue the time axis of a run restored from the store, and check
+        the instrument against the one it was recorded with (``info``, and
+        the ``pixel_size_nm`` of its last frame)."""
         self.epoch = epoch
         self.t_offset_s = t_offset_s
         self._last_seen_s = last_seen_s
+        self.info = info
+        self._pixel_size_nm = pixel_size_nm
 
     def start(self) -> None:
         """Let :meth:`connect_loop` make the first connection."""
@@ -174,6 +216,9 @@ class InstrumentLink:
         return await self.call(self.instrument.latest_frame)
 
     def frame_on_service_axis(self, frame: Frame) -> Frame:
+        """``frame`` with its times on the service axis (and, the first frame
+        after a connection, its pixel size checked against the last one's)."""
+        self._see_calibration(frame.pixel_size_nm)
         shifted = dataclasses.replace(
             frame,
             t_start_s=self.shift(frame.t_start_s),
@@ -258,6 +303,7 @@ class InstrumentLink:
                 info.firmware,
                 now,
             )
+            self._see_identity(info)
             for fn in self._connect_listeners:
                 result = fn(info, t, offset)
                 if asyncio.iscoroutine(result):
@@ -272,6 +318,43 @@ class InstrumentLink:
             await self.instrument.close()
         except INSTRUMENT_ERRORS as err:
             log.warning("closing the instrument failed: %s", err)
+
+    # ------------------------------------------------------------------ identity
+
+    def _see_identity(self, info: InstrumentInfo) -> None:
+        """A connection to ``info``: another identity than before is a change;
+        the same one has its calibration checked on its first frame."""
+        old, self.info = self.info, info
+        if old is not None and any(getattr(old, f) != getattr(info, f) for f in _IDENTITY_FIELDS):
+            self._check_calibration = False  # another instrument: its frames differ anyway
+            self._changed(f"{_describe(old)} -> {_describe(info)}")
+        else:
+            self._check_calibration = self._pixel_size_nm is not None
+
+    def _see_calibration(self, pixel_size_nm: tuple[float, float]) -> None:
+        """A frame of ``pixel_size_nm``: on the first after a connection,
+        another pixel size than the last frame's is another calibration."""
+        old, self._pixel_size_nm = self._pixel_size_nm, pixel_size_nm
+        if not self._check_calibration or old is None:
+            return
+        self._check_calibration = False
+        same = (math.isclose(a, b, rel_tol=1e-9) for a, b in zip(old, pixel_size_nm, strict=True))
+        if not all(same):
+            who = _describe(self.info) if self.info is not None else "the instrument"
+            self._changed(
+                f"{who}: pixel size {old[0]:.6g} x {old[1]:.6g} nm -> "
+                f"{pixel_size_nm[0]:.6g} x {pixel_size_nm[1]:.6g} nm across a reconnection"
+            )
+
+    def _changed(self, what: str) -> None:
+        self.flags.add("instrument_changed")
+        log.warning(
+            "instrument changed: %s; its positions start a new chain, and the "
+            "difference is not taken for drift",
+            what,
+        )
+        for fn in self._changed_listeners:
+            fn(what)
 
     # ------------------------------------------------------------------ time axis
 

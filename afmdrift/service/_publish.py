@@ -4,7 +4,7 @@
 ``docs/wire.md``): the offset stream d(t) through the safety limiter, the
 ``model`` and ``frame`` messages after each frame, and the ``status``
 heartbeat with its state and flags (stale, paused, clamped, low confidence,
-instrument error, no model). It keeps the per-topic sequence numbers, the
+instrument error, instrument changed, no model). It keeps the per-topic sequence numbers, the
 rolling prediction error and the frame timing that staleness is judged by.
 """
 
@@ -57,6 +57,8 @@ class Publishing:
         The d(t) being published.
     paused : bool
         Set by the ``pause`` control command: offsets are published invalid.
+    chain : int
+        The position chain of the last frame processed (``chain`` on the wire).
     """
 
     def __init__(
@@ -88,6 +90,7 @@ class Publishing:
         self.last_offset: OffsetMsg | None = None
         self.last_frame_t_s: float | None = None
         self.frames_seen = 0
+        self.chain = 0
         self.publisher: Publisher | None = None
         self._frame_ends: deque[float] = deque(maxlen=16)
         self._errors_nm: deque[float] = deque(maxlen=config.rolling_window)
@@ -126,6 +129,8 @@ class Publishing:
         """Update the state after a processed frame, publish ``model`` (when the
         frame fed the model) and ``frame``; return the frame's latency, s."""
         r = outcome.record
+        if outcome.position is not None:
+            self.chain = outcome.position.chain
         self._frame_ends.append(r.t_end_s)
         self.last_frame_t_s = r.t_end_s
         if outcome.low_confidence:
@@ -157,6 +162,7 @@ class Publishing:
                 max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
             await self.publisher.send(self.last_model)
         latency = time.time() - detected_wall_s
@@ -185,6 +191,7 @@ class Publishing:
                 trajectory=_samples(outcome),
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
         )
         return latency
@@ -228,6 +235,7 @@ class Publishing:
                 valid=False,
                 run_id=self.run_id,
                 epoch=self.epoch(),
+                chain=self.chain,
             )
         target = self.curve.at([t_s]).reshape(-1)
         tx, ty = float(target[0]), float(target[1])
@@ -250,6 +258,7 @@ class Publishing:
             clamped=out.clamped,
             run_id=self.run_id,
             epoch=self.epoch(),
+            chain=self.chain,
         )
 
     async def offset_tick(self) -> None:

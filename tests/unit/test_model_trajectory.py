@@ -227,3 +227,47 @@ def test_a_down_frames_uncertainty_is_that_of_its_reported_position_not_of_p_alo
     smooth = traj.smoothed()
     mids = [smooth[k].mid_sigma_nm for k in range(2, 12)]
     assert max(mids) < 2.0 * min(mids)
+
+
+def _keyframe_constraints(k: int, ref: int, noise_nm: np.ndarray) -> list[BandConstraint]:
+    """Frame ``k``'s block rows measured against frame ``ref``, with the
+    given noise (ROWS, 2)."""
+    t, t_ref = _knots(k), _knots(ref)
+    v = _drift(t) - _drift(t_ref) + noise_nm
+    return [
+        BandConstraint(ref, float(t[j]), float(t_ref[j]), (float(v[j, 0]), float(v[j, 1])), 0.05)
+        for j in range(ROWS)
+    ]
+
+
+def test_a_new_reference_is_held_where_it_was_estimated_and_its_sigma_carried() -> None:
+    """Regression (issue 42): a new reference without a measurement of its
+    own was added with free knots, so every later frame measured against it
+    re-estimated it, and the positions of its chain fell behind their
+    measured displacements from it. Now its estimate is held (to numerical
+    precision), the frames of its chain are that estimate plus their
+    displacement from it (as a trajectory that starts at it finds), and
+    their σ is the root-sum-square of the two."""
+    noise = np.random.default_rng(11).normal(0, 0.05, (30, ROWS, 2))
+    traj = DriftTrajectory(q_nm2_s3=1e-4, window=8, keep_history=False)
+    alone = DriftTrajectory(q_nm2_s3=1e-4, window=8, keep_history=False)
+    traj.add_frame(0, _knots(0), sign=1, t_mid_s=float(_knots(0).mean()), constraints=[])
+    for k in range(1, 6):
+        t = _knots(k)
+        constraints = _keyframe_constraints(k, 0, noise[k])
+        traj.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+    ref = traj.add_reference(6, _knots(6), sign=1, t_mid_s=float(_knots(6).mean()))
+    alone.add_frame(6, _knots(6), sign=1, t_mid_s=float(_knots(6).mean()), constraints=[])
+    assert ref.mid_sigma_nm > 0.1  # an estimate, carried across a frame period
+    for k in range(7, 30):
+        t = _knots(k)
+        constraints = _keyframe_constraints(k, 6 if k < 18 else 17, noise[k])
+        est = traj.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+        own = alone.add_frame(k, t, sign=1, t_mid_s=float(t.mean()), constraints=constraints)
+        if 6 in traj.frames:
+            np.testing.assert_allclose(traj.estimate(6).mid_nm, ref.mid_nm, atol=1e-6)
+        # the reference's estimate plus the displacement from it
+        np.testing.assert_allclose(est.mid_nm - ref.mid_nm, own.mid_nm, atol=1e-4)
+        # σ: the estimate's and the displacement's, in root-sum-square
+        relative = np.sqrt(est.mid_sigma_nm**2 - ref.mid_sigma_nm**2)
+        assert relative == pytest.approx(own.mid_sigma_nm, rel=0.1)

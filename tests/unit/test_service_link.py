@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from collections.abc import Awaitable, Callable
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ import pytest
 from afmdrift.config import ServiceConfig
 from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentInfo
 from afmdrift.service._acquire import Acquisition
-from afmdrift.service._link import InstrumentLink, every
+from afmdrift.service._link import InstrumentDownError, InstrumentLink, every
 
 
 class ScriptedInstrument:
@@ -222,3 +223,103 @@ async def test_a_late_schedule_counts_the_ticks_it_leaves_out() -> None:
     await asyncio.gather(task, return_exceptions=True)
     assert len(skipped) == 1
     assert 25 <= skipped[0] <= 35
+
+
+class _Reconnecting:
+    """A link whose connect loop runs, with the means to drop the connection."""
+
+    def __init__(self, inst: ScriptedInstrument, **stored: object) -> None:
+        self.link = InstrumentLink(inst, reconnect_delay_s=0.01, flags=set())
+        if stored:
+            self.link.resume(epoch=0, t_offset_s=0.0, last_seen_s=0.0, **stored)  # type: ignore[arg-type]
+        self.changes: list[str] = []
+        self.link.on_instrument_changed(self.changes.append)
+        self.task: asyncio.Task[None] | None = None
+
+    async def __aenter__(self) -> _Reconnecting:
+        self.link.start()
+        self.task = asyncio.create_task(self.link.connect_loop())
+        await asyncio.wait_for(self.link.connected.wait(), 5.0)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        assert self.task is not None
+        self.task.cancel()
+        await asyncio.gather(self.task, return_exceptions=True)
+
+    async def reconnect(self) -> None:
+        async def lost() -> None:
+            raise ConnectionError("the instrument went away")
+
+        with pytest.raises(InstrumentDownError):
+            await self.link.call(lost)
+        await asyncio.wait_for(self.link.connected.wait(), 5.0)
+
+    def frame(self, pixel_nm: float) -> None:
+        self.link.frame_on_service_axis(
+            Frame(0, np.zeros((8, 8)), (pixel_nm, pixel_nm), t_start_s=0.0, t_end_s=1.0)
+        )
+
+
+@pytest.mark.asyncio
+async def test_another_instrument_on_the_connection_is_said_and_flagged(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Issue 42: another instrument took over the address (another serial)
+    and the log said only 'connected to ... (serial 0002)'. A reconnection to
+    the same instrument, or to one with new firmware, is no change."""
+    inst = ScriptedInstrument()
+    async with _Reconnecting(inst) as r:
+        await r.reconnect()
+        inst.identify = _identity("test", "scripted", "0", "2")  # type: ignore[method-assign]
+        await r.reconnect()
+        assert r.changes == []
+        inst.identify = _identity("test", "scripted", "0002", "2")  # type: ignore[method-assign]
+        with caplog.at_level(logging.WARNING):
+            await r.reconnect()
+    assert r.changes == ["test scripted (serial 0) -> test scripted (serial 0002)"]
+    assert "instrument_changed" in r.link.flags
+    assert "instrument changed: test scripted (serial 0) -> test scripted (serial 0002)" in (
+        caplog.text
+    )
+
+
+@pytest.mark.asyncio
+async def test_another_pixel_size_across_a_reconnection_is_another_calibration() -> None:
+    """Issue 42: the same identity but another pixel size on the first frame
+    after a reconnection is another instrument (or calibration); a pixel
+    size that changes while connected is a zoom, not a change."""
+    inst = ScriptedInstrument()
+    async with _Reconnecting(inst) as r:
+        r.frame(4.0)
+        r.frame(2.0)  # zoomed in while connected
+        await r.reconnect()
+        r.frame(2.0)
+        assert r.changes == []
+        await r.reconnect()
+        r.frame(3.0)
+        r.frame(4.0)  # only the first frame after a connection is compared
+    assert r.changes == ["test scripted (serial 0): pixel size 2 x 2 nm -> 3 x 3 nm "
+                         "across a reconnection"]  # fmt: skip
+
+
+@pytest.mark.asyncio
+async def test_a_resumed_run_checks_the_instrument_it_was_recorded_with() -> None:
+    """Issue 42: a restarted daemon compares the instrument with the one in
+    its run store (identity, and the last frame's pixel size)."""
+    stored = InstrumentInfo("test", "scripted", "0001", "1")
+    async with _Reconnecting(ScriptedInstrument(), info=stored, pixel_size_nm=(4.0, 4.0)) as r:
+        r.frame(4.0)
+    assert r.changes == ["test scripted (serial 0001) -> test scripted (serial 0)"]
+    same = InstrumentInfo("test", "scripted", "0", "1")
+    async with _Reconnecting(ScriptedInstrument(), info=same, pixel_size_nm=(4.0, 4.0)) as r:
+        r.frame(3.0)
+    assert r.changes == ["test scripted (serial 0): pixel size 4 x 4 nm -> 3 x 3 nm "
+                         "across a reconnection"]  # fmt: skip
+
+
+def _identity(*fields: str) -> Callable[[], Awaitable[InstrumentInfo]]:
+    async def identify() -> InstrumentInfo:
+        return InstrumentInfo(*fields)
+
+    return identify
