@@ -337,6 +337,27 @@ def test_reader_tells_a_run_store_on_its_way_from_a_bad_one(tmp_path: Path, made
         assert reader.session_reference() is not None
 
 
+def test_reader_calls_a_store_its_writer_holds_locked_not_ready(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The daemon switches a new run.sqlite to WAL under an exclusive lock; a
+    reader that waits past its busy timeout there (a slow disk) is told "not
+    ready" (a live dashboard keeps waiting), not "not a usable run store"."""
+    import afmdrift.dashboard._store as store_module
+
+    monkeypatch.setattr(store_module, "_BUSY_TIMEOUT_S", 0.05)
+    run = tmp_path / "run"
+    run.mkdir()
+    writer = sqlite3.connect(run / "run.sqlite", isolation_level=None)
+    try:
+        writer.execute("BEGIN EXCLUSIVE")
+        with pytest.raises(StoreNotReadyError, match="locked") as info:
+            RunReader(run)
+        assert "\n" not in str(info.value)
+    finally:
+        writer.close()
+
+
 def test_reader_calls_an_unusable_store_unusable_not_unready(tmp_path: Path) -> None:
     run = tmp_path / "run"
     run.mkdir()
