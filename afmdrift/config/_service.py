@@ -91,7 +91,7 @@ class ServiceConfig(BaseModel):
         None,
         min_length=1,
         description="Token file written at start-up, readable only by the daemon's user; "
-        "default RUN_DIR/control.token.",
+        "default RUN_DIR/control.token. Its directory must exist and be writable.",
     )
     control_max_request_bytes: int = Field(
         65536, ge=256, le=16 << 20, description="Larger control requests are dropped."

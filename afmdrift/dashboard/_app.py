@@ -387,7 +387,12 @@ class Dashboard:
         if origin is not None and origin.split("://", 1)[-1] != request.host:
             # A page from another site must not read the run through the browser.
             return web.Response(status=403, text="afmdrift dashboard: cross-origin WebSocket\n")
-        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16)
+        # Uncompressed: aiohttp compresses a message over 16 KiB (a frame view,
+        # a snapshot) in a task of its own that cancelling the page's writer
+        # does not stop; when the page has gone, that task fails on the closed
+        # connection with no one to see it, and asyncio logs a traceback.
+        # Without compression a send is one write into the transport.
+        ws = web.WebSocketResponse(heartbeat=10.0, max_msg_size=1 << 16, compress=False)
         await ws.prepare(request)
         page = _Page(ws)
         page.queue.put_nowait(self._snapshot())

@@ -36,15 +36,22 @@ _BUSY_TIMEOUT_S = 2.0
 _COLUMNS = ", ".join(FRAME_COLUMNS)
 
 
+def _busy(err: sqlite3.DatabaseError) -> bool:
+    """SQLite gave up waiting for another connection's lock (``SQLITE_BUSY``)."""
+    code = getattr(err, "sqlite_errorcode", None)
+    return code is not None and code & 0xFF == sqlite3.SQLITE_BUSY
+
+
 class DashboardError(AfmdriftError):
     """The dashboard cannot start: unknown run directory, unusable store, bad option."""
 
 
 class StoreNotReadyError(DashboardError):
-    """The run store is not there yet: no run directory, no ``run.sqlite``, or a
-    database without the store's tables (the daemon creates the directory, then
-    the file, then its schema). A dashboard following a daemon waits for it; a
-    finished run is refused."""
+    """The run store is not there yet: no run directory, no ``run.sqlite``, a
+    database without the store's tables, or one its writer held locked past the
+    busy timeout (the daemon creates the directory, then the file, switches it
+    to WAL under an exclusive lock, then writes its schema). A dashboard
+    following a daemon waits for it; a finished run is refused."""
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -77,7 +84,7 @@ class RunReader:
     ------
     StoreNotReadyError
         The directory or its ``run.sqlite`` does not exist, or the database has
-        no tables yet (a daemon that is creating it).
+        no tables yet or stays locked by its writer (a daemon that is creating it).
     DashboardError
         The file is not a run store, or its schema version is not the one
         this reader understands.
@@ -116,6 +123,11 @@ class RunReader:
             self._db.execute(f"SELECT {_COLUMNS} FROM frames LIMIT 0").fetchall()
         except sqlite3.DatabaseError as err:
             self._db.close()
+            if _busy(err):
+                raise StoreNotReadyError(
+                    f"{self.path}: locked by its writer for over {_BUSY_TIMEOUT_S:g} s ({err}; "
+                    "afmdrift run holds it so while it creates the store)"
+                ) from None
             raise DashboardError(f"{self.path}: not a usable run store ({err})") from None
         if row is None or str(row[0]) != _SCHEMA_VERSION:
             self._db.close()

@@ -87,7 +87,17 @@ class RunStore:
         self.archive_frames = archive_frames
         self.keep_model_states = keep_model_states
         self.path = self.run_dir / DB_NAME
-        self._db = open_database(self.path, check_same_thread=check_same_thread)
+        try:
+            self._db = open_database(self.path, check_same_thread=check_same_thread)
+        except StoreError:
+            # SQLite says "unable to open database file" or "attempt to write a
+            # readonly database" where the directory is the problem: name it.
+            if not os.access(self.run_dir, os.W_OK | os.X_OK):
+                raise StoreError(
+                    f"{self.run_dir}: run directory is not writable ({DB_NAME} and its -wal "
+                    "and -shm files are written there)"
+                ) from None
+            raise
         self._pending_channels: list[ChannelSample] = []
         self._pending_events: list[tuple[int, int, Event]] = []
         # trajectory.csv rows committed but not yet appended (a full disk)

@@ -54,18 +54,28 @@ STATE_CHANGING = frozenset({"pause", "resume", "reset_reference", "reload_model"
 
 
 def write_token(path: Path) -> str:
-    """Write a new random token to ``path`` (mode 0600, atomically); return it."""
+    """Write a new random token to ``path`` (mode 0600, atomically); return it.
+
+    Raises
+    ------
+    OSError
+        ``path``'s directory does not exist (it is not created) or cannot be
+        written; nothing is left behind.
+    """
     token = secrets.token_urlsafe(32)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     try:
-        os.fchmod(fd, 0o600)
-        os.write(fd, token.encode("ascii"))
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
+        try:
+            os.fchmod(fd, 0o600)
+            os.write(fd, token.encode("ascii"))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return token
 
 
@@ -109,9 +119,29 @@ class Controller:
         self._reload_dirs = dirs
 
     def start(self) -> None:
-        """Write the token file (when commands need a token)."""
+        """Write the token file (when commands need a token).
+
+        Raises
+        ------
+        ConfigError
+            The token file cannot be written (no such directory, not a
+            directory, not writable), naming ``service.control_token_file``.
+        """
         if self.config.service.control_auth:
-            self._token = write_token(self.token_path)
+            try:
+                self._token = write_token(self.token_path)
+            except OSError as err:
+                folder = self.token_path.parent
+                if isinstance(err, FileNotFoundError):
+                    why = f"no directory {folder}"
+                elif isinstance(err, NotADirectoryError):
+                    why = f"{folder} is not a directory"
+                else:
+                    why = f"{err.strerror or err} in {folder}"
+                raise ConfigError(
+                    f"service.control_token_file {self.token_path}: cannot write the control "
+                    f"token ({why})"
+                ) from None
             log.info("control token written to %s", self.token_path)
 
     def stop(self) -> None:

@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import gc
 import json
+import logging
 import math
 import os
+import random
 import sqlite3
+import string
 from pathlib import Path
 from typing import Any
 
@@ -333,6 +337,27 @@ def test_reader_tells_a_run_store_on_its_way_from_a_bad_one(tmp_path: Path, made
         assert reader.session_reference() is not None
 
 
+def test_reader_calls_a_store_its_writer_holds_locked_not_ready(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The daemon switches a new run.sqlite to WAL under an exclusive lock; a
+    reader that waits past its busy timeout there (a slow disk) is told "not
+    ready" (a live dashboard keeps waiting), not "not a usable run store"."""
+    import afmdrift.dashboard._store as store_module
+
+    monkeypatch.setattr(store_module, "_BUSY_TIMEOUT_S", 0.05)
+    run = tmp_path / "run"
+    run.mkdir()
+    writer = sqlite3.connect(run / "run.sqlite", isolation_level=None)
+    try:
+        writer.execute("BEGIN EXCLUSIVE")
+        with pytest.raises(StoreNotReadyError, match="locked") as info:
+            RunReader(run)
+        assert "\n" not in str(info.value)
+    finally:
+        writer.close()
+
+
 def test_reader_calls_an_unusable_store_unusable_not_unready(tmp_path: Path) -> None:
     run = tmp_path / "run"
     run.mkdir()
@@ -501,6 +526,37 @@ async def test_a_page_that_falls_behind_is_dropped_and_the_others_keep_going(
         assert msg.type == aiohttp.WSMsgType.CLOSE
         assert (msg.data, msg.extra) == (4000, "too slow")
         assert received <= 256
+
+
+@pytest.mark.asyncio
+async def test_a_page_that_closes_while_a_large_message_is_sent_logs_no_traceback(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Regression (issue 42): a browser that went away while the dashboard sent
+    it a large message (a frame view, a long run's snapshot) left a traceback
+    in the dashboard's log. A browser offers compression; aiohttp compressed
+    such a message in a task of its own, the page's writer was cancelled when
+    the page closed, and that task then failed writing to the closed connection
+    with no one to see it ("Task exception was never retrieved",
+    ClientConnectionResetError). The end of the Chromium test, which closes
+    the browser while frames keep coming, hit it now and then."""
+    caplog.set_level(logging.ERROR)
+    # Letters and digits: about 25 ms of compression, far longer than the close.
+    pad = "".join(random.Random(42).choices(string.ascii_letters + string.digits, k=4_000_000))
+    async with (
+        Dashboard(run_dir=_store(tmp_path / "run", 2), port=0, tick_s=60.0) as dash,
+        aiohttp.ClientSession() as http,
+    ):
+        for k in range(3):
+            # compress=15: permessage-deflate offered, as browsers offer it.
+            async with http.ws_connect(dash.url + "ws", compress=15) as page:
+                assert (await page.receive_json(timeout=5))["type"] == "snapshot"
+                dash._broadcast({"type": "test", "k": k, "pad": pad})
+            # Leaving the block closed the page while the message was on its way.
+            await _until(lambda: dash.pages == 0)
+            await asyncio.sleep(0.2)
+            gc.collect()
+    assert [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR] == []
 
 
 @pytest.mark.asyncio
