@@ -29,8 +29,9 @@ test: $(STAMP)
 test-all: $(STAMP)
 	$(BIN)/python -m pytest -m ''
 
+# The soak measures the daemon's timing and memory: alone, in one process.
 soak: $(STAMP)
-	$(BIN)/python -m pytest -m soak
+	$(BIN)/python -m pytest -m soak -n 0
 
 lint: $(STAMP)
 	$(BIN)/ruff check afmdrift tests benchmarks

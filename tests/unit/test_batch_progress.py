@@ -36,7 +36,7 @@ def in_process(
 
     line = io.StringIO()
     with LocalCluster(
-        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None
+        n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0"
     ) as cluster:
         report = run_batch(
             [str(recording)],

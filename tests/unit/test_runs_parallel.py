@@ -82,7 +82,7 @@ def test_inside_a_dask_worker_the_cluster_runs_the_tasks() -> None:
 
     with (
         LocalCluster(
-            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=None
+            n_workers=1, threads_per_worker=2, processes=False, dashboard_address=":0"
         ) as cluster,
         Client(cluster) as client,
     ):
