@@ -322,7 +322,13 @@ async def _soak(tmp_path: Path, disk: Path, mounted: bool) -> None:
     assert frozen == FREEZES
     # every disk-full episode was reported in the status, and nothing was lost
     # (the no-loss check above covers the frames held meanwhile)
-    assert store_errors == set(range(disk_fulls)), (store_errors, disk_fulls)
+    # (a status sent after the space came back may still carry the last
+    # episode's flag: the daemon retries within 5 s, so the flag may be seen
+    # with the episode count one higher)
+    assert set(range(disk_fulls)) <= store_errors <= set(range(disk_fulls + 1)), (
+        store_errors,
+        disk_fulls,
+    )
     assert unstored_max == 0, "frames were let go unstored"
     assert sum(r.fed_model for r in records) >= 0.99 * len(records)
     with contextlib.closing(sqlite3.connect(run / "run.sqlite")) as db:
