@@ -197,6 +197,13 @@ async def _daemon(config: Path, url: str) -> asyncio.subprocess.Process:
     )
 
 
+async def _reap(proc: asyncio.subprocess.Process) -> None:
+    """Kill the daemon if a test left it running, and wait for it."""
+    if proc.returncode is None:
+        proc.kill()
+        await proc.wait()
+
+
 @pytest.mark.asyncio
 async def test_sigkilled_daemon_resumes_its_model_and_reference(tmp_path: Path) -> None:
     run = tmp_path / "run"
@@ -209,9 +216,7 @@ async def test_sigkilled_daemon_resumes_its_model_and_reference(tmp_path: Path) 
             proc.send_signal(signal.SIGKILL)
             assert await proc.wait() == -signal.SIGKILL
         finally:
-            if proc.returncode is None:
-                proc.kill()
-                await proc.wait()
+            await _reap(proc)
         killed_at = _check_store(run)
         proc = await _daemon(cfg, url)
         try:
@@ -219,9 +224,7 @@ async def test_sigkilled_daemon_resumes_its_model_and_reference(tmp_path: Path) 
             proc.send_signal(signal.SIGTERM)
             assert await asyncio.wait_for(proc.wait(), 20) == 0
         finally:
-            if proc.returncode is None:
-                proc.kill()
-                await proc.wait()
+            await _reap(proc)
     records = _check_store(run)
     resumed = records[len(killed_at)]
     # measured against the stored reference, by the stored model: no new reference
@@ -542,9 +545,7 @@ async def test_killed_ten_times_the_store_stays_whole_and_the_position_follows_t
                 proc.send_signal(signal.SIGKILL)
                 assert await proc.wait() == -signal.SIGKILL
             finally:
-                if proc.returncode is None:
-                    proc.kill()
-                    await proc.wait()
+                await _reap(proc)
             with RunStore(run) as store:
                 assert store.check_consistency() == []
         records = _check_store(run)
@@ -589,9 +590,7 @@ async def test_a_flood_of_control_clients_neither_slows_the_frames_nor_goes_unan
                 proc.send_signal(signal.SIGTERM)
                 assert await asyncio.wait_for(proc.wait(), 20) == 0
             finally:
-                if proc.returncode is None:
-                    proc.kill()
-                    await proc.wait()
+                await _reap(proc)
     finally:
         ctx.term()
     assert flooded >= 0.8 * healthy, (flooded, healthy)
