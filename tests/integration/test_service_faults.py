@@ -509,9 +509,7 @@ async def test_a_frozen_daemon_resumes_at_once_and_its_offsets_stay_continuous(
                 collector.cancel()
                 await asyncio.gather(collector, return_exceptions=True)
                 sub.close()
-                if proc.returncode is None:
-                    proc.kill()
-                    await proc.wait()
+                await _reap(proc)
             records = _check_store(run)
             truth_error = _truth_error_nm(records, server.sim)
     finally:
