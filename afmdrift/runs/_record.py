@@ -9,9 +9,13 @@ the same rows.
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import gc
 import json
 import logging
 import sqlite3
+import sys
 from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -79,6 +83,25 @@ def record_outcome(store: RunStore, outcome: FrameOutcome) -> None:
     _Held.of(outcome, archive=True).write(store)
 
 
+def give_back_memory() -> None:
+    """Return heap memory freed by written frames to the system.
+
+    The frames held through a store outage are freed once written, but glibc
+    keeps freed heap chunks for reuse: the daemon's resident memory stayed
+    7, 6 and 3 MiB higher after each of the three disk-full episodes of the
+    week-long soak (flat between them). ``malloc_trim`` hands them back; on
+    other C libraries and systems this does nothing."""
+    gc.collect()
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        trim = libc.malloc_trim
+    except (OSError, AttributeError):
+        return
+    trim(0)
+
+
 @dataclass(slots=True)
 class _Held:
     """What :meth:`RunStore.record_frame` needs of one frame; images and older
@@ -86,8 +109,12 @@ class _Held:
 
     record: FrameRecord
     predictor: str
-    state: dict[str, Any] | None
-    curve: dict[str, Any] | None
+    #: The model state and curve; JSON text once the frame waits (one block
+    #: of memory each, which a trimmed heap gives back, instead of thousands
+    #: of small objects whose arenas stay: the soak's daemon kept 6-7 % more
+    #: resident memory after three disk-full episodes).
+    state: dict[str, Any] | str | None
+    curve: dict[str, Any] | str | None
     image: npt.NDArray[np.floating] | None
     reference: npt.NDArray[np.floating] | None
     trajectory: FrameTrajectory | None
@@ -196,8 +223,11 @@ class HeldWrites:
         self._bytes += h.nbytes()
         if self.flush():
             return
-        if h.state is not None:  # measured only for a frame that waits
-            h.state_bytes = len(json.dumps(h.state))
+        if h.state is not None:  # serialised only for a frame that waits
+            h.state = json.dumps(h.state) if isinstance(h.state, dict) else h.state
+            if isinstance(h.curve, dict):
+                h.curve = json.dumps(h.curve)
+            h.state_bytes = len(h.state)
             self._bytes += h.state_bytes
         self._bound()
 
@@ -231,6 +261,7 @@ class HeldWrites:
                 self.images_dropped,
             )  # fmt: skip
             self.problem = None
+            give_back_memory()
         self._bytes = 0
         return True
 

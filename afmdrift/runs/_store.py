@@ -54,6 +54,11 @@ UNSTORED_KEY = "unstored_frames"
 _CSV_BACKLOG_ROWS = 100_000
 
 
+def _json_text(value: dict[str, Any] | str) -> str:
+    """``value`` as JSON text (text is taken as serialised already)."""
+    return value if isinstance(value, str) else json.dumps(value)
+
+
 class RunStore:
     """SQLite run store in WAL mode; one instance per process, used from one thread.
 
@@ -140,8 +145,8 @@ class RunStore:
         record: FrameRecord,
         *,
         predictor: str,
-        predictor_state: dict[str, Any] | None,
-        curve: dict[str, Any] | None,
+        predictor_state: dict[str, Any] | str | None,
+        curve: dict[str, Any] | str | None,
         image: npt.NDArray[np.floating] | None = None,
         reference: npt.NDArray[np.floating] | None = None,
         trajectory: FrameTrajectory | None = None,
@@ -156,7 +161,9 @@ class RunStore:
         transaction too. ``reference`` is the tracker's reference image when it
         changed with this frame; it is written (atomically) before the
         transaction, and the transaction records which frame it belongs to, so
-        the two never disagree after a crash.
+        the two never disagree after a crash. ``predictor_state`` and
+        ``curve`` may come serialised already (JSON text: a frame held
+        through a full disk keeps them so).
 
         All or nothing: when a write fails (``sqlite3.Error``, or ``OSError``
         from an image file) nothing of the frame is committed and nothing
@@ -189,8 +196,8 @@ class RunStore:
                     (
                         record.seq,
                         predictor,
-                        json.dumps(predictor_state),
-                        None if curve is None else json.dumps(curve),
+                        _json_text(predictor_state),
+                        None if curve is None else _json_text(curve),
                     ),
                 )
                 if self.keep_model_states:
