@@ -334,7 +334,11 @@ async def _soak(tmp_path: Path, disk: Path, mounted: bool) -> None:
     with contextlib.closing(sqlite3.connect(run / "run.sqlite")) as db:
         assert db.execute("SELECT COUNT(*) FROM model_state").fetchone()[0] <= 100
 
-    # memory flat after warm-up (the first quarter of the run)
+    # memory flat after warm-up (the first quarter of the run); the samples
+    # are kept beside the daemon's log for whoever reads a failure
+    (tmp_path / "rss.csv").write_text(
+        "t_s,rss_bytes\n" + "".join(f"{t:.1f},{m}\n" for t, m in rss), encoding="utf-8"
+    )
     warm = [m for t, m in rss if t >= 0.25 * rss[-1][0]]
     growth = (max(warm) - warm[0]) / warm[0]
     log.info(
