@@ -446,10 +446,11 @@ def _unwrap(a: F64, b: F64, dx: int, dy: int, bound_px: float | None = None) -> 
     (:func:`_overlap_score`) is clearly larger (:data:`UNWRAP_MARGIN`); on a
     tie the larger overlap wins. An alternative whose overlap holds at least
     :data:`RIVAL_MIN_SHARE` of the frame and correlates clearly better
-    (:data:`RIVAL_NCC_MARGIN`) wins too: a smooth background correlates over
-    a large wrong overlap (450² crops of a retina photograph 350 px apart:
-    NCC about 0.45 over 60 % of the frame, 1.0 over the true 17 %), which
-    the evidence alone did not tell apart. Alternatives beyond a stated
+    (:data:`RIVAL_NCC_MARGIN`, and at least :data:`RIVAL_MIN_NCC`) wins
+    too: a smooth background correlates over a large wrong overlap (450²
+    crops of a retina photograph 350 px apart: NCC about 0.45 over 60 % of
+    the frame, 1.0 over the true 17 %), which the evidence alone did not
+    tell apart. Alternatives beyond a stated
     bound (``bound_px``, per axis) are not considered."""
     rows, cols = a.shape
     best, best_score = (dx, dy), _overlap_score(a, b, dx, dy)
@@ -468,7 +469,11 @@ def _unwrap(a: F64, b: F64, dx: int, dy: int, bound_px: float | None = None) -> 
                 # a smooth background correlates over a large wrong overlap
                 # (NCC 0.4-0.5 on the retina); the true, smaller one fits
                 # nearly perfectly: clearly better fits win at a fair share
-                fits = share >= RIVAL_MIN_SHARE and ncc > best_ncc + RIVAL_NCC_MARGIN
+                fits = (
+                    share >= RIVAL_MIN_SHARE
+                    and ncc >= RIVAL_MIN_NCC
+                    and ncc > best_ncc + RIVAL_NCC_MARGIN
+                )
                 if score > best_score + UNWRAP_MARGIN or fits:
                     best, best_score, best_ncc = (ax, ay), score, ncc
     return best
@@ -642,8 +647,11 @@ RIVAL_PEAKS = 4
 RIVAL_PEAK_RATIO = 0.4
 #: A rival's overlap must hold at least this share of the frame ...
 RIVAL_MIN_SHARE = 0.10
-#: ... and correlate better than the highest peak's by this much (NCC).
+#: ... and correlate better than the highest peak's by this much (NCC) ...
 RIVAL_NCC_MARGIN = 0.2
+#: ... and fit: the same content under noise correlates at SNR²/(1 + SNR²)
+#: (0.8 at an SNR of 2), chance over a tenth of a 256² frame at about 0.05.
+RIVAL_MIN_NCC = 0.5
 
 
 def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None) -> _Choice | None:
@@ -659,7 +667,9 @@ def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None
     40 % of the frame overlapping at NCC 0.66, which the evidence preferred,
     and 11 blocks agreed on it. A rival whose overlap holds at least
     :data:`RIVAL_MIN_SHARE` of the frame and fits clearly better
-    (:data:`RIVAL_NCC_MARGIN`) makes the pair ambiguous."""
+    (:data:`RIVAL_NCC_MARGIN`, and at least :data:`RIVAL_MIN_NCC`) makes the
+    pair ambiguous; only a highest peak that is itself significant
+    (:data:`COARSE_MIN_Z`) is contested."""
     rows, cols = a.shape
     n_rows, n_cols = zs.shape
     peak_rows, peak_cols = local_peaks(zs, RIVAL_PEAK_RATIO * float(zs.max()))
@@ -670,13 +680,16 @@ def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None
         )
         for r, c in zip(peak_rows[1:], peak_cols[1:], strict=True)
     ]
+    if zs[top[1] % n_rows, top[0] % n_cols] < COARSE_MIN_Z:
+        return None  # no real correlation to contest (unrelated frames)
     top_ncc = _ncc(a, b, *top)
     for s in others[:RIVAL_PEAKS]:
         alt = _unwrap(a, b, *s, bound_px)
         share = (rows - abs(alt[1])) * (cols - abs(alt[0])) / (rows * cols)
         if alt == top or share < RIVAL_MIN_SHARE:
             continue
-        if _ncc(a, b, *alt) > top_ncc + RIVAL_NCC_MARGIN:
+        ncc = _ncc(a, b, *alt)
+        if ncc >= RIVAL_MIN_NCC and ncc > top_ncc + RIVAL_NCC_MARGIN:
             tied = (float(top[0]), float(top[1])), (float(alt[0]), float(alt[1]))
             return _Choice(top, (), "rival", tied)
     return None

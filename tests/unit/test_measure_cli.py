@@ -302,3 +302,29 @@ def test_a_stated_bound_or_equivalence_decides_a_lattice_on_the_command_line(
     out = capsys.readouterr()
     assert "decided as asked (--lattice equivalent)" in out.out
     assert "warning" not in out.err
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["measure", "a.npy", "b.npy"],
+        ["replay", "SESSION", "--out", "RUN"],
+        ["correct", "SESSION", "--out", "DIR"],
+        ["batch", "IN", "--out", "DIR"],
+        ["diagnose", "SESSION"],
+        ["evaluate", "SESSION"],
+        ["run"],
+    ],
+)
+def test_every_registering_command_takes_the_bound_and_the_lattice_mode(command: list[str]) -> None:
+    """One pair of options, one function applying them (the same validation)."""
+    from afmdrift.cli import build_parser
+    from afmdrift.cli._options import registration_options
+    from afmdrift.config import AfmdriftConfig
+
+    args = build_parser().parse_args([*command, "--max-shift-px", "7", "--lattice", "equivalent"])
+    cfg = registration_options(args, AfmdriftConfig())
+    assert (cfg.registration.max_shift_px, cfg.registration.lattice) == (7.0, "equivalent")
+    bad = build_parser().parse_args([*command, "--max-shift-px", "0"])
+    with pytest.raises(ConfigError, match="max_shift_px"):
+        registration_options(bad, AfmdriftConfig())
