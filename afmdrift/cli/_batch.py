@@ -10,7 +10,12 @@ from typing import Any
 
 from afmdrift.batch._jobs import TASKS
 from afmdrift.cli._import import add_file_options, pixel_size_option
-from afmdrift.cli._options import add_prior_option, prior_option
+from afmdrift.cli._options import (
+    add_prior_option,
+    add_registration_options,
+    prior_option,
+    registration_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -57,6 +62,7 @@ def register(sub: Any) -> None:
         "else a local cluster)",
     )
     add_prior_option(p)
+    add_registration_options(p)
     p.set_defaults(handler=_run)
 
 
@@ -69,7 +75,7 @@ def _run(args: argparse.Namespace) -> int:
         args.inputs,
         Path(args.out),
         task=args.task,
-        config=load_config(args.config),
+        config=registration_options(args, load_config(args.config)),
         workers=args.workers,
         scheduler=args.scheduler,
         pixel_size_nm=pixel_size_option(args.pixel_size_nm, override=args.override_pixel_size),

@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from afmdrift.cli._options import add_prior_option, prior_option
+from afmdrift.cli._options import (
+    add_prior_option,
+    add_registration_options,
+    prior_option,
+    registration_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -41,6 +46,7 @@ def register(sub: Any) -> None:
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
     add_prior_option(p)
+    add_registration_options(p)
     p.set_defaults(handler=_correct)
 
 
@@ -49,7 +55,7 @@ def _correct(args: argparse.Namespace) -> int:
     from afmdrift.runs import correct_session
     from afmdrift.session import read_session
 
-    config = load_config(args.config)
+    config = registration_options(args, load_config(args.config))
     summary = correct_session(
         read_session(args.session),
         args.out,

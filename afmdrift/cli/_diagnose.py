@@ -6,7 +6,13 @@ import argparse
 import json
 from typing import Any
 
-from afmdrift.cli._options import PRIOR_HELP, add_prior_option, prior_option
+from afmdrift.cli._options import (
+    PRIOR_HELP,
+    add_prior_option,
+    add_registration_options,
+    prior_option,
+    registration_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -57,6 +63,7 @@ def register(sub: Any) -> None:
     add_prior_option(
         p, help=PRIOR_HELP + " (a SESSION only: a run directory is read as it was measured)"
     )
+    add_registration_options(p)
     p.set_defaults(handler=_diagnose)
 
 
@@ -71,7 +78,7 @@ def _diagnose(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
     workers = available_cores() if args.workers is None else args.workers
-    config = load_config(args.config)
+    config = registration_options(args, load_config(args.config))
     effects = None
     if args.effects is not None:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]

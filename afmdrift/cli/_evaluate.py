@@ -15,6 +15,8 @@ import json
 import math
 from typing import TYPE_CHECKING, Any
 
+from afmdrift.cli._options import add_registration_options, registration_options
+
 if TYPE_CHECKING:
     from afmdrift.session import DriftLog, Session
 
@@ -49,6 +51,7 @@ def register(sub: Any) -> None:
         "the session needs N + 1 valid frames)",
     )
     p.add_argument("--json", action="store_true", help="print the report as one JSON object")
+    add_registration_options(p)
     p.set_defaults(handler=_evaluate)
 
 
@@ -59,7 +62,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     from afmdrift.runs import measure_session, series_from_drift_log
     from afmdrift.session import is_drift_log, read_drift_log, read_session
 
-    config = load_config(args.config)
+    config = registration_options(args, load_config(args.config))
     names = (
         [n.strip() for n in args.predictors.split(",") if n.strip()]
         if args.predictors

@@ -34,17 +34,25 @@ sample, the lattice translation nearest it). The output says where the prior
 came from (``prior_px``, ``prior``) and lists lattice translations the
 images cannot tell apart (``lattice_px``); a pair whose translations tie
 with no prior to decide is refused as ambiguous, naming them.
+``--max-shift-px B`` states the largest drift possible (per axis): lattice
+translations beyond it are excluded, so a bound under half a period decides,
+and a result beyond it is refused. ``--lattice equivalent`` asks for the
+frames registered rather than the drift tracked: among translations that fit
+alike, the one nearest the prior (or zero) is taken.
 
 A result is ``decided_by`` the content when no other shift fits the frames
-as well, and by the prior when lattice translations fit alike and the
-expected drift alone picked the one nearest it: then its ``alternatives``
-(with their distance from the prior) and ``ambiguity_px`` (the distance to
-the nearest) are printed, a warning goes to stderr and the exit status is 3.
+as well; ``bound`` when lattice translations fit alike and only one lies
+within ``--max-shift-px``; ``equivalent`` when they fit alike and
+``--lattice equivalent`` took the nearest; and by the prior when they fit
+alike and the expected drift alone picked the one nearest it: then its
+``alternatives`` (with their distance from the prior) and ``ambiguity_px``
+(the distance to the nearest) are printed, a warning goes to stderr and the
+exit status is 3.
 
 Exit status: 0 when every measurement is valid and decided by the content,
-1 when one is invalid (the result is still printed), 2 on an error
-(unreadable file, unusable image), 3 when all are valid but the prior alone
-decided one.
+a stated bound or as asked (``equivalent``), 1 when one is invalid (the
+result is still printed), 2 on an error (unreadable file, unusable image),
+3 when all are valid but the prior alone decided one.
 """
 
 from __future__ import annotations
@@ -60,7 +68,12 @@ from typing import TYPE_CHECKING, Any
 from pydantic import ValidationError
 
 from afmdrift.cli._import import add_file_options, pixel_size_option
-from afmdrift.cli._options import add_prior_option, prior_option
+from afmdrift.cli._options import (
+    add_prior_option,
+    add_registration_options,
+    prior_option,
+    registration_options,
+)
 from afmdrift.config import AfmdriftConfig, RegistrationConfig
 from afmdrift.errors import ConfigError, InputError
 
@@ -104,9 +117,10 @@ def register(sub: Any) -> None:
         type=float,
         metavar="R",
         help="half-width of the block search around the prior, px (sets coarse_search_px "
-        "and max_shift_px; default: 6 around the coarse alignment, "
+        "and block_search_px; default: 6 around the coarse alignment, "
         "(extended_size - block_size) / 2 around --prior-px)",
     )
+    add_registration_options(p)
     p.add_argument(
         "--no-coarse",
         action="store_true",
@@ -130,11 +144,11 @@ def _run(args: argparse.Namespace) -> int:
 
     given = prior_option(args)
     if args.cur is None:
-        return _run_stack(args, load_config(args.config))
+        return _run_stack(args, registration_options(args, load_config(args.config)))
     if args.dewarp:
         raise ConfigError("--dewarp applies to a stack or movie (one STACK argument)")
     config = measurement_config(
-        load_config(args.config).registration,
+        registration_options(args, load_config(args.config).registration),
         block_size=args.block_size,
         extended_size=args.extended_size,
         search_px=args.search_px,
@@ -205,7 +219,7 @@ def measurement_config(
     """``base`` with the command-line overrides applied and validated:
     ``--block-size``, ``--extended-size`` and ``--search-px``
     (``coarse_search_px``, the block search half-width around the coarse
-    prior, and ``max_shift_px``, that around a given prior). Explicit block
+    prior, and ``block_search_px``, that around a given prior). Explicit block
     sizes turn ``auto_block_size`` off.
 
     Raises
@@ -223,7 +237,7 @@ def measurement_config(
         overrides["auto_block_size"] = False
     if search_px is not None:
         overrides["coarse_search_px"] = search_px
-        overrides["max_shift_px"] = search_px
+        overrides["block_search_px"] = search_px
     if not overrides:
         return base
     try:
@@ -329,6 +343,17 @@ def _describe(doc: dict[str, Any]) -> str:
         lines.append(
             f"DECIDED BY THE PRIOR: {len(doc['alternatives'])} other shifts fit as well, "
             f"the nearest {doc['ambiguity_px']:.1f} px away"
+        )
+    elif doc.get("decided_by") == "equivalent":
+        lines.append(
+            f"decided as asked (--lattice equivalent): {len(doc['alternatives'])} other "
+            f"lattice translations fit as well, the nearest {doc['ambiguity_px']:.1f} px away; "
+            "the frames are registered, the drift is not known"
+        )
+    elif doc.get("decided_by") == "bound":
+        lines.append(
+            f"decided by the bound: the only shift within --max-shift-px among "
+            f"{len(doc['alternatives']) + 1} lattice translations that fit alike"
         )
     elif doc.get("decided_by"):
         lines.append(f"decided by {doc['decided_by']}")

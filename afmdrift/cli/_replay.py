@@ -5,7 +5,12 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from afmdrift.cli._options import add_prior_option, prior_option
+from afmdrift.cli._options import (
+    add_prior_option,
+    add_registration_options,
+    prior_option,
+    registration_options,
+)
 
 
 def register(sub: Any) -> None:
@@ -24,6 +29,7 @@ def register(sub: Any) -> None:
         "--config", default=None, help="TOML configuration (default: config/default.toml)"
     )
     add_prior_option(p)
+    add_registration_options(p)
     p.set_defaults(handler=_replay)
 
 
@@ -32,7 +38,7 @@ def _replay(args: argparse.Namespace) -> int:
     from afmdrift.errors import TooFewFramesError
     from afmdrift.runs import MIN_REPLAY_FRAMES, replay_session
 
-    config = load_config(args.config)
+    config = registration_options(args, load_config(args.config))
     summary = replay_session(args.session, args.out, config=config, prior_px=prior_option(args))
     line = (
         f"{summary.frames} frames replayed in {summary.wall_s:.1f} s "

@@ -6,6 +6,8 @@ import argparse
 import time
 from typing import TYPE_CHECKING, Any
 
+from afmdrift.cli._options import add_registration_options, registration_options
+
 if TYPE_CHECKING:
     from afmdrift.service import DriftService
 
@@ -31,6 +33,7 @@ def register(sub: Any) -> None:
         "path, or replay:SESSION_DIR",
     )
     p.add_argument("--run-dir", default=None, help="run directory overriding service.run_dir")
+    add_registration_options(p)
     p.set_defaults(handler=_run)
 
 
@@ -40,7 +43,7 @@ def _run(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
     from afmdrift.service import check_config, run_until_signalled
 
-    config = load_config(args.config)
+    config = registration_options(args, load_config(args.config))
     if args.run_dir is not None:
         config = config.model_copy(
             update={"service": config.service.model_copy(update={"run_dir": args.run_dir})}

@@ -47,8 +47,30 @@ class RegistrationConfig(BaseModel):
         "unless the x gradient's signal is below 8 % of its noise, then levelled.",
     )
     peaks: int = Field(4, ge=1, le=32, description="Candidate peaks verified by MSE (K).")
+    block_search_px: float | None = Field(
+        None,
+        gt=0,
+        description="Half-width of each block's peak search around its prior, px; default "
+        "(extended - block) / 2 (at most extended / 2 - 2).",
+    )
     max_shift_px: float | None = Field(
-        None, gt=0, description="Largest accepted shift; default (extended - block) / 2."
+        None,
+        gt=0,
+        le=100_000,
+        description="Largest drift between a frame and the reference it is registered on "
+        "that is possible, px per axis (a stated bound, like suite2p's maxregshift): "
+        "lattice translations beyond it are excluded, so on a periodic sample a bound "
+        "under half a period decides which translation it is, and a result beyond it is "
+        "refused. Default: no bound.",
+    )
+    lattice: Literal["track", "equivalent"] = Field(
+        "track",
+        description="On a periodic sample whose lattice translations the frames cannot "
+        "tell apart: track (the drift is wanted: the prior or max_shift_px decides, else "
+        "the pair is refused as ambiguous) or equivalent (the frames are to be registered "
+        "and any lattice-equivalent shift registers them as well: the translation nearest "
+        "the prior, or zero, is taken and the result says decided_by: equivalent; never "
+        "for tracking drift).",
     )
     outlier_rule: Literal["mad", "paper"] = Field(
         "mad", description="Robust iterated median/MAD, or the paper's epsilon-from-mean."
@@ -112,7 +134,7 @@ class RegistrationConfig(BaseModel):
         ge=1,
         le=1022,
         description="Block search half-width (px) around a trusted coarse prior (capped at "
-        "max_shift_px): on periodic samples a wider search lets blocks lock onto "
+        "block_search_px): on periodic samples a wider search lets blocks lock onto "
         "different lattice peaks.",
     )
     refine: bool = Field(
@@ -153,8 +175,8 @@ class RegistrationConfig(BaseModel):
         if block == self.block_size:
             return self
         update: dict[str, object] = {"block_size": block, "extended_size": ext}
-        if self.max_shift_px is not None:
-            update["max_shift_px"] = min(self.max_shift_px, ext / 2 - 2)
+        if self.block_search_px is not None:
+            update["block_search_px"] = min(self.block_search_px, ext / 2 - 2)
         return self.model_copy(update=update)
 
     @model_validator(mode="after")
@@ -163,9 +185,9 @@ class RegistrationConfig(BaseModel):
             raise ValueError(
                 f"extended_size ({self.extended_size}) must be >= block_size ({self.block_size})"
             )
-        if self.max_shift_px is not None and self.max_shift_px > self.extended_size / 2 - 2:
+        if self.block_search_px is not None and self.block_search_px > self.extended_size / 2 - 2:
             raise ValueError(
-                f"max_shift_px ({self.max_shift_px}) must be <= extended_size / 2 - 2 "
+                f"block_search_px ({self.block_search_px}) must be <= extended_size / 2 - 2 "
                 f"({self.extended_size / 2 - 2:g})"
             )
         return self

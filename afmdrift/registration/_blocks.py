@@ -281,11 +281,11 @@ class BlockLayout:
         *,
         extended_size: int,
         block_size: int,
-        max_shift_px: float | None,
+        block_search_px: float | None,
     ) -> BlockLayout:
         rows, cols = grad_shape
-        ey, by, sy, ys = _axis(rows, extended_size, block_size, max_shift_px)
-        ex, bx, sx, xs = _axis(cols, extended_size, block_size, max_shift_px)
+        ey, by, sy, ys = _axis(rows, extended_size, block_size, block_search_px)
+        ex, bx, sx, xs = _axis(cols, extended_size, block_size, block_search_px)
         shifts = (sy, sx)
         top, left = np.meshgrid(ys, xs, indexing="ij")
         pitch_y = float(np.mean(np.diff(ys))) if ys.size > 1 else float(by)

@@ -70,11 +70,14 @@ from typing import NamedTuple
 import numpy as np
 import numpy.typing as npt
 
+from afmdrift.config import RegistrationConfig
 from afmdrift.registration._lattice import decide, local_peaks, repeat_vectors, subpixel_peak
 
 __all__ = [
     "COARSE_MIN_GRADIENT_Z",
     "COARSE_MIN_Z",
+    "NO_BOUND",
+    "Bound",
     "CoarseShift",
     "coarse_shift",
     "format_shifts",
@@ -113,6 +116,30 @@ F64 = npt.NDArray[np.float64]
 BArr = npt.NDArray[np.bool_]
 
 
+class Bound(NamedTuple):
+    """What the user states about the drift between two frames and wants of a
+    periodic sample (``RegistrationConfig.max_shift_px`` and ``lattice``).
+
+    A stated bound is information: lattice translations beyond it are
+    excluded (:func:`~afmdrift.registration._lattice.decide`), so a bound
+    tighter than half a period decides the translation. ``equivalent``: the
+    frames are to be registered, not the drift tracked, so among lattice
+    translations the content cannot tell apart the one nearest the prior (or
+    zero) is as good as any, and is taken."""
+
+    max_shift_px: float | None = None
+    equivalent: bool = False
+
+    @classmethod
+    def of(cls, config: RegistrationConfig) -> Bound:
+        """The bound a configuration states."""
+        return cls(config.max_shift_px, config.lattice == "equivalent")
+
+
+#: No bound stated, lattice translations tracked.
+NO_BOUND = Bound()
+
+
 class CoarseShift(NamedTuple):
     """Result of :func:`coarse_shift`."""
 
@@ -127,8 +154,9 @@ class CoarseShift(NamedTuple):
     apart (lattice translations of a periodic sample) and the prior set aside,
     shortest first."""
     ambiguous: bool = False
-    """Lattice translations the images cannot tell apart, and no prior decides
-    between them (:attr:`candidates_px`): no choice is defensible."""
+    """Lattice translations the images cannot tell apart, and neither a prior
+    nor a stated bound decides between them, or none lies within the bound
+    (:attr:`candidates_px`): no choice is defensible."""
     method: str = "phase"
     """``phase`` (phase correlation, borders tapered), ``phase, untapered`` (of
     the whole frames) or ``masked`` (static pixels left out)."""
@@ -139,11 +167,16 @@ class CoarseShift(NamedTuple):
     it does not repeat itself."""
     lattice_by: str = ""
     """How a lattice translation was chosen: ``content`` (it fits clearly
-    better than its lattice neighbours), ``prior`` (tied in content, nearest
-    the prior), ``ambiguous`` (none chosen), or empty (no lattice)."""
+    better than its lattice neighbours), ``bound`` (tied in content, the only
+    one within the stated bound), ``equivalent`` (tied, nearest the prior or
+    zero, as asked), ``prior`` (tied in content, nearest the prior),
+    ``ambiguous`` (none chosen), ``outside`` (none within the stated bound),
+    ``rival`` (no lattice, but another high peak fits its overlap clearly
+    better than the highest: :func:`_rival`), or empty (no lattice)."""
     candidates_px: tuple[tuple[float, float], ...] = ()
     """Tied lattice translations (sub-pixel shifts, px), nearest the prior (or
-    zero) first: ``prior`` and ``ambiguous`` only."""
+    zero) first (all of them, also those beyond a stated bound): every
+    ``lattice_by`` but ``content``."""
     lattice_t: float = math.nan
     """The paired test's smallest statistic (a normal deviate) of the best
     translation against the others."""
@@ -197,6 +230,18 @@ class CoarseShift(NamedTuple):
                 f"; lattice: also {format_shifts(self.lattice_px)} px fit as well, "
                 "took the one nearest the prior"
             )
+        elif self.lattice_by == "equivalent":
+            text += (
+                f"; lattice: also {format_shifts(self.lattice_px)} px fit as well, "
+                "took the one nearest the prior (or zero): lattice-equivalent, as asked"
+            )
+        elif self.lattice_by == "bound":
+            text += (
+                f"; lattice: {format_shifts(self.candidates_px)} px fit alike, "
+                "one alone within max_shift_px"
+            )
+        elif self.lattice_by == "rival":
+            text += f"; two shifts fit: {format_shifts(self.candidates_px)} px"
         elif self.ambiguous:
             text += (
                 f"; ambiguous: the lattice translations {format_shifts(self.candidates_px)} px "
@@ -395,21 +440,42 @@ def overlap_evidence(
     return out
 
 
-def _unwrap(a: F64, b: F64, dx: int, dy: int) -> tuple[int, int]:
+def _unwrap(a: F64, b: F64, dx: int, dy: int, bound_px: float | None = None) -> tuple[int, int]:
     """The shift behind the circular peak at minimal-image shift ``(dx, dy)``:
     an alternative ``d ± N`` replaces it only when its overlap's evidence
     (:func:`_overlap_score`) is clearly larger (:data:`UNWRAP_MARGIN`); on a
-    tie the larger overlap wins."""
+    tie the larger overlap wins. An alternative whose overlap holds at least
+    :data:`RIVAL_MIN_SHARE` of the frame and correlates clearly better
+    (:data:`RIVAL_NCC_MARGIN`, and at least :data:`RIVAL_MIN_NCC`) wins
+    too: a smooth background correlates over a large wrong overlap (450²
+    crops of a retina photograph 350 px apart: NCC about 0.45 over 60 % of
+    the frame, 1.0 over the true 17 %), which the evidence alone did not
+    tell apart. Alternatives beyond a stated
+    bound (``bound_px``, per axis) are not considered."""
     rows, cols = a.shape
     best, best_score = (dx, dy), _overlap_score(a, b, dx, dy)
     alt_x = [dx] + ([dx - cols] if dx > 0 else [dx + cols] if dx < 0 else [])
     alt_y = [dy] + ([dy - rows] if dy > 0 else [dy + rows] if dy < 0 else [])
+    if bound_px is not None:
+        alt_x = [x for x in alt_x if x == dx or abs(x) <= bound_px + 1]
+        alt_y = [y for y in alt_y if y == dy or abs(y) <= bound_px + 1]
+    best_ncc = _ncc(a, b, dx, dy)
     for ay in alt_y:
         for ax in alt_x:
             if (ax, ay) != (dx, dy):
                 score = _overlap_score(a, b, ax, ay)
-                if score > best_score + UNWRAP_MARGIN:
-                    best, best_score = (ax, ay), score
+                ncc = _ncc(a, b, ax, ay)
+                share = (rows - abs(ay)) * (cols - abs(ax)) / (rows * cols)
+                # a smooth background correlates over a large wrong overlap
+                # (NCC 0.4-0.5 on the retina); the true, smaller one fits
+                # nearly perfectly: clearly better fits win at a fair share
+                fits = (
+                    share >= RIVAL_MIN_SHARE
+                    and ncc >= RIVAL_MIN_NCC
+                    and ncc > best_ncc + RIVAL_NCC_MARGIN
+                )
+                if score > best_score + UNWRAP_MARGIN or fits:
+                    best, best_score, best_ncc = (ax, ay), score, ncc
     return best
 
 
@@ -458,6 +524,7 @@ def coarse_shift(
     static: BArr | None = None,
     taper: bool = True,
     ref_vectors: F64 | None = None,
+    bound: Bound = NO_BOUND,
 ) -> CoarseShift:
     """Integer drift ``(dx, dy)`` in px from whole-image correlations.
 
@@ -493,6 +560,9 @@ def coarse_shift(
         The reference's lattice vectors, when the caller has them:
         :func:`~afmdrift.registration._lattice.repeat_vectors` of
         ``levelled(reference)``; default: found here.
+    bound : Bound
+        What the user states about the drift (``max_shift_px``) and wants of
+        a periodic sample (``lattice``); see :class:`Bound`.
 
     Returns
     -------
@@ -503,11 +573,11 @@ def coarse_shift(
     vectors = repeat_vectors(a) if ref_vectors is None else ref_vectors
     if static is None:
         static = static_pixels(reference, current)
-    phase = _phase_shift(a, b, reference, current, prior_px, vectors, taper=taper)
+    phase = _phase_shift(a, b, reference, current, prior_px, vectors, bound, taper=taper)
     if taper and not (phase.trusted or phase.ambiguous):
         # A shift whose overlap lies in the tapered border (350 px of a 450 px
         # frame, both ways) is found without the taper.
-        plain = _phase_shift(a, b, reference, current, prior_px, vectors, taper=False)
+        plain = _phase_shift(a, b, reference, current, prior_px, vectors, bound, taper=False)
         if plain.trusted or plain.ambiguous:
             phase = plain
     if static is None:
@@ -519,7 +589,7 @@ def coarse_shift(
     # leaving them out would leave too little to correlate.
     if phase.trusted and max(abs(phase.dx_px), abs(phase.dy_px)) > 1:
         return phase
-    return _masked_shift(a, b, ~static, reference, current, prior_px, vectors)
+    return _masked_shift(a, b, ~static, reference, current, prior_px, vectors, bound)
 
 
 def _phase_shift(
@@ -529,6 +599,7 @@ def _phase_shift(
     current: npt.NDArray[np.floating],
     prior_px: tuple[float, float] | None,
     vectors: F64,
+    bound: Bound,
     *,
     taper: bool,
 ) -> CoarseShift:
@@ -549,9 +620,10 @@ def _phase_shift(
     target = prior_px if prior_px is not None else (0.0, 0.0)
     near = sorted(minimal, key=lambda s: math.hypot(s[0] - target[0], s[1] - target[1]))
     pool = list(dict.fromkeys([minimal[0], *near[:LATTICE_CANDIDATES]]))
-    top = _unwrap(a, b, *minimal[0])
-    peaks = [_unwrap(a, b, *s) for s in pool[1:]]
-    lattice = _choose(a, b, corr, top, peaks, prior_px, vectors)
+    top = _unwrap(a, b, *minimal[0], bound.max_shift_px)
+    peaks = [_unwrap(a, b, *s, bound.max_shift_px) for s in pool[1:]]
+    rival = None if len(vectors) else _rival(a, b, top, zs, bound.max_shift_px)
+    lattice = _choose(a, b, corr, top, peaks, prior_px, vectors, bound) if rival is None else rival
     chosen = lattice.shift
     # The significance of the correlation is that of its highest peak; a
     # lattice translation of it is chosen by the content test, not by height.
@@ -566,6 +638,61 @@ def _phase_shift(
         # peak or at the lattice translation taken (the content took it).
         g_z = max(g_z, float(g_zs[top[1] % g_zs.shape[0], top[0] % g_zs.shape[1]]))
     return lattice.coarse(peak_z, g_z, "phase" if taper else "phase, untapered")
+
+
+#: Other peaks of a sample without a lattice checked against the highest:
+#: the highest few, of at least this fraction of its z (a match over a small
+#: overlap makes a lower peak than one over the whole frame) ...
+RIVAL_PEAKS = 4
+RIVAL_PEAK_RATIO = 0.4
+#: A rival's overlap must hold at least this share of the frame ...
+RIVAL_MIN_SHARE = 0.10
+#: ... and correlate better than the highest peak's by this much (NCC) ...
+RIVAL_NCC_MARGIN = 0.2
+#: ... and fit: the same content under noise correlates at SNR²/(1 + SNR²)
+#: (0.8 at an SNR of 2), chance over a tenth of a 256² frame at about 0.05.
+RIVAL_MIN_NCC = 0.5
+
+
+def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None) -> _Choice | None:
+    """A high peak that contests the highest (``top``), as an ambiguous
+    choice naming both; None when none does.
+
+    Evidence (:func:`_overlap_score`) weighs a match by the square root of
+    its overlap, so that a thin strip that correlates by chance cannot take
+    a frame; but a sample whose content repeats (a tiled texture, a
+    self-similar surface) has a second true-looking match with a larger
+    overlap and a worse fit: a 256² crop pair of a grass texture 12 % apart
+    in area (NCC 0.99 over its overlap) had a peak at another shift with
+    40 % of the frame overlapping at NCC 0.66, which the evidence preferred,
+    and 11 blocks agreed on it. A rival whose overlap holds at least
+    :data:`RIVAL_MIN_SHARE` of the frame and fits clearly better
+    (:data:`RIVAL_NCC_MARGIN`, and at least :data:`RIVAL_MIN_NCC`) makes the
+    pair ambiguous; only a highest peak that is itself significant
+    (:data:`COARSE_MIN_Z`) is contested."""
+    rows, cols = a.shape
+    n_rows, n_cols = zs.shape
+    peak_rows, peak_cols = local_peaks(zs, RIVAL_PEAK_RATIO * float(zs.max()))
+    others = [
+        (
+            int(c) - n_cols if c > n_cols // 2 else int(c),
+            int(r) - n_rows if r > n_rows // 2 else int(r),
+        )
+        for r, c in zip(peak_rows[1:], peak_cols[1:], strict=True)
+    ]
+    if zs[top[1] % n_rows, top[0] % n_cols] < COARSE_MIN_Z:
+        return None  # no real correlation to contest (unrelated frames)
+    top_ncc = _ncc(a, b, *top)
+    for s in others[:RIVAL_PEAKS]:
+        alt = _unwrap(a, b, *s, bound_px)
+        share = (rows - abs(alt[1])) * (cols - abs(alt[0])) / (rows * cols)
+        if alt == top or share < RIVAL_MIN_SHARE:
+            continue
+        ncc = _ncc(a, b, *alt)
+        if ncc >= RIVAL_MIN_NCC and ncc > top_ncc + RIVAL_NCC_MARGIN:
+            tied = (float(top[0]), float(top[1])), (float(alt[0]), float(alt[1]))
+            return _Choice(top, (), "rival", tied)
+    return None
 
 
 class _Choice(NamedTuple):
@@ -587,10 +714,11 @@ class _Choice(NamedTuple):
                 ((round(s[0] - dx, 1), round(s[1] - dy, 1)) for s in self.tied[1:]),
                 key=lambda v: math.hypot(*v),
             )
-        ) if self.by == "prior" else ()  # fmt: skip
+        ) if self.by in ("prior", "equivalent") else ()  # fmt: skip
+        refused = self.by in ("ambiguous", "outside", "rival")
         return CoarseShift(
-            float(dx), float(dy), peak_z, gradient_z, others, self.by == "ambiguous", method,
-            ncc, self.period, self.by, self.tied if self.by in ("prior", "ambiguous") else (),
+            float(dx), float(dy), peak_z, gradient_z, others, refused, method,
+            ncc, self.period, self.by, self.tied if self.by not in ("", "content") else (),
             self.t,
         )  # fmt: skip
 
@@ -607,6 +735,7 @@ def _choose(
     peaks: list[tuple[int, int]],
     prior_px: tuple[float, float] | None,
     vectors: F64,
+    bound: Bound,
 ) -> _Choice:
     """The shift of the highest peak ``top`` of the correlation surface
     ``corr``, or, when the reference repeats itself, the lattice translation
@@ -624,11 +753,14 @@ def _choose(
         for s in peaks
         if s != top and _is_translation(vectors, s[0] - top[0], s[1] - top[1])
     ]
-    found = decide(a, b, start=start, peaks=translations, vectors=vectors, prior_px=prior_px)
+    found = decide(
+        a, b, start=start, peaks=translations, vectors=vectors, prior_px=prior_px,
+        bound_px=bound.max_shift_px, equivalent=bound.equivalent,
+    )  # fmt: skip
     tied = tuple((round(x, 1), round(y, 1)) for x, y in found.tied)
     if found.shift is None:
         near = found.tied[0] if found.tied else start
-        return _Choice((round(near[0]), round(near[1])), period, "ambiguous", tied, found.t)
+        return _Choice((round(near[0]), round(near[1])), period, found.by, tied, found.t)
     shift = (round(found.shift[0]), round(found.shift[1]))
     return _Choice(shift, period, found.by, tied, found.t)
 
@@ -646,6 +778,7 @@ def _masked_shift(
     current: npt.NDArray[np.floating],
     prior_px: tuple[float, float] | None,
     vectors: F64,
+    bound: Bound,
 ) -> CoarseShift:
     """Coarse shift with the static pixels left out (masked NCC); lattice
     translations among its peaks are resolved as for the phase correlation
@@ -663,7 +796,7 @@ def _masked_shift(
     target = prior_px if prior_px is not None else (0.0, 0.0)
     near = sorted(shifts, key=lambda s: math.hypot(s[0] - target[0], s[1] - target[1]))
     pool = list(dict.fromkeys([shifts[0], *near[:LATTICE_CANDIDATES]]))
-    choice = _choose(a, b, corr, pool[0], pool[1:], prior_px, vectors)
+    choice = _choose(a, b, corr, pool[0], pool[1:], prior_px, vectors, bound)
     dx, dy = choice.shift
     r, c = dy % rows2, dx % cols2
     spread = float(corr[corr != 0].std()) if np.any(corr != 0) else 0.0

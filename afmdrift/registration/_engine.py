@@ -185,7 +185,7 @@ class BlockEngine:
             gradient_shape(image_shape, self.prefilter),
             extended_size=config.extended_size,
             block_size=config.block_size,
-            max_shift_px=config.max_shift_px,
+            block_search_px=config.block_search_px,
         )
         lay = self.layout
         n = lay.n_blocks

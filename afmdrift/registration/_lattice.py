@@ -62,6 +62,7 @@ import numpy.typing as npt
 import scipy.fft as sfft
 
 __all__ = [
+    "BOUND_SLACK_PX",
     "PRIOR_MARGIN_PX",
     "REPEAT_AC_MIN",
     "TILE_PX",
@@ -73,6 +74,7 @@ __all__ = [
     "local_peaks",
     "paired_test",
     "repeat_vectors",
+    "within_bound",
 ]
 
 F64 = npt.NDArray[np.float64]
@@ -96,6 +98,9 @@ WIN_Z = 4.0
 WIN_EFFECT = 2e-3
 #: A prior decides between tied candidates when the nearest is nearer by this (px).
 PRIOR_MARGIN_PX = 2.0
+#: A shift counts as within a stated bound up to this much beyond it (px): a
+#: bound is stated in whole pixels, a shift measured to a fraction.
+BOUND_SLACK_PX = 0.5
 #: Edge of the tiles whose mean squared residuals the paired test compares
 #: (px): larger than the residuals' correlation length on the textures tried
 #: (a 10-px lattice, particles), small enough for 80–150 tiles per frame.
@@ -526,8 +531,11 @@ class LatticeDecision:
     """The candidates the content cannot tell from the best (the chosen one
     first when there is one), nearest the prior (or zero) first."""
     by: str
-    """``content`` (it beat every other candidate), ``prior`` (tied, the prior
-    decided) or ``ambiguous``."""
+    """``content`` (it beat every other candidate), ``bound`` (tied, the only
+    one within the stated bound), ``equivalent`` (tied, the one nearest the
+    prior or zero, as asked), ``prior`` (tied, the prior decided),
+    ``ambiguous`` (tied, nothing decides) or ``outside`` (tied, none within
+    the stated bound)."""
     t: float
     """Smallest t of the best candidate against the others (inf: no other)."""
 
@@ -563,6 +571,8 @@ def decide(
     peaks: list[Shift],
     vectors: F64,
     prior_px: Shift | None,
+    bound_px: float | None = None,
+    equivalent: bool = False,
 ) -> LatticeDecision:
     """Decide between the lattice translations of ``start`` (the highest
     correlation peak) for ``b(u + d) = a(u)``.
@@ -579,6 +589,16 @@ def decide(
         The reference's lattice vectors (:func:`repeat_vectors`), k ≥ 1.
     prior_px : (float, float) or None
         The expected drift, if one is known (given or predicted).
+    bound_px : float or None
+        The largest drift the user states is possible (px, per axis, from
+        zero; ``RegistrationConfig.max_shift_px``): tied translations beyond
+        it are excluded, so one alone within it is taken (``by == "bound"``)
+        and none within it is ``"outside"`` (refused).
+    equivalent : bool
+        The user wants the frames registered, not the drift tracked
+        (``RegistrationConfig.lattice == "equivalent"``): among translations
+        still tied, the one nearest the prior (or zero) is taken
+        (``by == "equivalent"``) instead of a refusal.
 
     Returns
     -------
@@ -590,6 +610,8 @@ def decide(
     seeds = [start, *peaks]
     seeds += [(start[0] + v[0], start[1] + v[1]) for v in short]
     seeds += _translations(start, vectors, target, 4)
+    if bound_px is not None and prior_px is not None:
+        seeds += _translations(start, vectors, (0.0, 0.0), 4)
     cands: list[Shift] = []
     for s in seeds:
         _add(cands, res.refine(s))
@@ -622,19 +644,39 @@ def decide(
     tied = [best] + [c for c in cands if c != best and not test(best, c).wins]
     if len(tied) > 1:
         # A tie: name the tied translation nearest the prior (or zero) with its
-        # lattice neighbours, and take the nearest from that full set.
+        # lattice neighbours, and take the nearest from that full set; with a
+        # bound, the translations nearest zero too (the bound is about zero).
         nearest = min(tied, key=dist)
-        for v in short:
-            _add(cands, res.refine((nearest[0] + v[0], nearest[1] + v[1])))
+        near_zero = min(tied, key=lambda s: max(abs(s[0]), abs(s[1])))
+        for centre in {nearest, near_zero} if bound_px is not None else {nearest}:
+            for v in short:
+                _add(cands, res.refine((centre[0] + v[0], centre[1] + v[1])))
         tied = [best] + [c for c in cands if c != best and not test(best, c).wins]
     t_min = min((test(best, c).z for c in cands if c != best), default=math.inf)
 
     if len(tied) == 1:
         return LatticeDecision(best, (best,), "content", t_min)
     tied.sort(key=dist)
+    if bound_px is not None:
+        inside = [s for s in tied if within_bound(s, bound_px)]
+        if not inside:
+            return LatticeDecision(None, tuple(tied), "outside", t_min)
+        if len(inside) == 1:
+            return LatticeDecision(inside[0], tuple(tied), "bound", t_min)
+        tied = inside
+    if equivalent:
+        return LatticeDecision(tied[0], tuple(tied), "equivalent", t_min)
     if prior_px is not None and dist(tied[1]) - dist(tied[0]) >= PRIOR_MARGIN_PX:
         return LatticeDecision(tied[0], tuple(tied), "prior", t_min)
     return LatticeDecision(None, tuple(tied), "ambiguous", t_min)
+
+
+def within_bound(shift: Shift, bound_px: float) -> bool:
+    """Whether ``shift`` lies within the stated bound on the drift: at most
+    ``bound_px`` from zero on each axis, with :data:`BOUND_SLACK_PX` for the
+    sub-pixel part (a bound is stated in whole pixels; a shift of 7.3 px is
+    "7 px")."""
+    return max(abs(shift[0]), abs(shift[1])) <= bound_px + BOUND_SLACK_PX
 
 
 def _add(cands: list[Shift], shift: Shift | None) -> None:

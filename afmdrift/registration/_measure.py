@@ -24,6 +24,7 @@ from afmdrift.registration._checks import (
     check_prior,
 )
 from afmdrift.registration._coarse import (
+    Bound,
     CoarseShift,
     coarse_shift,
     format_shifts,
@@ -31,14 +32,21 @@ from afmdrift.registration._coarse import (
     overlap_evidence,
     overlap_slices,
 )
+from afmdrift.registration._distortion import (
+    FieldFit,
+    describe,
+    distortion_limit_px,
+    fit_field,
+)
 from afmdrift.registration._engine import BlockEngine, BlockMeasurement, ReferenceSpectra
 from afmdrift.registration._errors import (
     NearlyBlankError,
     RegistrationError,
 )
-from afmdrift.registration._lattice import repeat_vectors
+from afmdrift.registration._lattice import BOUND_SLACK_PX, repeat_vectors
 from afmdrift.registration._outliers import needed_blocks, select_blocks
 from afmdrift.registration._result import BlockField, DriftResult
+from afmdrift.registration._trend import TREND_EXPLAINED, TREND_F
 
 __all__ = [
     "REFINE_PX",
@@ -89,7 +97,6 @@ def combine(
         valid=valid,
         weight_centres_px=meas.weight_centres_px.astype(dtype),
     )
-    px, py = pixel_size_nm
     reason = None
     need = needed_blocks(cfg, available)
     if n_valid < need:
@@ -104,17 +111,39 @@ def combine(
             f"the rows ({spread_x:.2f}, "
             f"{spread_y:.2f}) px exceeds max_block_spread_px = {cfg.max_block_spread_px}"
         )
+    if total > SMALL_FRAME_BLOCKS and cfg.outlier_rule == "mad":
+        bent = _non_rigid(meas, engine, need, textured, start=None if reason is not None else valid)
+        if isinstance(bent, str):
+            reason = bent
+        elif bent is not None:
+            return _field_result(bent, field, pixel_size_nm, total)
     if reason is not None:
         return invalid_result(field, reason, valid_blocks=n_valid)
     # Blocks whose inner areas overlap are not independent: count each only
     # by its unshared fraction (never fewer than two blocks).
     root_n = math.sqrt(max(2.0, n_valid * engine.layout.overlap_factor()))
-    sx_nm, sy_nm = spread_x / root_n * px, spread_y / root_n * py
+    sigma = (spread_x / root_n, spread_y / root_n)
+    return _valid_result((mean_x, mean_y), sigma, pixel_size_nm, n_valid, total, field)
+
+
+def _valid_result(
+    mean_px: tuple[float, float],
+    sigma_px: tuple[float, float],
+    pixel_size_nm: tuple[float, float],
+    n_valid: int,
+    total: int,
+    field: BlockField,
+    distortion_px: tuple[float, float] | None = None,
+) -> DriftResult:
+    """A valid frame result from its mean and σ (px)."""
+    px, py = pixel_size_nm
+    (mx, my), (sx, sy) = mean_px, sigma_px
+    sx_nm, sy_nm = sx * px, sy * py
     return DriftResult(
-        dx_px=mean_x,
-        dy_px=mean_y,
-        dx_nm=mean_x * px,
-        dy_nm=mean_y * py,
+        dx_px=mx,
+        dy_px=my,
+        dx_nm=mx * px,
+        dy_nm=my * py,
         sigma_x_nm=sx_nm,
         sigma_y_nm=sy_nm,
         sigma_nm=math.sqrt(0.5 * (sx_nm**2 + sy_nm**2)),
@@ -123,7 +152,63 @@ def combine(
         total_blocks=total,
         reason=None,
         field=field,
+        distortion_px=distortion_px,
     )
+
+
+def _non_rigid(
+    meas: BlockMeasurement,
+    engine: BlockEngine,
+    need: int,
+    textured: npt.NDArray[np.bool_] | None,
+    *,
+    start: npt.NDArray[np.bool_] | None,
+) -> FieldFit | str | None:
+    """A non-rigid frame (:mod:`._distortion`): the smooth field over the
+    frame (:func:`fit_field`) when it explains the blocks (enough kept, their
+    residual spread about it within ``max_block_spread_px``) and either the
+    one shift or trend over the rows was refused (``start`` None) or, fitted
+    first on the blocks they kept (``start``), the field's dependence on the
+    column is significant; a refusal's reason when so,
+    but the distortion is beyond :func:`distortion_limit_px`; None
+    otherwise (a rigid frame, or blocks that disagree: changed content,
+    false peaks)."""
+    cfg = engine.config
+    placed_ok = int(np.count_nonzero(meas.measured & meas.placed)) >= cfg.min_valid_blocks
+    usable = meas.measured & (meas.placed if placed_ok else meas.in_overlap)
+    if textured is not None:
+        usable = usable & textured
+    rows, cols = engine.image_shape
+    fit = fit_field(
+        meas.vectors_px, meas.weight_centres_px, usable, frame_shape=(rows, cols),
+        independent=engine.layout.overlap_factor(), f_min=TREND_F,
+        explained_min=TREND_EXPLAINED, start=start,
+    )  # fmt: skip
+    refused = start is None
+    if fit is None or int(fit.valid.sum()) < need or not (refused or fit.significant):
+        return None
+    if not max(fit.spread_px) <= cfg.max_block_spread_px:
+        return None
+    limit = distortion_limit_px(cfg.block_size)
+    if max(fit.distortion_px) > limit:
+        return (
+            f"{describe(fit)}, but its parts moved apart by more than {limit:g} px RMS "
+            f"(an eighth of the {cfg.block_size} px block): a block's own window then "
+            "holds content displaced by more than a pixel, and no single shift places "
+            "the frame"
+        )
+    return fit
+
+
+def _field_result(
+    fit: FieldFit, field: BlockField, pixel_size_nm: tuple[float, float], total: int
+) -> DriftResult:
+    """The drift of a non-rigid frame (:class:`FieldFit`), its valid blocks
+    those the field kept."""
+    return _valid_result(
+        fit.mean_px, fit.sigma_px, pixel_size_nm, int(fit.valid.sum()), total,
+        replace(field, valid=fit.valid), fit.distortion_px,
+    )  # fmt: skip
 
 
 def invalid_result(field: BlockField, reason: str, *, valid_blocks: int = 0) -> DriftResult:
@@ -194,6 +279,7 @@ class _Pair:
         return coarse_shift(
             self.ref_heights, self.heights, prior_px=prior_px, taper=taper,
             ref_vectors=_vectors(self.ref, self.ref_heights),
+            bound=Bound.of(self.engine.config),
         )  # fmt: skip
 
     def combine(
@@ -239,22 +325,32 @@ class _Attempt:
             expected_px=self.expected,
         )
         if result.valid:
-            result = _decided(result, self.coarse if self.lattice else None)
+            result = _decided(result, self.coarse if self.lattice or _tied(self.coarse) else None)
         return Registration(result, self.top, self.left, self.coarse, self.alternative)
 
 
+def _tied(coarse: CoarseShift | None) -> bool:
+    """Whether ``coarse`` took a lattice translation among tied ones."""
+    return coarse is not None and coarse.lattice_by in ("prior", "equivalent", "bound")
+
+
 def _decided(result: DriftResult, coarse: CoarseShift | None) -> DriftResult:
-    """``result`` with what decided it (:attr:`DriftResult.decided_by`): the
-    prior when the coarse alignment it was measured around took the lattice
-    translation nearest the prior among tied ones, else the content."""
-    if coarse is None or coarse.lattice_by != "prior":
+    """``result`` with what decided it (:attr:`DriftResult.decided_by`) when
+    the coarse alignment it was measured around took a lattice translation
+    among tied ones: the prior (the one nearest it), ``bound`` (the only one
+    within ``max_shift_px``) or ``equivalent`` (nearest the prior or zero, as
+    asked); else the content. ``alternatives_px``: the other tied shifts
+    (within the bound, for ``bound`` none, those beyond it)."""
+    if coarse is None or not _tied(coarse):
         return replace(result, decided_by="content")
     d = (result.dx_px, result.dy_px)
     others = tuple(c for c in coarse.candidates_px if math.hypot(c[0] - d[0], c[1] - d[1]) > 0.5)
     if not others:
         return replace(result, decided_by="content")
     ambiguity = min(math.hypot(c[0] - d[0], c[1] - d[1]) for c in others)
-    return replace(result, decided_by="prior", alternatives_px=others, ambiguity_px=ambiguity)
+    return replace(
+        result, decided_by=coarse.lattice_by, alternatives_px=others, ambiguity_px=ambiguity
+    )
 
 
 def register(
@@ -326,7 +422,32 @@ def register(
         expected_px is not None and at.search is None and _suspect(at.result, expected_px, miss_px)
     ):
         _check_by_coarse(at, pair, expected_px=expected_px, textured=textured)
+    if at.result is not None:
+        at.result = check_bound(at.result, engine.config.max_shift_px, pixel_size_nm)
     return at.registration()
+
+
+def check_bound(
+    r: DriftResult, bound_px: float | None, pixel_size_nm: tuple[float, float]
+) -> DriftResult:
+    """``r``, or, when it is valid and beyond the stated bound
+    (``max_shift_px``, per axis, by more than three σ), a refusal: the frames
+    moved farther than the user says they can, or the content changed, and
+    either way the number is not the one asked for."""
+    if bound_px is None or not r.valid:
+        return r
+    sx, sy = r.sigma_x_nm / pixel_size_nm[0], r.sigma_y_nm / pixel_size_nm[1]
+    over_x = abs(r.dx_px) - bound_px - max(BOUND_SLACK_PX, 3 * sx)
+    over_y = abs(r.dy_px) - bound_px - max(BOUND_SLACK_PX, 3 * sy)
+    if over_x <= 0 and over_y <= 0:
+        return r
+    return invalid_result(
+        r.field,
+        f"beyond the bound: the blocks give ({r.dx_px:+.1f}, {r.dy_px:+.1f}) px, farther than "
+        f"max_shift_px = {bound_px:g} px; the frames moved farther than stated, or the "
+        "content changed",
+        valid_blocks=r.valid_blocks,
+    )
 
 
 #: A valid result around an expected position is checked against the
@@ -647,11 +768,27 @@ def _coarse_search(cfg: RegistrationConfig, coarse: CoarseShift) -> float:
 
 def ambiguous_reason(coarse: CoarseShift) -> str:
     """Why a pair whose lattice translations tie is refused, naming them."""
+    if coarse.lattice_by == "rival":
+        return (
+            f"ambiguous: two shifts fit, {format_shifts(coarse.candidates_px)} px: the first "
+            "by the highest correlation peak over a larger overlap, the second clearly better "
+            "over its own; the sample's content repeats, or it changed; give the expected "
+            "drift (--prior-px DX DY, prior_px) or the largest shift possible "
+            "(--max-shift-px, max_shift_px)"
+        )
+    if coarse.lattice_by == "outside":
+        return (
+            f"beyond the bound: the shifts the images fit alike, "
+            f"{format_shifts(coarse.candidates_px)} px (lattice translations of a periodic "
+            "sample), all lie beyond max_shift_px; the frames moved farther than stated"
+        )
     return (
         f"ambiguous: the images cannot tell apart the shifts {format_shifts(coarse.candidates_px)}"
         " px (lattice translations of a periodic sample: the content fits each as well), "
         "and no expected drift decides; give it (--prior-px DX DY on the command line, "
-        "prior_px in the API)"
+        "prior_px in the API), or the largest shift possible (--max-shift-px, "
+        "max_shift_px), or, to register the frames rather than track drift, ask for any "
+        'lattice-equivalent shift (--lattice equivalent, lattice = "equivalent")'
     )
 
 
@@ -754,16 +891,31 @@ def measure_drift(
                 not found.result.valid
                 and coarse is not None
                 and coarse.trusted
-                and engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
-                < cfg.min_valid_blocks
+                and (
+                    engine.placed_fraction(ref_spec, coarse.prior_px) * engine.layout.n_blocks
+                    < cfg.min_valid_blocks
+                    or _windows_clipped(coarse, engine)
+                )
             ):
                 small = _measure_overlap(ref, cur, coarse, base, pixel)
+                if small is not None:
+                    small = check_bound(small, cfg.max_shift_px, pixel)
                 if small is not None and small.valid:
                     return small
                 refused = refused or small
     finally:
         _give_engine(engine)
     return refused or found.result
+
+
+def _windows_clipped(coarse: CoarseShift, engine: BlockEngine) -> bool:
+    """Whether the coarse shift leaves less overlap on an axis than one
+    extended window: the block windows are then clamped into an overlap
+    they do not fit (a 450² pair 350 px apart overlaps 100 rows, less than
+    a 128 px window), and their peaks lie at the edge of their search."""
+    ext_y, ext_x = engine.layout.ext
+    rows, cols = engine.image_shape
+    return rows - abs(coarse.dy_px) < ext_y or cols - abs(coarse.dx_px) < ext_x
 
 
 def _measure_overlap(

@@ -133,16 +133,27 @@ class DriftResult:
         the search; None when nothing was expected.
     decided_by : str or None
         What picked the shift among those the images allow: ``content`` (the
-        frames' content: no other shift fits as well), ``prior`` (lattice
-        translations fit alike and the prior alone picked the one nearest
+        frames' content: no other shift fits as well), ``bound`` (lattice
+        translations fit alike and only this one lies within the stated
+        ``max_shift_px``), ``equivalent`` (they fit alike and, as
+        ``lattice = "equivalent"`` asks, the one nearest the prior or zero
+        was taken: the frames are registered, the drift is not known),
+        ``prior`` (they fit alike and the prior alone picked the one nearest
         it; the result is only as good as the prior). None when invalid.
     alternatives_px : tuple of (float, float)
-        ``decided_by == "prior"``: the other shifts that fit as well (px),
-        nearest the prior first.
+        ``decided_by`` ``prior``, ``equivalent`` or ``bound``: the other
+        shifts that fit as well (px; for ``bound`` those beyond it), nearest
+        the prior (or zero) first.
     ambiguity_px : float
-        ``decided_by == "prior"``: distance from the result to the nearest
-        alternative, px (a prior off by half of it would have picked
-        another); NaN otherwise.
+        Same cases: distance from the result to the nearest alternative, px
+        (a prior off by half of it would have picked another); NaN
+        otherwise.
+    distortion_px : (float, float) or None
+        A non-rigid frame (:mod:`afmdrift.registration._distortion`): the
+        RMS departure ``(x, y)`` of the blocks' smooth field from its mean
+        over the frame, px. The result is then the field's mean over the
+        frame, and σ carries what the blocks cannot tell of it. None for a
+        rigid frame (one shift, or a trend over the rows).
     """
 
     dx_px: float
@@ -164,6 +175,7 @@ class DriftResult:
     decided_by: str | None = None
     alternatives_px: tuple[tuple[float, float], ...] = ()
     ambiguity_px: float = math.nan
+    distortion_px: tuple[float, float] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready summary (non-finite numbers become None)."""
@@ -185,6 +197,7 @@ class DriftResult:
             "expected_px": None if self.expected_px is None else list(self.expected_px),
             "decided_by": self.decided_by,
             "ambiguity_px": _json_float(self.ambiguity_px),
+            "distortion_px": None if self.distortion_px is None else list(self.distortion_px),
             "alternatives": [
                 {
                     "shift_px": [a, b],

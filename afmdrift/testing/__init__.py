@@ -13,6 +13,8 @@ Runtime code (the service) never imports this package.
   :func:`band_limit`, which every texture applies) and
   :func:`shifted_crop` / :class:`TextureShifter` (shift a larger texture, cut
   a frame, so content enters and leaves at the edges as in a real scan).
+* Non-rigid frames: :func:`distorted_crop` (a bowed fast axis, bowed
+  lines, a small rotation, creep), :func:`distortion_field`.
 * Artefacts: :func:`add_noise` (SNR = std of heights / std of noise),
   :func:`add_plane` (z offset and tilt), :func:`add_line_offsets`.
 * Drift logs from a second generator, different on purpose from the
@@ -33,12 +35,15 @@ from afmdrift.testing._driftgen import (
     write_drift_log,
 )
 from afmdrift.testing._images import (
+    DISTORTIONS,
     Particles,
     TextureShifter,
     add_line_offsets,
     add_noise,
     add_plane,
     band_limit,
+    distorted_crop,
+    distortion_field,
     fourier_shift,
     lattice_texture,
     particle_texture,
@@ -49,6 +54,7 @@ from afmdrift.testing._images import (
 from afmdrift.testing._tracks import TRACK_SAMPLES, GeneratedTrack, generate_track
 
 __all__ = [
+    "DISTORTIONS",
     "DRIFTGEN_EFFECTS",
     "TRACK_SAMPLES",
     "GeneratedLog",
@@ -59,6 +65,8 @@ __all__ = [
     "add_noise",
     "add_plane",
     "band_limit",
+    "distorted_crop",
+    "distortion_field",
     "fourier_shift",
     "generate_drift_log",
     "generate_track",

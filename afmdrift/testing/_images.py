@@ -14,18 +14,22 @@ feature at ``u`` to ``u + d``.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
 
 __all__ = [
+    "DISTORTIONS",
     "Particles",
     "TextureShifter",
     "add_line_offsets",
     "add_noise",
     "add_plane",
     "band_limit",
+    "distorted_crop",
+    "distortion_field",
     "fourier_shift",
     "lattice_texture",
     "particle_texture",
@@ -177,6 +181,74 @@ def shifted_crop(
         between window and texture edge (wrapped content would enter).
     """
     return TextureShifter(texture).crop(shape, dx_px=dx_px, dy_px=dy_px, origin_px=origin_px)
+
+
+#: Distortions :func:`distorted_crop` makes (a non-rigid frame).
+DISTORTIONS = ("bow_x", "bow_y", "rotation", "creep")
+
+
+def distortion_field(
+    shape: tuple[int, int], kind: str, amplitude_px: float
+) -> tuple[FloatArray, FloatArray]:
+    """Displacement ``(Dx, Dy)`` (px, per pixel of a frame ``shape``) of a
+    non-rigid scan, zero-mean over the frame, ``amplitude_px`` its range
+    (peak to peak) across the frame:
+
+    - ``bow_x``: fast-axis nonlinearity (the scanner's x position bows with
+      x: features on both sides lie farther out), ``Dx = A (u² − 1/3)``;
+    - ``bow_y``: bowed scan lines (each line's y position bows with x),
+      ``Dy = A (u² − 1/3)``;
+    - ``rotation``: a small rotation about the centre, ``A`` across the
+      frame's width;
+    - ``creep``: logarithmic creep along the slow axis after a move,
+      ``Dy = A (ln(1 + 8 v) / ln 9 − mean)``, which the trend over the rows
+      follows (the control of a distortion sweep);
+
+    with ``u = (x − cx) / (cols / 2)`` and ``v = y / rows``."""
+    rows, cols = _check_shape(shape)
+    y, x = np.mgrid[:rows, :cols].astype(np.float64)
+    u = (x - (cols - 1) / 2) / (cols / 2)
+    zero = np.zeros((rows, cols))
+    if kind == "bow_x":
+        return amplitude_px * (u * u - float(np.mean(u * u))), zero
+    if kind == "bow_y":
+        return zero, amplitude_px * (u * u - float(np.mean(u * u)))
+    if kind == "rotation":
+        theta = amplitude_px / cols
+        return -theta * (y - (rows - 1) / 2), theta * (x - (cols - 1) / 2)
+    if kind == "creep":
+        c = np.log1p(8.0 * y / rows) / math.log(9.0)
+        return zero, amplitude_px * (c - float(c.mean()))
+    raise ValueError(f"unknown distortion {kind!r}; expected one of {DISTORTIONS}")
+
+
+def distorted_crop(
+    texture: npt.ArrayLike,
+    shape: tuple[int, int],
+    *,
+    dx_px: float = 0.0,
+    dy_px: float = 0.0,
+    kind: str = "bow_x",
+    amplitude_px: float = 0.0,
+) -> FloatArray:
+    """The centred frame ``shape`` of a periodic ``texture`` moved by ``(dx_px,
+    dy_px)`` and distorted by :func:`distortion_field` (a feature at ``u`` in
+    the undistorted, unmoved frame appears at ``u + d + D``): the drift of the
+    frame, taken over its area, is ``d`` exactly (``D`` is zero-mean). Sampled
+    by a cubic spline of the (band-limited) texture; cut the reference with
+    ``amplitude_px = 0`` so both frames are sampled alike."""
+    from scipy.ndimage import map_coordinates
+
+    tex = np.asarray(texture, dtype=np.float64)
+    rows, cols = _check_shape(shape)
+    t_rows, t_cols = tex.shape
+    x0, y0 = (t_cols - cols) // 2, (t_rows - rows) // 2
+    ddx, ddy = distortion_field((rows, cols), kind, amplitude_px)
+    y, x = np.mgrid[:rows, :cols].astype(np.float64)
+    # the content at frame pixel p came from p - d - D(p) (to first order in D)
+    coords = np.array([y0 + y - dy_px - ddy, x0 + x - dx_px - ddx])
+    out: FloatArray = map_coordinates(tex, coords, order=3, mode="grid-wrap")
+    return out
 
 
 @dataclass(frozen=True)

@@ -40,10 +40,12 @@ import numpy.typing as npt
 from afmdrift.errors import InputError
 from afmdrift.registration import DriftTracker, RegistrationConfig, measure_drift
 from afmdrift.testing import (
+    DISTORTIONS,
     Particles,
     TextureShifter,
     add_noise,
     band_limit,
+    distorted_crop,
     fourier_shift,
     particle_texture,
     rough_texture,
@@ -86,6 +88,11 @@ class Pair:
     bound_px: float | None = None
     #: The expected drift given to ``measure_drift`` (None: the coarse alignment).
     prior_px: tuple[float, float] | None = None
+    #: Period (px, both axes) of a perfect lattice whose translations register
+    #: the frames equally well: a result a whole number of periods from the
+    #: truth is right (the peer asserts registered frames, and afmdrift is
+    #: asked for them, ``lattice = "equivalent"``).
+    equivalent_period_px: float | None = None
 
 
 @dataclass(frozen=True)
@@ -163,8 +170,16 @@ def _judge(
     got: tuple[float, float],
     truth: tuple[float, float],
     sigma: tuple[float, float],
+    period: float | None = None,
 ) -> tuple[str, tuple[float, float]]:
-    err = (abs(got[0] - truth[0]), abs(got[1] - truth[1]))
+    diff = (got[0] - truth[0], got[1] - truth[1])
+    if period is not None:
+        # lattice-equivalent: a whole number of periods off registers alike
+        diff = (
+            diff[0] - period * round(diff[0] / period),
+            diff[1] - period * round(diff[1] / period),
+        )
+    err = (abs(diff[0]), abs(diff[1]))
     if not (err[0] <= _bound(sigma[0]) and err[1] <= _bound(sigma[1])):
         return "fail", err
     return ("pass" if _within_peer(case, err) else "short"), err
@@ -216,7 +231,7 @@ def judge_pair(
             sigma,
             detail=f"truth unknown; |d| must be <= {bound:g} px",
         )
-    verdict, err = _judge(case, got, pair.truth, sigma)
+    verdict, err = _judge(case, got, pair.truth, sigma, pair.equivalent_period_px)
     return Outcome(case, verdict, got, err, sigma)
 
 
@@ -830,13 +845,33 @@ def _grid_shifts() -> list[tuple[int, int]]:
     return _small_shifts(40, 40)
 
 
-def _s2p_grid(dx: int, dy: int, *, told: bool = False) -> Callable[[], Pair]:
+def _wide_grid_shifts() -> list[tuple[int, int]]:
+    """40 integer shifts with |dx|, |dy| ≤ 20 px, at least one axis beyond 8
+    (more than half the grid's period: not the minimal translation)."""
+    rng = _rng(41)
+    out: list[tuple[int, int]] = []
+    while len(out) < 40:
+        s = (int(rng.integers(-20, 21)), int(rng.integers(-20, 21)))
+        if max(abs(s[0]), abs(s[1])) > 8:
+            out.append(s)
+    return out
+
+
+def _s2p_grid(
+    dx: int, dy: int, *, told: bool = False, bound: float | None = None, equivalent: bool = False
+) -> Callable[[], Pair]:
     def build() -> Pair:
         g = _line_grid()
         # A tracker's prediction: within a pixel of the truth.
         prior = (dx + 0.8, dy - 0.6) if told else None
         cur = fourier_shift(g, dx_px=dx, dy_px=dy)
-        return Pair(g.copy(), cur, (float(dx), float(dy)), prior_px=prior)
+        config = RegistrationConfig(
+            max_shift_px=bound, lattice="equivalent" if equivalent else "track"
+        )
+        return Pair(
+            g.copy(), cur, (float(dx), float(dy)), prior_px=prior, config=config,
+            equivalent_period_px=16.0 if equivalent else None,
+        )  # fmt: skip
 
     return build
 
@@ -902,19 +937,34 @@ SUITE2P: list[Case] = [
             "suite2p",
             f"line_grid_{i:02d}_{dx:+d}_{dy:+d}",
             S2P,
-            f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}): registered frames "
-            "identical (any lattice translation); we ask the minimal one, or a refusal",
+            f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}), maximum shift 7 px "
+            "(maxregshift): registered frames identical",
             0.5,
-            _s2p_grid(dx, dy),
+            _s2p_grid(dx, dy, bound=7.0),
             note="a perfect lattice that tiles the frame: the data are the same for d and "
-            "d + 16 px, so nothing identifies the shift. suite2p's assertion (the registered "
-            "frames are identical) holds for every lattice translation and does not show it "
-            "found this one; without an expected drift afmdrift refuses as ambiguous and "
-            "names the translations, the minimal one first (issue 29). Band-limited 1.9-px "
-            "lines, periodic integer shifts |d| ≤ 7 px",
-            peer_succeeds=False,
+            "d + 16 px, so the frames alone cannot identify the shift. suite2p is told its "
+            "maximum shift; afmdrift is told the same (max_shift_px = 7, under half the "
+            "period), which excludes every other translation (decided_by: bound; issue 38). "
+            "Band-limited 1.9-px lines, periodic integer shifts |d| ≤ 7 px",
         )
         for i, (dx, dy) in enumerate(_grid_shifts())
+    ],
+    *[
+        Case(
+            "suite2p",
+            f"line_grid_wide_{i:02d}_{dx:+d}_{dy:+d}",
+            S2P,
+            f"line grid 256², period 16 px, shift ({dx:+d}, {dy:+d}), maximum shift 20 px: "
+            "registered frames identical (any lattice translation)",
+            0.5,
+            _s2p_grid(dx, dy, bound=20.0, equivalent=True),
+            note="as line_grid_*, shifts up to 20 px: several translations lie within the "
+            "bound and register the frames identically, which is all suite2p asserts. "
+            "afmdrift is told the bound and asked for the frames registered (lattice = "
+            '"equivalent": the translation nearest zero, decided_by: equivalent); a result '
+            "a whole number of periods from the shift counts as right (issue 38)",
+        )
+        for i, (dx, dy) in enumerate(_wide_grid_shifts())
     ],
     *[
         Case(
@@ -977,6 +1027,121 @@ AFSPM_CASES: list[Case] = [
         note="real NanoScope frame (../shared/data/real), 224² crops 4, 13 px apart",
         realdata=True,
     ),
+]
+
+
+# --------------------------------------------------------------------------- issue 38
+
+#: Non-rigid frames: whole-image methods agree on one shift (afspm's
+#: contact-mode pair asserts a residual norm under 5 px; scikit-image's
+#: phase correlation gives the area's mean shift within a pixel or so).
+DISTORTED = "issue 38 (afmdrift): whole-image methods on a distorted contact-mode pair"
+
+
+def _distorted(kind: str, amplitude: float, dx: float, dy: float, real: bool) -> Callable[[], Pair]:
+    def build() -> Pair:
+        rng = _rng(3810 + int(10 * amplitude) + DISTORTIONS.index(kind))
+        if real:
+            from afmdrift.io import load_image
+
+            img = load_image(str(real_path(NANOSCOPE)))
+            tex = img.heights_nm - float(np.median(img.heights_nm))
+            pixel, shape = float(img.pixel_size_nm[0]), (192, 192)
+            # a lattice of period about 10 px: the drift stays within the
+            # stated bound, which decides the translation
+            config = RegistrationConfig(max_shift_px=4.5)
+        else:
+            tex = terrace_texture((384, 384), pixel_size_nm=2.0, rng=rng, terrace_width_nm=60.0)
+            pixel, shape, config = 2.0, (256, 256), None
+        ref = add_noise(distorted_crop(tex, shape), snr=10.0, rng=rng)
+        cur = distorted_crop(tex, shape, dx_px=dx, dy_px=dy, kind=kind, amplitude_px=amplitude)
+        return Pair(ref, add_noise(cur, snr=10.0, rng=rng), (dx, dy), pixel, config=config)
+
+    return build
+
+
+#: Natural images for large shifts over small overlaps: crops of photographs
+#: shipped with scikit-image (read from the installed package).
+NATURAL = "scikit-image/scikit-image skimage/registration/tests/test_phase_cross_correlation.py"
+
+
+@functools.cache
+def _natural(name: str) -> FloatArray:
+    img = _skdata(name)
+    if name == "retina":
+        img = img[250:1150, 250:1150]
+    out = 100.0 * (img - img.mean()) / img.std()
+    out.setflags(write=False)
+    return out
+
+
+def _natural_pair(name: str, n: int, ix: int, iy: int) -> Callable[[], Pair]:
+    def build() -> Pair:
+        img = _natural(name)
+        x0, y0 = max(0, ix), max(0, iy)
+        ref = img[y0 : y0 + n, x0 : x0 + n]
+        cur = img[y0 - iy : y0 - iy + n, x0 - ix : x0 - ix + n]
+        return Pair(ref.copy(), cur.copy(), (float(ix), float(iy)))
+
+    return build
+
+
+#: (image, frame edge, shift): overlaps of 15–50 % of the frame, each axis at least 64 px.
+NATURAL_SHIFTS = [
+    ("retina", 450, 100, 350), ("retina", 450, -350, 100), ("retina", 450, -100, -350),
+    ("retina", 450, 290, -240), ("retina", 450, -210, 240), ("retina", 450, 180, 200),
+    ("hubble_deep_field", 420, 100, 320), ("hubble_deep_field", 420, -330, -90),
+    ("hubble_deep_field", 420, 250, -200), ("camera", 256, 120, 150),
+    ("camera", 256, -190, 40), ("astronaut", 256, -150, -140), ("astronaut", 256, 60, 185),
+    ("coffee", 256, 130, -110), ("gravel", 256, -120, 130), ("brick", 256, 180, 60),
+]  # fmt: skip
+
+
+ISSUE38: list[Case] = [
+    *[
+        Case(
+            "issue38",
+            f"distorted_{'nanoscope' if real else 'facets'}_{kind}_{amp:g}px",
+            DISTORTED,
+            f"a non-rigid frame ({kind}, {amp:g} px across it), moved ({dx:+g}, {dy:+g}) px: "
+            "one shift, residual norm < 5 px",
+            5.0,
+            _distorted(kind, amp, dx, dy, real),
+            tol_norm=True,
+            note="the current frame distorted by a smooth zero-mean field (afmdrift.testing."
+            "distortion_field); the truth is the frame's mean shift. "
+            + (
+                "Real NanoScope texture (a lattice), the bound stated (max_shift_px = 4.5)"
+                if real
+                else "Terrace (facet-like) texture 256² at 2 nm/px"
+            ),
+            realdata=real,
+        )
+        for real, kind, amp, dx, dy in [
+            (False, "bow_x", 2.0, 4.0, 13.0),
+            (False, "bow_x", 6.0, -7.3, 5.2),
+            (False, "bow_y", 3.0, 4.0, 13.0),
+            (False, "bow_y", 8.0, 9.1, -2.4),
+            (False, "rotation", 2.0, 4.0, 13.0),
+            (False, "bow_x", 10.0, 3.3, 3.3),
+            (True, "bow_x", 1.5, 2.2, -1.7),
+            (True, "bow_y", 2.0, -1.4, 2.6),
+        ]
+    ],
+    *[
+        Case(
+            "issue38",
+            f"natural_{name}_{ix:+d}_{iy:+d}",
+            NATURAL,
+            f"{n}² crops of {name} {ix:+d}, {iy:+d} px apart (overlap "
+            f"{100 * (n - abs(ix)) * (n - abs(iy)) / n / n:.0f} %): exact (disambiguate=True)",
+            0.5,
+            _natural_pair(name, n, ix, iy),
+            note="large shifts over a small overlap on natural photographs (issue 38), as "
+            "scikit-image's disambiguation test does with its eagle",
+        )
+        for name, n, ix, iy in NATURAL_SHIFTS
+    ],
 ]
 
 
@@ -1255,6 +1420,7 @@ ALL_CASES: list[Case] = [
     *SUITE2P,
     *AFSPM_CASES,
     *ISSUE13,
+    *ISSUE38,
 ]
 CASES_BY_ID: dict[str, Case] = {c.id: c for c in ALL_CASES}
 assert len(CASES_BY_ID) == len(ALL_CASES), "case ids must be unique"

@@ -149,6 +149,10 @@ def test_stack_blank_frame_is_reported_and_skipped(
         ),
         (
             lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "--search-px", "80"],
+            "block_search_px",
+        ),
+        (
+            lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "--max-shift-px", "-3"],
             "max_shift_px",
         ),
         (lambda a, b, small, missing: [a, b, "--pixel-size-nm", "1", "2", "3"], "PX or PX PY"),
@@ -193,7 +197,8 @@ def test_measurement_config_overrides() -> None:
     small = measurement_config(base, block_size=32, extended_size=48)
     assert (small.block_size, small.extended_size, small.auto_block_size) == (32, 48, False)
     narrow = measurement_config(base, search_px=3.0)
-    assert (narrow.max_shift_px, narrow.coarse_search_px) == (3.0, 3.0)
+    assert (narrow.block_search_px, narrow.coarse_search_px) == (3.0, 3.0)
+    assert narrow.max_shift_px is None  # the bound on the drift is another thing
     with pytest.raises(ConfigError, match="extended_size"):
         measurement_config(base, block_size=64, extended_size=32)
 
@@ -271,3 +276,55 @@ def test_stack_takes_a_prior_for_its_first_increment_and_refuses_dewarp_of_a_pai
     one = _save(tmp_path / "one.npy", stack[0])
     assert main(["measure", one, one, "--pixel-size-nm", "1", "--dewarp", "d"]) == 2
     assert "--dewarp applies to a stack" in capsys.readouterr().err
+
+
+def test_a_stated_bound_or_equivalence_decides_a_lattice_on_the_command_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A perfect lattice (period 11.5 px) shifted (3.4, −1.2) px: refused
+    alone (exit 1); ``--max-shift-px 4.5`` decides it (decided_by: bound,
+    exit 0); shifted (13.4, −9.2) px, ``--lattice equivalent`` registers it
+    (decided_by: equivalent, said in words, exit 0)."""
+    from afmdrift.testing import TextureShifter, lattice_texture
+
+    tex = lattice_texture((320, 320), rng=np.random.default_rng(5), vacancy_fraction=0.0)
+    shifter = TextureShifter(tex)
+    a = _save(tmp_path / "a.npy", shifter.crop((224, 224)))
+    b = _save(tmp_path / "b.npy", shifter.crop((224, 224), dx_px=3.4, dy_px=-1.2))
+    far = _save(tmp_path / "far.npy", shifter.crop((224, 224), dx_px=13.4, dy_px=-9.2))
+    assert main(["measure", a, b, "--pixel-size-nm", "1", "--json"]) == 1
+    assert json.loads(capsys.readouterr().out)["reason"].startswith("ambiguous")
+    assert main(["measure", a, b, "--pixel-size-nm", "1", "--max-shift-px", "4.5", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["decided_by"] == "bound"
+    assert (doc["dx_px"], doc["dy_px"]) == pytest.approx((3.4, -1.2), abs=0.1)
+    assert main(["measure", a, far, "--pixel-size-nm", "1", "--lattice", "equivalent"]) == 0
+    out = capsys.readouterr()
+    assert "decided as asked (--lattice equivalent)" in out.out
+    assert "warning" not in out.err
+
+
+@pytest.mark.parametrize(
+    "command",
+    [
+        ["measure", "a.npy", "b.npy"],
+        ["replay", "SESSION", "--out", "RUN"],
+        ["correct", "SESSION", "--out", "DIR"],
+        ["batch", "IN", "--out", "DIR"],
+        ["diagnose", "SESSION"],
+        ["evaluate", "SESSION"],
+        ["run"],
+    ],
+)
+def test_every_registering_command_takes_the_bound_and_the_lattice_mode(command: list[str]) -> None:
+    """One pair of options, one function applying them (the same validation)."""
+    from afmdrift.cli import build_parser
+    from afmdrift.cli._options import registration_options
+    from afmdrift.config import AfmdriftConfig
+
+    args = build_parser().parse_args([*command, "--max-shift-px", "7", "--lattice", "equivalent"])
+    cfg = registration_options(args, AfmdriftConfig())
+    assert (cfg.registration.max_shift_px, cfg.registration.lattice) == (7.0, "equivalent")
+    bad = build_parser().parse_args([*command, "--max-shift-px", "0"])
+    with pytest.raises(ConfigError, match="max_shift_px"):
+        registration_options(bad, AfmdriftConfig())

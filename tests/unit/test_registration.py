@@ -473,5 +473,5 @@ def test_config_rejects_inconsistent_sizes() -> None:
 
     with pytest.raises(ValidationError, match="extended_size"):
         RegistrationConfig(block_size=128, extended_size=64)
-    with pytest.raises(ValidationError, match="max_shift_px"):
-        RegistrationConfig(max_shift_px=63)
+    with pytest.raises(ValidationError, match="block_search_px"):
+        RegistrationConfig(block_search_px=63)
