@@ -687,6 +687,8 @@ class PhysicsPredictor(_LoggingPredictor):
             "residual_sd": [None if not math.isfinite(v) else float(v) for v in self.residual_sd],
             "residuals": [[float(a), float(b)] for a, b in self._residuals],
             "residual_net": None if self.residual_net is None else self.residual_net.state_dict(),
+            "searched_at": self._searched_at,
+            "searched_terms": list(self._searched_terms),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -717,6 +719,9 @@ class PhysicsPredictor(_LoggingPredictor):
             [math.nan if v is None else float(v) for v in state["residual_sd"]]
         )
         self._residuals = np.asarray(state["residuals"], dtype=np.float64).reshape(-1, 2)
+        # A state written before the search schedule: θ is searched at the next fit.
+        self._searched_at = int(state.get("searched_at", 0))
+        self._searched_terms = tuple(str(n) for n in state.get("searched_terms", ()))
         if self.residual_net is not None and state["residual_net"] is not None:
             self.residual_net.load_state_dict(state["residual_net"])
 
