@@ -446,7 +446,8 @@ class PhysicsPredictor(_LoggingPredictor):
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
             if searched:
-                raw = dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
+                blocks_a = self.design_blocks(ts, history, sign, axis, active=active, params=params)
+                raw = dict(blocks_a)
             else:  # θ as when the terms were chosen: their blocks are built
                 raw = {"intercept": np.ones((ts.shape[0], 1))} if self.add_intercept else {}
                 raw.update({name: self._built[(name, axis)] for name in active})
