@@ -381,14 +381,15 @@ class PhysicsPredictor(_LoggingPredictor):
         params = {k: dict(v) for k, v in self.params.items()}
         nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]
         searched = False
-        if nonlinear and t.size >= 3 and self._search_due(t.size, active):
+        inputs = self._inputs(active, history)
+        if nonlinear and t.size >= 3 and self._search_due(t.size, inputs):
             searched = True
             # A term searched before starts where it was (a warm start): its
             # first pass refines around that value, and scans the whole grid
             # only when the optimum left the neighbourhood.
-            warm = set(self._searched_terms) & set(active)
+            warm = {key.rpartition("|")[0] for key in set(self._searched_terms) & set(inputs)}
             self._searched_at = t.size
-            self._searched_terms = tuple(active)
+            self._searched_terms = inputs
             # Blocks of every term at the current θ; a scan only rebuilds its own term.
             blocks = [
                 dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
@@ -462,12 +463,25 @@ class PhysicsPredictor(_LoggingPredictor):
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
         self._fit_residual(t, residuals, history)
 
-    def _search_due(self, n: int, active: Sequence[str]) -> bool:
-        """Whether θ is searched at this fit: a term became active, or the
-        points grew by :attr:`PhysicsConfig.search_growth` since the last
-        search (every fit while there are few points, or with growth 0)."""
+    def _inputs(self, active: Sequence[str], history: History) -> tuple[str, ...]:
+        """What the search of θ depends on besides the points: each active term
+        with its number of supported columns (``name|k``: creep has none before
+        the first move), and the number of logged events (``events|n``)."""
+        keys = []
+        for name in active:
+            k = max(int(np.count_nonzero(self._built[(name, a)].any(axis=0))) for a in (0, 1))
+            keys.append(f"{name}|{k}")
+        keys.append(f"events|{len(history.events)}")
+        return tuple(keys)
+
+    def _search_due(self, n: int, inputs: tuple[str, ...]) -> bool:
+        """Whether θ is searched at this fit: a term became active or gained a
+        supported column, an event was logged, or the points grew by
+        :attr:`PhysicsConfig.search_growth` since the last search (every fit
+        while there are few points, or with growth 0). A term searched before
+        with the same support starts from its θ (a warm start)."""
         growth = self.config.search_growth
-        if growth <= 0 or n < _ALWAYS_SEARCH_BELOW or tuple(active) != self._searched_terms:
+        if growth <= 0 or n < _ALWAYS_SEARCH_BELOW or inputs != self._searched_terms:
             return True
         return n >= (1.0 + growth) * self._searched_at
 
