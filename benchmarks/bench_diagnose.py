@@ -1,6 +1,6 @@
 """``afmdrift diagnose`` over sessions from three sources, as issue 28 asks.
 
-Run: ``.venv/bin/python benchmarks/bench_diagnose.py [--sim-seeds N] [--gen-seeds N]
+Run: ``.venv/bin/python benchmarks/bench_diagnose.py [--sim-seeds N] [--gen-seeds N] [--processes N]
 [--gen-controls N] [--only SOURCE] [--json FILE]``
 
 Sources, each with the model of the session less its hidden effect:
@@ -171,11 +171,12 @@ def main() -> None:
     ap.add_argument("--gen-controls", type=int, default=14, help="generator control seeds")
     ap.add_argument("--only", choices=("simulator", "generator", "shared"))
     ap.add_argument("--json", metavar="FILE", help="write every row as JSON")
+    ap.add_argument("--processes", type=int, default=2, help="sessions diagnosed side by side")
     a = ap.parse_args()
     from afmdrift.testing import DRIFTGEN_EFFECTS, generate_drift_log, write_drift_log
 
     rows: list[Row] = []
-    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(max_workers=2) as pool:
+    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(max_workers=a.processes) as pool:
         futures = []
         if a.only in (None, "shared") and SHARED.is_dir():
             for d in sorted(p for p in SHARED.iterdir() if p.is_dir()):

@@ -71,6 +71,14 @@ class PhysicsConfig(BaseModel):
         2.0, ge=1, le=20, description="A term enters once there are this many points per column."
     )
     refine_passes: int = Field(2, ge=1, le=10, description="Coordinate passes over θ.")
+    search_growth: float = Field(
+        0.1,
+        ge=0,
+        le=10,
+        description="θ is searched again once the fitted points grew by this fraction since "
+        "its last search (in between, only the linear coefficients are refitted); "
+        "0 searches at every frame.",
+    )
 
 
 class ModelConfig(BaseModel):

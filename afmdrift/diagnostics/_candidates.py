@@ -186,7 +186,10 @@ class CandidateResult:
     coefficients per axis (``<coefficient>_x``, ``<coefficient>_y``) in the
     units named by the term. ``driver`` names what drives a generic term
     (empty for a named one); ``channel`` is the logged channel a term reads
-    (generic or named, e.g. ``humidity_pct`` for ``humidity``), if any.
+    (generic or named, e.g. ``humidity_pct`` for ``humidity``), if any;
+    ``discovered`` says what a drift shape read from the drift itself is
+    (``{"kind": "jump", "t_s": ..., "step_nm": [x, y]}``, see
+    :mod:`afmdrift.diagnostics._discover`), None for every other candidate.
     ``profile`` is (θ value, ΔAICc) over the scanned
     grid of the first nonlinear parameter. ``av`` holds the added-variable
     plot data per axis: (partialled candidate column, partialled response).
@@ -211,11 +214,13 @@ class CandidateResult:
     nonlinear: dict[str, float] = field(default_factory=dict)
     rmse_after_nm: float | None = None
     rmse_after_kind: str | None = None
+    rmse_base_nm: float | None = None
     in_sample_ok: bool = False
     prequential_drop: float | None = None
     p_online: float = math.nan
     p_online_holm: float = math.nan
     alike: list[str] = field(default_factory=list)
+    discovered: dict[str, object] | None = None
     profile: list[tuple[float, float]] = field(default_factory=list)
     av: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
 
@@ -241,6 +246,8 @@ class CandidateResult:
                 online += (
                     f" (Diebold-Mariano p = {self.p_online:.2g}, Holm {self.p_online_holm:.2g})"
                 )
+            if self.discovered is not None and self.discovered.get("kind") == "jump":
+                online += " (the frames of the jump itself left out of both)"
         return (
             f"ΔAICc = {self.delta_aicc:.1f}, HAC Wald χ²({self.df}) = {self.wald:.1f} "
             f"(p = {self.p_value:.2g}, Bonferroni {self.p_bonferroni:.2g}), {cv}{online}"
@@ -322,6 +329,12 @@ def base_basis(design: ModelDesign) -> _Basis:
     return optimise_model(design)
 
 
+#: A grid longer than this (a drift shape searched over every frame boundary or
+#: frequency) is scanned and cross-validated with the θ values side by side
+#: in arrays, not one least-squares solve after another.
+MANY_THETA = 40
+
+
 def _scan(
     term: EffectTerm,
     design: ModelDesign,
@@ -330,6 +343,8 @@ def _scan(
     grid: list[dict[str, float]],
 ) -> list[tuple[dict[str, float], list[FloatArray], list[float]]]:
     """Per θ_C: partialled candidate columns and per-axis RSS."""
+    if len(grid) > MANY_THETA:
+        return _scan_many(term, design, history, basis, grid)
     out = []
     for params in grid:
         blocks = _cand_block(term, design.samples, history, design.scan_sign, params)
@@ -347,6 +362,58 @@ def _scan(
             rss1.append(float(r @ r))
         out.append((params, zc, rss1))
     return out
+
+
+def _grid_blocks(
+    term: EffectTerm, design: ModelDesign, history: History, grid: list[dict[str, float]]
+) -> list[FloatArray]:
+    """Quasi-differenced candidate columns of every θ of ``grid`` side by side:
+    per axis an array (g, n − 1, c). Needs the same column count at every θ."""
+    raw = [_cand_block(term, design.samples, history, design.scan_sign, p) for p in grid]
+    out = []
+    for a in (0, 1):
+        x = np.stack([np.asarray(b[a], dtype=np.float64) for b in raw])
+        out.append(np.asarray(x[:, 1:, :] - design.phi[a] * x[:, :-1, :], dtype=np.float64))
+    return out
+
+
+def _small_solve(z: FloatArray, e: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Least squares e ≈ z[g]·c for every g at once: ``z`` (g, m, c), ``e``
+    (m,) or (g, m). Returns the coefficients (g, c) and the RSS (g,)."""
+    ee = e if e.ndim == 2 else np.broadcast_to(e, z.shape[:2])
+    gram = np.einsum("gmc,gmd->gcd", z, z)
+    h = np.einsum("gmc,gm->gc", z, ee)
+    coef = np.einsum("gcd,gd->gc", np.linalg.pinv(gram, rcond=1e-14, hermitian=True), h)
+    r = ee - np.einsum("gmc,gc->gm", z, coef)
+    return coef, np.einsum("gm,gm->g", r, r)
+
+
+def _scan_many(
+    term: EffectTerm,
+    design: ModelDesign,
+    history: History,
+    basis: _Basis,
+    grid: list[dict[str, float]],
+) -> list[tuple[dict[str, float], list[FloatArray], list[float]]]:
+    """:func:`_scan` with the θ values side by side in arrays (a long grid)."""
+    zs, rss = [], []
+    for a, raw in enumerate(_grid_blocks(term, design, history, grid)):
+        q = basis.qm[a]
+        z = raw - np.einsum("mk,gkc->gmc", q, np.einsum("mk,gmc->gkc", q, raw))
+        ref = np.abs(raw).max(axis=(1, 2)) if raw.size else np.zeros(raw.shape[0])
+        keep = np.sqrt(np.sum(z * z, axis=1)) > 1e-9 * np.maximum(ref, 1e-30)[:, None]
+        z = np.where(keep[:, None, :], z, 0.0)
+        _, r = _small_solve(z, basis.e0[a])
+        zs.append((z, keep))
+        rss.append(np.maximum(r, 0.0))
+    return [
+        (
+            params,
+            [zs[a][0][g][:, zs[a][1][g]] for a in (0, 1)],
+            [float(rss[0][g]), float(rss[1][g])],
+        )
+        for g, params in enumerate(grid)
+    ]
 
 
 def _refine(
@@ -597,8 +664,11 @@ def _named_params(
             c, *_ = np.linalg.lstsq(z_full[:, keep], basis.e0[a], rcond=1e-10)
             coef_full[keep] = c
         for j, v in enumerate(coef_full):
-            base_name = units[j] if j < len(units) else (units[0] if units else "coef")
-            label = base_name if coef_full.size == 1 else f"{base_name}[{j}]"
+            if coef_full.size == len(units):  # one name per column
+                label = units[j]
+            else:  # one amplitude per event: the first name, indexed
+                base_name = units[j] if j < len(units) else (units[0] if units else "coef")
+                label = base_name if coef_full.size == 1 else f"{base_name}[{j}]"
             named[f"{label}_{axis}"] = float(v)
     for term_name, pname, _ in design_c.grids:
         named[f"model.{term_name}.{pname}"] = float(basis.params[term_name][pname])
@@ -642,6 +712,8 @@ def _blocked_cv(
     it. Returns (base, candidate, evaluable); not evaluable when some fold's
     training data carries none of a column that its test block uses.
     """
+    if len(grid) > MANY_THETA:
+        return _blocked_cv_many(term, design, design_c, history, zm_base, zm, grid, folds)
     t, sign = design.samples, design.scan_sign
     ytil_base = [design.qd(design.y[:, a], a) for a in (0, 1)]
     ytil = [design_c.qd(design.y[:, a], a) for a in (0, 1)]
@@ -686,6 +758,68 @@ def _blocked_cv(
             base_pred = ls_predict(zm_base[a][train], ytil_base[a][train], zm_base[a][test])
             se_base += float(np.sum((ytil_base[a][test] - base_pred) ** 2))
             se_cand += float(np.sum((ytil[a][test] - best_pred[a]) ** 2))
+    return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable
+
+
+def _blocked_cv_many(
+    term: EffectTerm,
+    design: ModelDesign,
+    design_c: ModelDesign,
+    history: History,
+    zm_base: list[FloatArray],
+    zm: list[FloatArray],
+    grid: list[dict[str, float]],
+    folds: int,
+) -> tuple[float, float, bool]:
+    """:func:`_blocked_cv` with the θ values side by side in arrays (a long grid).
+
+    On each training set, the model's columns are partialled out
+    (Frisch–Waugh–Lovell) and every θ's candidate fit is a small solve; the
+    θ with the smallest training RSS over both axes predicts the held-out
+    block, as in :func:`_blocked_cv`.
+    """
+    ytil_base = [design.qd(design.y[:, a], a) for a in (0, 1)]
+    ytil = [design_c.qd(design.y[:, a], a) for a in (0, 1)]
+    m = ytil[0].size
+    labels = cv_folds(m, folds)
+    zc = _grid_blocks(term, design_c, history, grid)
+    se_base = 0.0
+    se_cand = 0.0
+    evaluable = True
+    for f in range(folds):
+        test = labels == f
+        train = ~test
+        if not test.any():
+            continue
+        total = np.zeros(len(grid))
+        parts = []
+        for a in (0, 1):
+            zm_a = zm[a]
+            supp_m_tr = np.abs(zm_a[train]).max(axis=0) > 0 if zm_a.shape[1] else np.zeros(0, bool)
+            supp_m_te = np.abs(zm_a[test]).max(axis=0) > 0 if zm_a.shape[1] else np.zeros(0, bool)
+            supp_c_tr = np.abs(zc[a][:, train, :]).max(axis=1) > 0
+            supp_c_te = np.abs(zc[a][:, test, :]).max(axis=1) > 0
+            if np.any(supp_m_te & ~supp_m_tr) or np.any(supp_c_te & ~supp_c_tr):
+                evaluable = False
+            xm = zm_a[train][:, supp_m_tr]
+            c_tr = np.where(supp_c_tr[:, None, :], zc[a][:, train, :], 0.0)
+            y = ytil[a][train]
+            pinv_m = np.linalg.pinv(xm, rcond=1e-10) if xm.shape[1] else np.zeros((0, y.size))
+            proj_y = xm @ (pinv_m @ y)
+            proj_c = np.einsum("mk,gkc->gmc", xm, np.einsum("km,gmc->gkc", pinv_m, c_tr))
+            coef, rss = _small_solve(c_tr - proj_c, y - proj_y)
+            total += rss
+            parts.append((xm, pinv_m, c_tr, coef, supp_m_tr, supp_c_tr))
+        g = int(np.argmin(total))
+        for a in (0, 1):
+            xm, pinv_m, c_tr, coef, supp_m_tr, supp_c_tr = parts[a]
+            y = ytil[a][train]
+            beta = pinv_m @ (y - c_tr[g] @ coef[g])
+            c_te = np.where(supp_c_tr[g][None, :], zc[a][g][test], 0.0)
+            pred = zm[a][test][:, supp_m_tr] @ beta + c_te @ coef[g]
+            base_pred = ls_predict(zm_base[a][train], ytil_base[a][train], zm_base[a][test])
+            se_base += float(np.sum((ytil_base[a][test] - base_pred) ** 2))
+            se_cand += float(np.sum((ytil[a][test] - pred) ** 2))
     return math.sqrt(se_base / m), math.sqrt(se_cand / m), evaluable
 
 

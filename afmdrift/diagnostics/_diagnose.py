@@ -12,9 +12,11 @@ and a physics model (a list of effect terms) and
 2. **locates failures**: episodes of large or persistently biased errors,
    each linked to what was logged then; Ljung–Box, periodogram, CUSUM and
    the up/down frame difference (:mod:`afmdrift.diagnostics._stats`);
-3. **finds the missing effect**: tests every library term not in the model
-   and the generic response to every logged channel and event kind
-   (:mod:`afmdrift.diagnostics._candidates`), ranks them, and for the top
+3. **finds the missing effect**: tests every library term not in the model,
+   the generic response to every logged channel and event kind
+   (:mod:`afmdrift.diagnostics._candidates`) and the shapes read from the
+   drift itself, a cycle, a jump, a change of rate
+   (:mod:`afmdrift.diagnostics._discover`), ranks them, and for the top
    candidates re-runs the model online with the term added to measure the
    new one-step error ("add it and watch the error fall";
    :mod:`afmdrift.diagnostics._ranking`); the re-runs are independent and run
@@ -36,7 +38,12 @@ import numpy as np
 from afmdrift.config import PhysicsConfig
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import DiagnoseOptions, Diagnosis
-from afmdrift.diagnostics._finding import error_patterns, finding_text, with_jump_caution
+from afmdrift.diagnostics._finding import (
+    error_patterns,
+    finding_text,
+    plain_finding,
+    with_jump_caution,
+)
 from afmdrift.diagnostics._model_run import ModelRun, model_design, run_from_store, run_model
 from afmdrift.diagnostics._ranking import (
     candidate_evidence,
@@ -145,6 +152,7 @@ def _diagnose(
         top, results, physics, summary, after_summary, n_tests, options
     )
     finding = with_jump_caution(finding, run)
+    plain = plain_finding(top, results, summary, after_summary, options.thresholds)
     return Diagnosis(
         model_effects=list(physics.terms),
         active_effects=list(run.predictor.active),
@@ -162,6 +170,7 @@ def _diagnose(
         thresholds=options.thresholds,
         phi=[float(v) for v in design.phi],
         finding=finding,
+        plain=plain,
         config_terms=config_terms,
         after=after,
         after_summary=after_summary,

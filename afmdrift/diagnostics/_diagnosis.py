@@ -43,6 +43,9 @@ class DiagnoseOptions:
         At most this many online re-runs in all (the highest ΔAICc first):
         each re-run costs a full online fit, and the Diebold-Mariano p-values
         are corrected for their number.
+    discover : bool
+        Also test the drift shapes read from the drift itself: a cycle, a
+        jump, a change of rate (:mod:`afmdrift.diagnostics._discover`).
     workers : int
         Processes that run the online re-runs side by side on this machine
         (:class:`~afmdrift.runs.TaskPool`; ``afmdrift diagnose`` uses every
@@ -55,6 +58,7 @@ class DiagnoseOptions:
     thresholds: Thresholds = field(default_factory=Thresholds)
     verify: int = 2
     max_verify: int = 10
+    discover: bool = True
     workers: int = 1
 
 
@@ -79,6 +83,7 @@ class Diagnosis:
     phi: list[float]
     finding: str
     config_terms: list[str] | None
+    plain: str = ""
     after: ModelRun | None = None
     after_summary: dict[str, float] | None = None
 
@@ -150,6 +155,7 @@ class Diagnosis:
                     "testable": c.testable,
                     "reason": c.reason or None,
                     "significant": c.significant,
+                    "in_sample_ok": c.in_sample_ok,
                     "score": _num(c.score),
                     "delta_aicc": _num(c.delta_aicc),
                     "wald_chi2": _num(c.wald),
@@ -165,9 +171,11 @@ class Diagnosis:
                     "p_online": _num(c.p_online),
                     "p_online_holm": _num(c.p_online_holm),
                     "indistinguishable_from": list(c.alike),
+                    "discovered": None if c.discovered is None else dict(c.discovered),
                     "params": {**c.driver, **{k: _num(v) for k, v in c.params.items()}},
                     "rmse_after_nm": None if c.rmse_after_nm is None else _num(c.rmse_after_nm),
                     "rmse_after_kind": c.rmse_after_kind,
+                    "rmse_base_nm": None if c.rmse_base_nm is None else _num(c.rmse_base_nm),
                     "evidence": c.evidence(),
                 }
                 for i, c in enumerate(self.candidates)
@@ -183,6 +191,7 @@ class Diagnosis:
                 "min_effect": self.thresholds.min_effect,
                 "named_margin_aicc": self.thresholds.named_margin_aicc,
             },
+            "plain_finding": self.plain,
             "finding": self.finding,
             "config": self.config_snippet(),
             "after": None
@@ -200,7 +209,10 @@ class Diagnosis:
 
 
 def _family(c: CandidateResult) -> str:
-    """``named`` for a library or plugin effect, ``channel`` or ``event`` for a generic term."""
+    """``named`` for a library or plugin effect, ``channel`` or ``event`` for a
+    generic term, ``discovered`` for a drift shape read from the drift itself."""
+    if "drift_shape" in c.driver:
+        return "discovered"
     if "channel" in c.driver:
         return "channel"
     if "event_kind" in c.driver:

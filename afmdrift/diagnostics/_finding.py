@@ -15,7 +15,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import PhysicsConfig
-from afmdrift.diagnostics._candidates import CandidateResult
+from afmdrift.diagnostics._candidates import CandidateResult, Thresholds
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import DiagnoseOptions
 from afmdrift.diagnostics._model_run import ModelRun
@@ -28,9 +28,11 @@ __all__ = [
     "JUMP_MOVE_SIZE",
     "JUMP_Z",
     "describe_driver",
+    "describe_shape",
     "error_patterns",
     "finding_text",
     "jumps",
+    "plain_finding",
     "with_jump_caution",
 ]
 
@@ -139,7 +141,9 @@ def jumps(run: ModelRun) -> list[tuple[int, FloatArray]]:
 
 
 def with_jump_caution(finding: str, run: ModelRun) -> str:
-    """``finding`` prefixed with a caution when the measured drift jumps (see :func:`jumps`)."""
+    """``finding`` prefixed with a caution when the measured drift jumps (see
+    :func:`jumps`), also when the finding is a jump discovered there: a
+    registration mis-lock makes the same step as a slipping sample."""
     found_jumps = jumps(run)
     if not found_jumps:
         return finding
@@ -191,17 +195,24 @@ def finding_text(
     )
     if top is None:
         testable = [c for c in results if c.testable]
-        n_generic = sum(1 for c in testable if c.driver)
+        n_shapes = sum(1 for c in testable if "drift_shape" in c.driver)
+        n_generic = sum(1 for c in testable if c.driver) - n_shapes
         best = (
             f" The closest candidate is {testable[0].effect} ({testable[0].evidence()})."
             if testable
             else ""
         )
+        shapes = (
+            f" and none of the {n_shapes} shapes searched in the drift itself (a cycle, a "
+            "jump, a change of rate)"
+            if n_shapes
+            else ""
+        )
         return (
             f"Nothing is missing that these data can show: none of the "
-            f"{len(testable) - n_generic} testable "
-            f"library effects not in the model and none of the {n_generic} generic terms "
-            f"(every logged channel and event kind) passes the test ({rule}).{best}",
+            f"{len(testable) - n_generic - n_shapes} testable "
+            f"library effects not in the model, none of the {n_generic} generic terms "
+            f"(every logged channel and event kind){shapes} passes the test ({rule}).{best}",
             None,
         )
     terms = [*physics.terms, top.effect]
@@ -265,7 +276,14 @@ def _gains(c: CandidateResult) -> str:
             suffix = base.removeprefix("gain_nm_per_")
             unit = f"nm/{_UNIT_WORDS.get(suffix, suffix)}"
         else:
-            unit = base.replace("amplitude_nm", "nm").replace("nm_per_decade", "nm per decade")
+            unit = (
+                base.replace("amplitude_nm", "nm")
+                .replace("nm_per_decade", "nm per decade")
+                .replace("rate_change_nm_per_h", "nm/h")
+                .replace("step_nm", "nm")
+                .replace("sin_nm", "nm (sine)")
+                .replace("cos_nm", "nm (cosine)")
+            )
         parts.append(f"{v:+.3g} {unit} in {axis}")
     return ", ".join(parts)
 
@@ -273,6 +291,8 @@ def _gains(c: CandidateResult) -> str:
 def describe_driver(c: CandidateResult) -> str:
     """The driver, shape, lag and gain of a generic candidate in plain language."""
     d = c.driver
+    if "drift_shape" in d:
+        return f"{describe_shape(c)} ({_gains(c)})"
     if "channel" in d:
         tau = c.nonlinear.get("tau_s", c.params.get("tau_s", math.nan))
         lag = (
@@ -294,6 +314,163 @@ def describe_driver(c: CandidateResult) -> str:
     return (
         f"the residual steps after each logged {kind} event and settles exponentially "
         f"with a time constant of about {_duration(tau)} (tau_s = {tau:.3g}; {per}), {_gains(c)}"
+    )
+
+
+def _clock(t_s: float) -> str:
+    """A time from the session's start in words: ``5 h 20 min``, ``42 min``."""
+    minutes = round(t_s / 60.0)
+    if minutes < 60:
+        return f"{minutes} min"
+    h, m = divmod(minutes, 60)
+    return f"{h} h {m} min" if m else f"{h} h"
+
+
+def _number(v: object) -> float:
+    """A number of a ``discovered`` field (NaN for null or anything else)."""
+    return float(v) if isinstance(v, int | float) else math.nan
+
+
+def _pair(v: object, fmt: str = "+.0f") -> str:
+    """An (x, y) pair of a ``discovered`` field in words: ``(−136, +168)``."""
+    if not isinstance(v, list | tuple) or len(v) != 2:
+        return "(?, ?)"
+    x, y = (_number(a) for a in v)
+    return f"({format(x, fmt)}, {format(y, fmt)})".replace("-", "\u2212")
+
+
+def describe_shape(c: CandidateResult) -> str:
+    """A discovered drift shape in the user's words, with what it may be
+    (``a 31-min cycle of 4.2 nm that no logged channel follows: an air
+    handler or a thermostat?``)."""
+    d = c.discovered or {}
+    kind = d.get("kind", c.driver.get("drift_shape"))
+    if kind == "periodic":
+        period = _number(d.get("period_s"))
+        amp = d.get("amplitude_nm")
+        size = math.hypot(*(_number(a) for a in amp)) if isinstance(amp, list) else math.nan
+        return (
+            f"a {_duration(period).replace(' ', '-')} cycle of {size:.2g} nm that no logged "
+            "channel follows: an air handler or a thermostat?"
+        )
+    t = _number(d.get("t_s"))
+    if kind == "jump":
+        return (
+            f"a jump of {_pair(d.get('step_nm'))} nm at {_clock(t)} that no logged event "
+            "explains: a slip or a tip change?"
+        )
+    return (
+        f"a change of the drift rate by {_pair(d.get('rate_change_nm_per_h'), '+.2g')} nm/h "
+        f"at {_clock(t)} that no logged event explains: a door, a chiller, a switched "
+        "instrument?"
+    )
+
+
+#: What to log instead of adding a discovered shape, by its kind.
+_LOG_INSTEAD = {
+    "periodic": "Log the room temperature near the instrument, or add",
+    "jump": "Add",
+    "rate_change": "Add",
+}
+_LOG_AFTER = {
+    "periodic": "",
+    "jump": " (or log tip changes and slips as events)",
+    "rate_change": " (or log what changed then as an event)",
+}
+
+
+def _seen_not_helping(results: list[CandidateResult], th: Thresholds) -> str | None:
+    """The plain paragraph when nothing is missing but the drift itself shows a
+    jump whose in-sample evidence passes (its search over every frame boundary
+    paid for) although adding it does not help the model predict: said, with
+    what to log. Only a jump: no model predicts it at its frame, and the
+    AR(1) residual follows the new level from the next frame on, so a real
+    jump can leave the predictions as good without its term; a cycle or a
+    change of rate that is real makes the predictions better. A jump is
+    rarely cross-validated (its one frame falls in one fold), so its evidence
+    must be as strong as a named effect's without cross-validation: ΔAICc
+    above ``no_cv_factor × min_delta_aicc`` and the Bonferroni p below
+    ``alpha / no_cv_factor``."""
+    seen = [
+        c
+        for c in results
+        if c.discovered is not None
+        and c.discovered.get("kind") == "jump"
+        and c.delta_aicc > th.no_cv_factor * th.min_delta_aicc
+        and c.p_bonferroni < th.alpha / th.no_cv_factor
+        and c.rmse_after_kind == "replayed"
+        and c.prequential_drop is not None
+    ]
+    if not seen:
+        return None
+    c = max(seen, key=lambda c: c.delta_aicc)
+    drop = c.prequential_drop or 0.0
+    change = f"{100 * abs(drop):.0f} % {'lower' if drop >= 0 else 'higher'}"
+    where = " on the frames after it" if (c.discovered or {}).get("kind") == "jump" else ""
+    log = {
+        "periodic": "log the room temperature near the instrument",
+        "jump": "log tip changes and slips as events",
+        "rate_change": "log what changed then as an event",
+    }.get(str((c.discovered or {}).get("kind")), "log what happened then")
+    return (
+        f"Nothing the model lacks would make it predict better, but the drift itself shows "
+        f"{describe_shape(c)} Adding `{c.effect}` does not help the predictions enough to "
+        f"matter (the one-step error{where} is {change} with it), so {log} rather than "
+        "model it."
+    )
+
+
+def plain_finding(
+    top: CandidateResult | None,
+    results: list[CandidateResult],
+    summary: dict[str, float],
+    after_summary: dict[str, float] | None,
+    thresholds: Thresholds | None = None,
+) -> str:
+    """The finding in two plain sentences: what is missing, what to add and how
+    much it helps; or that nothing is (and a jump the drift shows, if any)."""
+    before = summary.get("rmse_nm", math.nan)
+    if top is None:
+        seen = _seen_not_helping(results, thresholds or Thresholds())
+        if seen is not None:
+            return seen
+        n = sum(1 for c in results if c.testable)
+        return (
+            f"Nothing is missing that these data can show: none of the {n} effects, logged "
+            "responses and drift shapes tested improves the model's predictions enough to "
+            f"matter. Keep the model as it is (its one-step error is {before:.2f} nm RMS)."
+        )
+    helps = ""
+    after = after_summary["rmse_nm"] if after_summary is not None else math.nan
+    if top.rmse_after_kind == "replayed" and top.rmse_after_nm is not None:
+        # A discovered jump is compared without the frames of the jump itself.
+        before = top.rmse_base_nm if top.rmse_base_nm is not None else before
+        after = top.rmse_after_nm
+    if math.isfinite(after) and before > 0:
+        besides = " on the frames after it" if (top.discovered or {}).get("kind") == "jump" else ""
+        helps = (
+            f"; with it the one-step error{besides} falls from {before:.2f} to {after:.2f} nm "
+            f"RMS ({100 * (1 - after / before):.0f} % lower)"
+        )
+    if "drift_shape" in top.driver:
+        kind = top.driver["drift_shape"]
+        return (
+            f"Missing: {describe_shape(top)} {_LOG_INSTEAD[kind]} `{top.effect}` to "
+            f"[model.physics] terms{_LOG_AFTER[kind]}{helps}."
+        )
+    if top.driver:
+        what = (
+            f"a response to the logged channel {top.driver['channel']}"
+            if "channel" in top.driver
+            else f"a response to the logged {top.driver.get('event_kind', '?')} events"
+        )
+        return (
+            f"Missing: {what}, which no library effect explains. Add `{top.effect}` to "
+            f"[model.physics] terms{helps}."
+        )
+    return (
+        f"Missing: the library effect {top.effect}. Add `{top.effect}` to "
+        f"[model.physics] terms{helps}."
     )
 
 

@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import numpy.typing as npt
+
 from afmdrift.config import PhysicsConfig
 from afmdrift.diagnostics._candidates import (
     CandidateResult,
@@ -23,10 +26,21 @@ from afmdrift.diagnostics._candidates import (
 )
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import DiagnoseOptions
+from afmdrift.diagnostics._discover import (
+    STEADY_FRACTION,
+    channel_following,
+    cycle_steadiness,
+    discovered_terms,
+    fix_discovered,
+    search_tests,
+)
 from afmdrift.diagnostics._model_run import ModelRun, run_model
 from afmdrift.diagnostics._regression import forecast_comparison
-from afmdrift.model import EffectTerm, GenericTerm, History, term_class
+from afmdrift.diagnostics._stats import error_summary
+from afmdrift.model import DriftShape, EffectTerm, GenericTerm, History, term_class
 from afmdrift.runs import TaskPool
+
+FloatArray = npt.NDArray[np.float64]
 
 __all__ = [
     "MAX_CV_RATIO",
@@ -51,15 +65,21 @@ def candidate_evidence(
     (every logged channel, every logged event kind). The count (every θ of
     every testable candidate, over all of them) is the Bonferroni factor, so
     the family-wise false-alarm level holds however many channels, event
-    kinds, shapes and time constants are searched.
+    kinds, shapes and time constants are searched. With
+    ``options.discover`` the drift shapes read from the drift itself
+    (:mod:`afmdrift.diagnostics._discover`) are candidates too, and every
+    position their search tries counts in the factor.
     """
     terms: dict[str, EffectTerm] = {
         name: cls() for name, cls in known.items() if name not in physics.terms
     }
     for spec in family_candidates(history, physics.terms):
         terms[spec] = term_class(spec, known)()
+    if options.discover:
+        for shape in discovered_terms(design, physics.terms):
+            terms[shape.name] = shape
     testable = [t for t in terms.values() if t.missing(history) is None]
-    n_tests = sum(len(t.nonlinear_grid()) for t in testable)
+    n_tests = sum(search_tests(t, len(t.nonlinear_grid())) for t in testable)
     base = base_basis(design)
     results = []
     for term in terms.values():
@@ -68,10 +88,35 @@ def candidate_evidence(
         )
         if isinstance(term, GenericTerm):
             r.driver = term.driver()
+        if isinstance(term, DriftShape) and r.testable:
+            fix_discovered(r, term)
+            _hold_unsteady_cycle(r, term, design, history, base)
         channel = getattr(term, "channel", None)
         r.channel = channel if isinstance(channel, str) else None
         results.append(r)
     return results, n_tests
+
+
+def _hold_unsteady_cycle(
+    r: CandidateResult, term: DriftShape, design: ModelDesign, history: History, base: object
+) -> None:
+    """A discovered cycle that is not steady over the record
+    (:func:`~afmdrift.diagnostics._discover.cycle_steadiness` below
+    :data:`~afmdrift.diagnostics._discover.STEADY_FRACTION`), or that a
+    logged channel carries
+    (:func:`~afmdrift.diagnostics._discover.channel_following`), fails its
+    in-sample evidence; its steadiness and that channel go into
+    ``discovered``."""
+    if r.discovered is None or r.discovered.get("kind") != "periodic":
+        return
+    period = r.nonlinear.get("period_s", math.nan)
+    steady = cycle_steadiness(term, design, history, base, period)
+    r.discovered["steadiness"] = steady if math.isfinite(steady) else None
+    follows = channel_following(history, period)
+    r.discovered["followed_by"] = follows
+    if follows is not None or not (math.isfinite(steady) and steady >= STEADY_FRACTION):
+        r.in_sample_ok = False
+        r.significant = False
 
 
 def verify_online(
@@ -106,8 +151,10 @@ def verify_online(
     Diebold-Mariano test finds the re-run's improvement significant at
     ``alpha`` (a smooth effect under a random-walk residual, such as a warm-up
     with two time constants, has little power in quasi-differences but shows
-    in the predictions). Candidates not re-run are not significant; their
-    ``rmse_after_nm`` is estimated from the blocked CV. Returns the re-runs
+    in the predictions); a drift shape read from the drift itself, whose
+    position was chosen on the whole record, only by the in-sample route.
+    Candidates not re-run are not significant; their ``rmse_after_nm`` is
+    estimated from the blocked CV. Returns the re-runs
     and their error summaries by effect.
     """
     th = options.thresholds
@@ -121,16 +168,31 @@ def verify_online(
     for c, r in zip(chosen, done, strict=True):
         s = r.summary(burn)
         runs[c.effect] = (r, s)
-        c.rmse_after_nm = s["rmse_nm"]
+        e_base, e_new = _compared(c, base, r, burn)
+        before = error_summary(e_base)["rmse_nm"] if e_base is not None else rmse0_nm
+        after = error_summary(e_new)["rmse_nm"] if e_new is not None else s["rmse_nm"]
+        c.rmse_base_nm = before
+        c.rmse_after_nm = after
         c.rmse_after_kind = "replayed"
-        if math.isfinite(rmse0_nm) and rmse0_nm > 0 and math.isfinite(s["rmse_nm"]):
-            c.prequential_drop = 1.0 - s["rmse_nm"] / rmse0_nm
-        c.p_online, _ = forecast_comparison(base.errors_nm[burn:], r.errors_nm[burn:])
+        if math.isfinite(before) and before > 0 and math.isfinite(after):
+            c.prequential_drop = 1.0 - after / before
+        c.p_online, _ = forecast_comparison(
+            base.errors_nm[burn:] if e_base is None else e_base,
+            r.errors_nm[burn:] if e_new is None else e_new,
+        )
     _holm([c for c in by_score if c.effect in runs])
     for c in by_score:
         if c.effect in runs:
             drop = c.prequential_drop if c.prequential_drop is not None else -math.inf
-            online_ok = math.isfinite(c.p_online_holm) and c.p_online_holm < th.alpha
+            # A drift shape's position was chosen on the whole record, so its
+            # re-run (the term fixed there from the start) does not pay for
+            # that search: only the in-sample route, whose Bonferroni factor
+            # counts every position searched, can make it significant.
+            online_ok = (
+                math.isfinite(c.p_online_holm)
+                and c.p_online_holm < th.alpha
+                and c.discovered is None
+            )
             c.significant = drop >= th.min_effect and (c.in_sample_ok or online_ok)
             continue
         c.significant = False
@@ -144,6 +206,30 @@ def verify_online(
     return runs
 
 
+def _compared(
+    c: CandidateResult, base: ModelRun, rerun: ModelRun, burn: int
+) -> tuple[FloatArray | None, FloatArray | None]:
+    """The one-step errors (after burn-in) of the model and of its re-run with
+    ``c`` that the online comparison weighs, or (None, None) for all of them.
+
+    A discovered jump leaves out the frames of the jump itself (the frame
+    scanned across it and the next): no model predicts a step nobody
+    announced, with the term or without it, and the frame where it happens
+    would otherwise decide the comparison alone. What the term is judged by
+    is how much better the frames after the jump are predicted.
+    """
+    if c.discovered is None or c.discovered.get("kind") != "jump":
+        return None, None
+    t = base.t_s[burn:]
+    step = float(np.median(np.diff(base.t_s))) if base.t_s.size > 1 else 0.0
+    when = c.discovered.get("t_s")
+    t_j = float(when) if isinstance(when, int | float) else math.nan
+    hide = (t > t_j - 0.5 * step) & (t <= t_j + 1.5 * step)
+    e_base = np.where(hide[:, None], np.nan, base.errors_nm[burn:])
+    e_new = np.where(hide[:, None], np.nan, rerun.errors_nm[burn:])
+    return e_base, e_new
+
+
 def rerun_with(task: tuple[RunData, PhysicsConfig, str]) -> ModelRun:
     """One online re-run of ``(data, physics, effect)``: the model of
     ``physics`` with the term ``effect`` added, over ``data`` (a task of
@@ -155,10 +241,13 @@ def rerun_with(task: tuple[RunData, PhysicsConfig, str]) -> ModelRun:
 
 def _to_rerun(by_score: list[CandidateResult], options: DiagnoseOptions) -> list[CandidateResult]:
     """The candidates :func:`verify_online` re-runs, from their in-sample evidence
-    alone (so the re-runs are independent and run side by side)."""
+    alone (so the re-runs are independent and run side by side). A drift
+    shape read from the drift is re-run only when its in-sample evidence
+    passes: without it, it cannot be significant (:func:`verify_online`)."""
     th = options.thresholds
     chosen: list[CandidateResult] = []
-    for i, c in enumerate(by_score):
+    eligible = [c for c in by_score if c.discovered is None or c.in_sample_ok]
+    for i, c in enumerate(eligible):
         if len(chosen) >= options.max_verify:
             break
         if i < options.verify or c.significant or c.delta_aicc > 0:
@@ -221,7 +310,8 @@ MAX_CV_RATIO = 3.0
 def rank_candidates(
     results: list[CandidateResult], thresholds: Thresholds, *, frame_period_s: float = 0.0
 ) -> None:
-    """Sort in place: significant first, among them the best online re-run, then by ΔAICc.
+    """Sort in place: significant first, among them the largest drop of the
+    online re-run error, then by ΔAICc.
 
     Then, if the first is a generic term (it has a ``driver``) and a
     significant named effect has comparable evidence, the best such named
@@ -233,39 +323,71 @@ def rank_candidates(
     for a generic channel term, the same channel with a fitted lag shorter
     than the frame period ``frame_period_s``: frames cannot resolve such a
     lag, so it is the named direct response with the sensor's noise and
-    timing smoothed, not another effect.
+    timing smoothed, not another effect. A drift shape read from the drift
+    itself (a cycle, a jump, a change of rate) yields the same way to any
+    comparable significant candidate that a logged channel or event, or the
+    library, explains: "a cycle that no logged channel follows" is said only
+    when none does.
     """
     results.sort(
         key=lambda c: (
             not c.significant,
             not c.testable,
-            c.rmse_after_nm if (c.significant and c.rmse_after_kind == "replayed") else math.inf,
+            _relative_after(c) if (c.significant and c.rmse_after_kind == "replayed") else math.inf,
             -(c.score if math.isfinite(c.score) else -math.inf),
         )
     )
     if not results or not results[0].significant or not results[0].driver:
         return
+    if _discovered(results[0]):
+        # A shape read from the drift leads only where nothing logged explains
+        # as much: a comparable candidate driven by a logged channel or event
+        # (or a library effect) goes first, then the rule below.
+        lead = results[0]
+        for i, c in enumerate(results):
+            if c.significant and not _discovered(c) and _comparable(c, lead, thresholds,
+                                                                    frame_period_s):  # fmt: skip
+                results.insert(0, results.pop(i))
+                break
     lead = results[0]
-
-    def comparable(c: CandidateResult) -> bool:
-        if c.delta_aicc >= lead.delta_aicc - thresholds.named_margin_aicc:
-            return True
-        same_channel = c.channel is not None and c.channel == lead.driver.get("channel")
-        if same_channel and lead.nonlinear.get("tau_s", math.inf) < frame_period_s:
-            return True
-        return (
-            c.rmse_after_kind == "replayed"
-            and lead.rmse_after_kind == "replayed"
-            and c.rmse_after_nm is not None
-            and lead.rmse_after_nm is not None
-            and c.rmse_after_nm <= (1.0 + thresholds.min_cv_drop) * lead.rmse_after_nm
-        )
-
+    if not lead.driver or _discovered(lead):
+        _simplest_first(results, thresholds)
+        return
     for i, c in enumerate(results):
-        if c.significant and not c.driver and comparable(c):
+        if c.significant and not c.driver and _comparable(c, lead, thresholds, frame_period_s):
             results.insert(0, results.pop(i))
             break
     _simplest_first(results, thresholds)
+
+
+def _discovered(c: CandidateResult) -> bool:
+    """Whether ``c`` is a drift shape read from the drift itself."""
+    return "drift_shape" in c.driver
+
+
+def _comparable(
+    c: CandidateResult, lead: CandidateResult, thresholds: Thresholds, frame_period_s: float
+) -> bool:
+    """Whether ``c`` has evidence comparable to ``lead``'s (see :func:`rank_candidates`)."""
+    if c.delta_aicc >= lead.delta_aicc - thresholds.named_margin_aicc:
+        return True
+    same_channel = c.channel is not None and c.channel == lead.driver.get("channel")
+    if same_channel and lead.nonlinear.get("tau_s", math.inf) < frame_period_s:
+        return True
+    if c.rmse_after_kind != "replayed" or lead.rmse_after_kind != "replayed":
+        return False
+    return _relative_after(c) <= (1.0 + thresholds.min_cv_drop) * _relative_after(lead)
+
+
+def _relative_after(c: CandidateResult) -> float:
+    """A re-run's one-step RMS error over the model's on the same frames (a
+    discovered jump's leave out its own frames), or the RMS itself when the
+    model's is not recorded; inf when not re-run."""
+    if c.rmse_after_nm is None:
+        return math.inf
+    if c.rmse_base_nm is not None and c.rmse_base_nm > 0:
+        return c.rmse_after_nm / c.rmse_base_nm
+    return c.rmse_after_nm
 
 
 def _n_params(c: CandidateResult) -> int:

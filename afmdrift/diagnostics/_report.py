@@ -32,6 +32,7 @@ import numpy.typing as npt
 from afmdrift.diagnostics._data import RunData
 from afmdrift.diagnostics._diagnosis import Diagnosis
 from afmdrift.diagnostics._stats import cross_correlation, lomb_scargle
+from afmdrift.diagnostics._text import cv_change
 from afmdrift.errors import InputError
 from afmdrift.registration import measure_drift
 from afmdrift.session import read_session
@@ -132,11 +133,42 @@ def _fig_residuals(dg: Diagnosis) -> Figure:
             )
         if dg.burn_in_frames and t_h.size > dg.burn_in_frames:
             ax.axvspan(t_h[0], t_h[dg.burn_in_frames], color="0.85", alpha=0.5, label="burn-in")
+        _mark_discovered(ax, dg, a)
         ax.set_ylabel(f"e_{'xy'[a]} (nm)")
         ax.legend(loc="best", fontsize=8)
     axes[-1].set_xlabel("time (h)")
     fig.suptitle("One-step errors (red: outliers, orange: sustained bias)")
     return fig
+
+
+def _mark_discovered(ax: Any, dg: Diagnosis, axis: int) -> None:
+    """The significant drift shapes read from the drift itself, on one axis of
+    the error plot: a jump or a change of rate as a line at its time, a cycle
+    as its fitted sinusoid (level, nm) over the record."""
+    run = dg.run
+    for c in dg.candidates:
+        if not c.significant or c.discovered is None:
+            continue
+        d = c.discovered
+        kind = d.get("kind")
+        where = d.get("period_s", d.get("t_s"))
+        if not isinstance(where, int | float):
+            continue
+        if kind == "periodic":
+            period = float(where)
+            a = c.params.get(f"sin_nm_{'xy'[axis]}", math.nan)
+            b = c.params.get(f"cos_nm_{'xy'[axis]}", math.nan)
+            if not (math.isfinite(a) and math.isfinite(b)):
+                continue
+            t = np.linspace(float(run.t_s[0]), float(run.t_s[-1]), 800)
+            phase = 2.0 * np.pi * t / period
+            label = f"discovered cycle ({period / 60:.0f} min)"
+            wave = a * np.sin(phase) + b * np.cos(phase)
+            ax.plot(t / 3600.0, wave, "-", color="tab:green", lw=1.2, alpha=0.8, label=label)
+        else:
+            t_h = float(where) / 3600.0
+            what = "discovered jump" if kind == "jump" else "discovered change of rate"
+            ax.axvline(t_h, color="tab:purple", lw=1.5, ls="--", label=what)
 
 
 def _fig_acf_periodogram(dg: Diagnosis) -> Figure:
@@ -372,7 +404,7 @@ def _header(dg: Diagnosis, j: dict[str, Any]) -> list[str]:
         f"<p>Model: <b>{_h(', '.join(dg.model_effects))}</b> "
         f"(active: {_h(', '.join(dg.active_effects))}); {j['frames']} fed frames, the first "
         f"{j['burn_in_frames']} left out of the statistics.</p>",
-        f'<div class="finding" id="finding"><p>{_h(dg.finding)}</p>',
+        f'<div class="finding" id="finding"><p><b>{_h(dg.plain)}</b></p><p>{_h(dg.finding)}</p>',
     ]
     snippet = dg.config_snippet()
     if snippet:
@@ -503,13 +535,17 @@ def _fig_driver(dg: Diagnosis) -> Figure | None:
     frame-to-frame change of the fitted response g·ΔC_s (the fitted lag and
     gain): what the term would have predicted of each error. An event kind:
     a vertical mark at each event. None when no testable generic candidate
-    exists.
+    exists (a drift shape read from the drift has no driver: the error plot
+    marks it, :func:`_mark_discovered`).
     """
     import matplotlib.pyplot as plt
 
     from afmdrift.model import available_terms, term_class
 
-    c = next((c for c in dg.candidates if c.testable and c.driver), None)
+    c = next(
+        (c for c in dg.candidates if c.testable and c.driver and "drift_shape" not in c.driver),
+        None,
+    )
     if c is None:
         return None
     run = dg.run
@@ -557,7 +593,7 @@ def _candidate_row(c: dict[str, Any]) -> list[str]:
         "yes" if c["significant"] else ("no" if c["testable"] else "not testable"),
         _fmt(c["delta_aicc"], ".1f"),
         _fmt(c["p_bonferroni"], ".2g"),
-        "–" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%",
+        cv_change(c).replace("-", "–") if c["cv_drop"] is None else cv_change(c),
         _fmt(c["rmse_after_nm"]) + (" (est.)" if c["rmse_after_kind"] == "cv_estimate" else ""),
         ", ".join(f"{k} = {_fmt(v, '.3g')}" for k, v in c["params"].items()) or (c["reason"] or ""),
     ]

@@ -10,17 +10,69 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["diagnosis_text"]
+from afmdrift.diagnostics._ranking import MAX_CV_RATIO
+
+__all__ = ["GLOSSES", "cv_change", "diagnosis_text"]
 
 
 def _f(v: Any, fmt: str = ".2f") -> str:
     return "-" if v is None else format(v, fmt)
 
 
+#: The statistics the text names, each with the one line that says what it
+#: means, printed under the first line that names it.
+GLOSSES: tuple[tuple[str, str], ...] = (
+    ("one-step error", "how far each frame's position was from the model's prediction made "
+     "just before it"),
+    ("Ljung-Box", "tests whether the errors are independent from frame to frame; a small p "
+     "means something systematic is left in them"),
+    ("ΔAICc", "how much better the model fits with the term, after a penalty per added "
+     "parameter; above 10 is strong support"),
+    ("cross-validated", "the error on stretches of the record left out of the fit, with the "
+     "term against without it (negative: lower with it)"),
+    ("HAC Wald", "the chance of so large a fitted term if the effect were absent, with "
+     "errors that follow each other"),
+    ("Bonferroni", "that chance multiplied by the number of tests tried, so that searching "
+     "many effects, times and periods does not find one by luck"),
+    ("Diebold-Mariano", "whether the model with the term predicts the next frame better "
+     "than without it, frame by frame, more than by chance"),
+)  # fmt: skip
+
+
+def _glossed(lines: list[str], *, plain: int) -> list[str]:
+    """``lines`` with the gloss of each statistic under the first line naming it
+    (the first ``plain`` lines, the plain paragraph, are left as they are)."""
+    out: list[str] = list(lines[:plain])
+    seen: set[str] = set()
+    for line in lines[plain:]:
+        out.append(line)
+        for word, gloss in GLOSSES:
+            if word not in seen and word in line:
+                seen.add(word)
+                out.append(f"    ({word}: {gloss})")
+    return out
+
+
+def cv_change(c: dict[str, Any]) -> str:
+    """The change of the cross-validated error in per cent, or what it is when
+    a per cent means nothing: ``unstable`` when the term's out-of-sample error
+    is more than :data:`MAX_CV_RATIO` times the model's (a fit that blows up
+    out of sample), ``-`` when it could not be cross-validated."""
+    if c["cv_drop"] is None:
+        return "-"
+    if 1.0 - c["cv_drop"] > MAX_CV_RATIO:
+        return "unstable"
+    return f"{-100 * c['cv_drop']:+.0f}%"
+
+
 def diagnosis_text(j: dict[str, Any]) -> str:
     """What ``afmdrift diagnose`` prints: the JSON object of
-    :meth:`Diagnosis.to_json` as a summary for the terminal."""
+    :meth:`Diagnosis.to_json` as a summary for the terminal. It opens with the
+    finding in two plain sentences; the numbers follow, each statistic glossed
+    in one line where it first appears."""
     lines = [
+        j.get("plain_finding") or "",
+        "",
         f"model: {', '.join(j['model_effects'])} "
         f"(active: {', '.join(j['active_effects']) or 'none'})",
         f"frames: {j['frames']} fed, first {j['burn_in_frames']} left out of the statistics",
@@ -56,7 +108,7 @@ def diagnosis_text(j: dict[str, Any]) -> str:
         if not c["testable"]:
             lines.append(f"  {c['rank']:2d}. {c['effect']:<{width}} not testable: {c['reason']}")
             continue
-        cv = "-" if c["cv_drop"] is None else f"{-100 * c['cv_drop']:+.0f}%"
+        cv = cv_change(c)
         kind = "" if c["rmse_after_kind"] != "cv_estimate" else " (est.)"
         lines.append(
             f"  {c['rank']:2d}. {c['effect']:<{width}} {'YES' if c['significant'] else 'no ':<4} "
@@ -81,4 +133,4 @@ def diagnosis_text(j: dict[str, Any]) -> str:
     if j["config"]:
         lines.append("")
         lines.append(j["config"])
-    return "\n".join(lines)
+    return "\n".join(_glossed(lines, plain=2))

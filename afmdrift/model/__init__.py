@@ -34,6 +34,7 @@ from afmdrift.model._evaluate import FIRST_SCORED_FRAME, MeasuredSeries, evaluat
 from afmdrift.model._families import (
     CHANNEL_TAU_RANGE_S,
     ChannelResponse,
+    DriftShape,
     EventResponse,
     GenericTerm,
     is_term_spec,
@@ -84,6 +85,7 @@ __all__ = [
     "BandConstraint",
     "ChannelResponse",
     "ConstantVelocityPredictor",
+    "DriftShape",
     "DriftTrajectory",
     "EffectTerm",
     "EventResponse",

@@ -38,6 +38,28 @@ Options:
   ``channel:stage_c:tau_s=600..20000#slow``. Two identical specs in one model
   are rejected as duplicates.
 
+Three more families describe a shape of the drift itself, at a time or a
+period that ``afmdrift diagnose`` reads from the drift when nothing logged
+explains it (times in s from the session's start, on the clock of
+``positions.csv``)::
+
+    periodic:period_s=<P>[#<label>]
+    jump:t_s=<t>[#<label>]
+    rate_change:t_s=<t>[#<label>]
+
+``periodic:period_s=<P>``
+    p(t) = a·sin(2πt/P) + b·cos(2πt/P): a cycle of period P (an air handler,
+    a thermostat); a and b (``sin_nm``, ``cos_nm``) per axis, so amplitude
+    and phase are fitted.
+``jump:t_s=<t>``
+    p(t) = A·H(t − t_j): a step of A (``step_nm``) at t_j (a slip, a tip
+    change); H is 0 before and 1 after.
+``rate_change:t_s=<t>``
+    p(t) = r·max(0, t − t_k)/3600: the drift rate changes by r
+    (``rate_change_nm_per_h``) at t_k (a door closed, a chiller switched).
+
+The value may also be a range ``<lo>..<hi>``, searched like a time constant.
+
 A spec's term name is the spec itself. Errors name the spec and the offending
 part (:class:`~afmdrift.errors.ConfigError`).
 """
@@ -66,6 +88,7 @@ from afmdrift.records import event_kind
 __all__ = [
     "CHANNEL_TAU_RANGE_S",
     "ChannelResponse",
+    "DriftShape",
     "EventResponse",
     "GenericTerm",
     "is_term_spec",
@@ -181,9 +204,64 @@ class EventResponse(GenericTerm):
         return np.asarray(cols.sum(axis=1)[:, None], dtype=np.float64)
 
 
+class DriftShape(GenericTerm):
+    """A shape of the drift itself at a time or a period: a cycle, a jump, a kink.
+
+    ``periodic``: a·sin(2πt/P) + b·cos(2πt/P), P (``period_s``) in s, a and b
+    in nm. ``jump``: A·H(t − t_j), A in nm, t_j (``t_s``) in s. ``rate_change``:
+    r·max(0, t − t_k)/3600, r in nm/h, t_k (``t_s``) in s. Times are on the
+    session's clock.
+    """
+
+    shape: ClassVar[str]
+    #: The name of its one nonlinear parameter: ``period_s`` or ``t_s``.
+    where: ClassVar[str]
+    #: A jump or a kink is a column that starts at one moment: right after it
+    #: its coefficient is held at 0 unless clearly determined, like an event's.
+    min_column_support = 3
+
+    def driver(self) -> dict[str, str]:
+        return {"drift_shape": self.shape}
+
+    def nonlinear_grid(self) -> list[dict[str, float]]:
+        """The parameter's grid; an instance's ``searched`` values (s) replace it
+        (``afmdrift diagnose`` searches a jump at every frame boundary)."""
+        searched = vars(self).get("searched")
+        if searched is not None:
+            return [{self.where: float(v)} for v in searched]
+        return super().nonlinear_grid()
+
+    def design(
+        self,
+        t_s: FloatArray,
+        history: History,
+        *,
+        scan_sign: FloatArray,
+        params: Mapping[str, float],
+        axis: int,
+    ) -> FloatArray:
+        value = float(self._params(params)[self.where])
+        t = np.asarray(t_s, dtype=np.float64)
+        if self.shape == "periodic":
+            phase = 2.0 * np.pi * t / value
+            return np.column_stack([np.sin(phase), np.cos(phase)])
+        if self.shape == "jump":
+            return np.asarray((t > value)[:, None], dtype=np.float64)
+        return np.maximum(t - value, 0.0)[:, None] / 3600.0
+
+
+#: The drift-shape families: (parameter, coefficient units, default search range in s).
+_SHAPE_FAMILIES: dict[str, tuple[str, tuple[str, ...], tuple[float, float]]] = {
+    "periodic": ("period_s", ("sin_nm", "cos_nm"), (600.0, 14400.0)),
+    "jump": ("t_s", ("step_nm",), (1.0, 86400.0)),
+    "rate_change": ("t_s", ("rate_change_nm_per_h",), (1.0, 86400.0)),
+}
+
+
 def is_term_spec(name: str) -> bool:
-    """True if ``name`` is written as a generic term spec (``channel:`` or ``event:``)."""
-    return name.strip().startswith(("channel:", "event:"))
+    """True if ``name`` is written as a generic term spec (``channel:``,
+    ``event:``, ``periodic:``, ``jump:`` or ``rate_change:``)."""
+    return name.strip().startswith(("channel:", "event:", *(f"{f}:" for f in _SHAPE_FAMILIES)))
 
 
 def _unit_of(channel: str) -> str:
@@ -233,10 +311,13 @@ def parse_term_spec(spec: str) -> type[GenericTerm]:
         )
     parts = body.split(":")
     family = parts[0]
+    if family in _SHAPE_FAMILIES:
+        return _shape_class(spec, text, family, parts[1:])
     if family not in ("channel", "event") or len(parts) < 2 or not parts[1]:
         raise ConfigError(
-            f"term spec {spec!r}: expected 'channel:<channel>[:options]' or "
-            "'event:<kind>[:options]'"
+            f"term spec {spec!r}: expected 'channel:<channel>[:options]', "
+            "'event:<kind>[:options]', 'periodic:period_s=<s>', 'jump:t_s=<s>' or "
+            "'rate_change:t_s=<s>'"
         )
     driver = parts[1]
     shape = "settle"
@@ -337,3 +418,28 @@ def _event_class(
         "__module__": __name__,
     }
     return type("EventResponseTerm", (EventResponse,), attrs)
+
+
+def _shape_class(spec: str, text: str, family: str, options: list[str]) -> type[GenericTerm]:
+    """The class of a drift-shape spec (``periodic:period_s=1860``, ``jump:t_s=19200``)."""
+    where, units, default = _SHAPE_FAMILIES[family]
+    if len(options) != 1 or options[0].partition("=")[0] != where or "=" not in options[0]:
+        raise ConfigError(f"term spec {spec!r}: expected '{family}:{where}=<value in s>'")
+    value = options[0].partition("=")[2]
+    nonlinear, fixed = _param(spec, where, {where: _range(spec, options[0], value)}, default)
+    what = {
+        "periodic": "a cycle of the drift: a·sin(2πt/P) + b·cos(2πt/P), a and b in nm",
+        "jump": "a jump of the drift: A·H(t − t_j), A in nm",
+        "rate_change": "a change of the drift rate: r·max(0, t − t_k)/3600, r in nm/h",
+    }[family]
+    attrs = {
+        "name": text,
+        "shape": family,
+        "where": where,
+        "nonlinear_params": nonlinear,
+        "fixed_params": fixed,
+        "coefficient_units": units,
+        "__doc__": f"{what[0].upper()}{what[1:]}; {where} in s from the session's start.",
+        "__module__": __name__,
+    }
+    return type("DriftShapeTerm", (DriftShape,), attrs)

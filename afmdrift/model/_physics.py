@@ -17,7 +17,11 @@ exp(−age/``memory_s``)):
    is found by coordinate descent: a scan of the term's log grid
    (:meth:`EffectTerm.nonlinear_grid`), then a bounded 1-D refinement
    (Brent, on log θ, between the grid neighbours of the best point); the
-   objective is the weighted residual sum of squares of both axes.
+   objective is the weighted residual sum of squares of both axes. θ is
+   searched again only once the points grew by ``search_growth`` (10 %)
+   since its last search, or a term's support or the event log changed, and then from where it was (a warm start: a
+   refinement within one grid step, the whole grid only when the optimum
+   left it); the fits in between solve step 3 alone, in closed form.
 3. **Linear coefficients β** by weighted least squares with weights
    1/max(σ, ``sigma_floor_nm``)², on column-normalised designs (rank-deficient
    directions get the minimum-norm solution). Their covariance s²(XᵀWX)⁺ gives
@@ -62,6 +66,10 @@ _log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 BoolArray = npt.NDArray[np.bool_]
+
+#: While fewer points than this are fitted, θ is searched at every fit (the
+#: early fits move the most).
+_ALWAYS_SEARCH_BELOW = 20
 
 
 @dataclass(frozen=True, slots=True)
@@ -224,8 +232,12 @@ class PhysicsPredictor(_LoggingPredictor):
             from afmdrift.model._nn import NNSeriesModel
 
             self.residual_net = NNSeriesModel(self.nn_config)
-        self._residuals: list[tuple[float, float]] = []
+        # The last fit's in-sample residuals (n, 2), nm.
+        self._residuals: FloatArray = np.zeros((0, 2))
         self.min_points_to_predict = 2
+        # Where θ was last searched: the number of points, and the active terms.
+        self._searched_at = 0
+        self._searched_terms: tuple[str, ...] = ()
 
     # ----------------------------------------------------------------- design
     def _term(self, name: str) -> EffectTerm:
@@ -319,6 +331,8 @@ class PhysicsPredictor(_LoggingPredictor):
         return np.asarray(w, dtype=np.float64)
 
     def _choose_active(self, history: History, t: FloatArray, sign: FloatArray) -> list[str]:
+        # The blocks built here at the current θ serve the fit when θ is not searched.
+        self._built: dict[tuple[str, int], FloatArray] = {}
         n = t.shape[0]
         chosen: list[str] = []
         columns = 0
@@ -335,6 +349,7 @@ class PhysicsPredictor(_LoggingPredictor):
                 block = windowed_design(
                     term, t, history, scan_sign=sign, params=self.params[term.name], axis=axis
                 )
+                self._built[(term.name, axis)] = block
                 nonzero = np.any(np.abs(block) > 1e-12, axis=0)
                 k = max(k, int(np.count_nonzero(nonzero)))
                 if n >= 2 and np.any(nonzero & (np.ptp(block, axis=0) < 1e-12)):
@@ -365,13 +380,27 @@ class PhysicsPredictor(_LoggingPredictor):
         active = self._choose_active(history, ts, sign)
         params = {k: dict(v) for k, v in self.params.items()}
         nonlinear = [(name, p) for name in active for p in self._term(name).nonlinear_params]
-        if nonlinear and t.size >= 3:
+        searched = False
+        inputs = self._inputs(active, history)
+        if nonlinear and t.size >= 3 and self._search_due(t.size, inputs):
+            searched = True
+            # A term searched before starts where it was (a warm start): its
+            # first pass refines around that value, and scans the whole grid
+            # only when the optimum left the neighbourhood.
+            warm = {key.rpartition("|")[0] for key in set(self._searched_terms) & set(inputs)}
+            self._searched_at = t.size
+            self._searched_terms = inputs
             # Blocks of every term at the current θ; a scan only rebuilds its own term.
             blocks = [
                 dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
                 for axis in (0, 1)
             ]
-            for pass_no in range(self.config.refine_passes):
+            # A term whose columns are zero on every point (creep before any
+            # move) says nothing about its θ: it keeps its value. With one θ
+            # left, a second coordinate pass would repeat the first.
+            nonlinear = [(name, p) for name, p in nonlinear if any(b[name].any() for b in blocks)]
+            passes = self.config.refine_passes if len(nonlinear) > 1 else 1
+            for pass_no in range(passes):
                 first_pass = pass_no == 0
                 for name, p in nonlinear:
                     term = self._term(name)
@@ -393,25 +422,23 @@ class PhysicsPredictor(_LoggingPredictor):
                         return total
 
                     grid = np.log10(p.grid())
-                    if first_pass:
-                        values = [obj(g) for g in grid]
-                        best = int(np.argmin(values))
-                        best_log, best_val = float(grid[best]), float(values[best])
-                        lo = grid[max(best - 1, 0)]
-                        hi = grid[min(best + 1, grid.size - 1)]
-                    else:
-                        # Later passes: refine around the current value only.
+                    step = float(grid[1] - grid[0]) if grid.size > 1 else 0.1
+                    local = not first_pass or name in warm
+                    if local:
+                        # Refine around the current value only.
                         best_log = float(np.log10(params[name][p.name]))
                         best_val = obj(best_log)
-                        step = float(grid[1] - grid[0]) if grid.size > 1 else 0.1
                         lo = max(float(grid[0]), best_log - step)
                         hi = min(float(grid[-1]), best_log + step)
-                    res = self._minimize_scalar(
-                        obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
-                    )
-                    if float(res.fun) <= best_val:
-                        best_log = float(res.x)
-                    obj(best_log)
+                        inside = self._refined(obj, lo, hi, best_log, best_val, grid)
+                        if inside or not first_pass:
+                            continue
+                    values = [obj(g) for g in grid]
+                    best = int(np.argmin(values))
+                    best_log, best_val = float(grid[best]), float(values[best])
+                    lo = grid[max(best - 1, 0)]
+                    hi = grid[min(best + 1, grid.size - 1)]
+                    self._refined(obj, lo, hi, best_log, best_val, grid)
         self.params = params
         self.active = active
         self.add_intercept = self._needs_intercept(active)
@@ -419,7 +446,12 @@ class PhysicsPredictor(_LoggingPredictor):
         self.columns = []
         residuals = np.zeros_like(xy)
         for axis in (0, 1):
-            raw = dict(self.design_blocks(ts, history, sign, axis, active=active, params=params))
+            if searched:
+                blocks_a = self.design_blocks(ts, history, sign, axis, active=active, params=params)
+                raw = dict(blocks_a)
+            else:  # θ as when the terms were chosen: their blocks are built
+                raw = {"intercept": np.ones((ts.shape[0], 1))} if self.add_intercept else {}
+                raw.update({name: self._built[(name, axis)] for name in active})
             self.columns.append([(name, int(b.shape[1])) for name, b in raw.items()])
             x = np.hstack(list(raw.values()))
             fit = solve_wls(x, xy[:, axis], w)
@@ -431,12 +463,59 @@ class PhysicsPredictor(_LoggingPredictor):
             residuals[:, axis] = xy[:, axis] - x[:, fit.keep] @ fit.coef
         self._fit_residual(t, residuals, history)
 
+    def _inputs(self, active: Sequence[str], history: History) -> tuple[str, ...]:
+        """What the search of θ depends on besides the points: each active term
+        with its number of supported columns (``name|k``: creep has none before
+        the first move), and the number of logged events (``events|n``)."""
+        keys = []
+        for name in active:
+            k = max(int(np.count_nonzero(self._built[(name, a)].any(axis=0))) for a in (0, 1))
+            keys.append(f"{name}|{k}")
+        keys.append(f"events|{len(history.events)}")
+        return tuple(keys)
+
+    def _search_due(self, n: int, inputs: tuple[str, ...]) -> bool:
+        """Whether θ is searched at this fit: a term became active or gained a
+        supported column, an event was logged, or the points grew by
+        :attr:`PhysicsConfig.search_growth` since the last search (every fit
+        while there are few points, or with growth 0). A term searched before
+        with the same support starts from its θ (a warm start)."""
+        growth = self.config.search_growth
+        if growth <= 0 or n < _ALWAYS_SEARCH_BELOW or inputs != self._searched_terms:
+            return True
+        return n >= (1.0 + growth) * self._searched_at
+
+    def _refined(
+        self,
+        obj: Any,
+        lo: float,
+        hi: float,
+        best_log: float,
+        best_val: float,
+        grid: FloatArray,
+    ) -> bool:
+        """Bounded 1-D refinement (Brent, on log θ) of ``obj`` between ``lo``
+        and ``hi``, leaving θ at the better of it and ``best_log``. False when
+        the optimum lies at a bound that is not the grid's own end: the
+        neighbourhood did not hold it, and the caller scans the whole grid."""
+        res = self._minimize_scalar(
+            obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
+        )
+        x = float(res.x)
+        if float(res.fun) <= best_val:
+            best_log, best_val = x, float(res.fun)
+        obj(best_log)
+        edge = 0.02 * (hi - lo)
+        at_lo = best_log <= lo + edge and lo > float(grid[0])
+        at_hi = best_log >= hi - edge and hi < float(grid[-1])
+        return not (at_lo or at_hi)
+
     def _fit_residual(self, t: FloatArray, residuals: FloatArray, history: History) -> None:
         self.last_residual = residuals[-1].copy()
         n = residuals.shape[0]
         dof = max(n - sum(int(f.keep.sum()) for f in self.fits) // 2, 1)
         self.residual_sd = np.sqrt(np.sum(residuals**2, axis=0) / dof)
-        self._residuals = [(float(a), float(b)) for a, b in residuals]
+        self._residuals = np.array(residuals, dtype=np.float64)
         if self.config.residual == "ar1":
             r = residuals[-50:]
             if r.shape[0] >= 8:
@@ -621,8 +700,10 @@ class PhysicsPredictor(_LoggingPredictor):
             "phi": self.phi.tolist(),
             "last_residual": self.last_residual.tolist(),
             "residual_sd": [None if not math.isfinite(v) else float(v) for v in self.residual_sd],
-            "residuals": [list(r) for r in self._residuals],
+            "residuals": [[float(a), float(b)] for a, b in self._residuals],
             "residual_net": None if self.residual_net is None else self.residual_net.state_dict(),
+            "searched_at": self._searched_at,
+            "searched_terms": list(self._searched_terms),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -652,7 +733,10 @@ class PhysicsPredictor(_LoggingPredictor):
         self.residual_sd = np.array(
             [math.nan if v is None else float(v) for v in state["residual_sd"]]
         )
-        self._residuals = [(float(a), float(b)) for a, b in state["residuals"]]
+        self._residuals = np.asarray(state["residuals"], dtype=np.float64).reshape(-1, 2)
+        # A state written before the search schedule: θ is searched at the next fit.
+        self._searched_at = int(state.get("searched_at", 0))
+        self._searched_terms = tuple(str(n) for n in state.get("searched_terms", ()))
         if self.residual_net is not None and state["residual_net"] is not None:
             self.residual_net.load_state_dict(state["residual_net"])
 

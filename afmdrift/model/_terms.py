@@ -114,7 +114,8 @@ def term_class(name: str, known: Mapping[str, type[EffectTerm]]) -> type[EffectT
     if name not in known:
         raise ConfigError(
             f"unknown effect term {name!r} (known: {', '.join(sorted(known))}; or a generic "
-            "term 'channel:<channel>' or 'event:<kind>', see docs/model.md)"
+            "term 'channel:<channel>', 'event:<kind>', 'periodic:period_s=<s>', 'jump:t_s=<s>' "
+            "or 'rate_change:t_s=<s>', see docs/model.md)"
         )
     return known[name]
 
@@ -136,8 +137,9 @@ def resolve_terms(
     if unknown:
         raise ConfigError(
             f"{key}: unknown term(s) {', '.join(map(repr, unknown))} "
-            f"(known: {', '.join(sorted(known))}; or a generic term 'channel:<channel>' "
-            "or 'event:<kind>', see docs/model.md)"
+            f"(known: {', '.join(sorted(known))}; or a generic term 'channel:<channel>', "
+            "'event:<kind>', 'periodic:period_s=<s>', 'jump:t_s=<s>' or 'rate_change:t_s=<s>', "
+            "see docs/model.md)"
         )
     bad: list[str] = []
     for n in names:

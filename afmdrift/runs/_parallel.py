@@ -37,6 +37,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
@@ -57,6 +58,8 @@ _ONE_THREAD = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THR
 
 def dask_worker() -> Any | None:
     """The Dask worker running the calling task, or None outside a Dask task."""
+    if "distributed" not in sys.modules:
+        return None  # a Dask worker has imported it; importing it here costs 0.5 s
     try:
         from distributed import get_worker
     except ImportError:  # pragma: no cover - distributed is a dependency

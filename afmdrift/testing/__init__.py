@@ -30,6 +30,7 @@ Runtime code (the service) never imports this package.
 
 from afmdrift.testing._driftgen import (
     DRIFTGEN_EFFECTS,
+    DRIFTGEN_SHAPES,
     GeneratedLog,
     generate_drift_log,
     write_drift_log,
@@ -56,6 +57,7 @@ from afmdrift.testing._tracks import TRACK_SAMPLES, GeneratedTrack, generate_tra
 __all__ = [
     "DISTORTIONS",
     "DRIFTGEN_EFFECTS",
+    "DRIFTGEN_SHAPES",
     "TRACK_SAMPLES",
     "GeneratedLog",
     "GeneratedTrack",

@@ -19,6 +19,9 @@ chosen apart from the simulator's:
   and three outside the library: pressure, a heat pulse after each
   ``approach`` event (difference of exponentials), and a second, slow
   thermal path (1–2 h).
+* **Shapes nothing logged drives** (:data:`DRIFTGEN_SHAPES`): a cycle (a sine
+  or a thermostat's on/off), a slip (within a frame or over two) and a
+  change of the drift rate, each added to a control.
 * **Timing**: a frame every 240 s scanned in 120 s, 7.5 h.
 
 Positions are the mean of the true drift over each frame's scan window (as
@@ -40,7 +43,13 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["DRIFTGEN_EFFECTS", "GeneratedLog", "generate_drift_log", "write_drift_log"]
+__all__ = [
+    "DRIFTGEN_EFFECTS",
+    "DRIFTGEN_SHAPES",
+    "GeneratedLog",
+    "generate_drift_log",
+    "write_drift_log",
+]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -57,6 +66,20 @@ DRIFTGEN_EFFECTS: tuple[str, ...] = (
     "thermal_two",
 )
 
+#: Hidden shapes of the drift that nothing logged drives, for what ``afmdrift
+#: diagnose`` must find in the drift itself: a cycle (an air handler, 20-40
+#: min, 2-5 nm: a sine, or a thermostat's on/off square wave through a 2 min
+#: lag), a slip of 8-20 nm at an unknown time (within one frame's scan, or
+#: spread over two frame periods), and a change of the drift rate by 20-60
+#: nm/h (a door closed, a chiller switched).
+DRIFTGEN_SHAPES: tuple[str, ...] = (
+    "cycle",
+    "thermostat",
+    "slip",
+    "slip_two_frames",
+    "rate_change",
+)
+
 #: What should name each hidden effect: a library term, or the driver of one outside it.
 _NAMED_BY: dict[str, str] = {
     "none": "",
@@ -68,6 +91,11 @@ _NAMED_BY: dict[str, str] = {
     "pressure": "channel pressure_hpa",
     "approach_heat": "event approach",
     "thermal_two": "channel temperature_c (a second, slow thermal path)",
+    "cycle": "discovered periodic",
+    "thermostat": "discovered periodic",
+    "slip": "discovered jump",
+    "slip_two_frames": "discovered jump",
+    "rate_change": "discovered rate_change",
 }
 _IN_LIBRARY = {"thermal_lag", "creep", "humidity", "scan_direction", "warmup"}
 
@@ -142,14 +170,18 @@ def _unlogged(rng: np.random.Generator, t: FloatArray, kind: str, amp_nm: float)
 def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> GeneratedLog:
     """Generate one drift log with hidden ``effect`` (one of :data:`DRIFTGEN_EFFECTS`).
 
+    ``effect`` may also be one of :data:`DRIFTGEN_SHAPES`; ``answer.json``
+    then gives the shape's period or time (``shape``).
+
     Raises
     ------
     ValueError
-        ``effect`` is not one of :data:`DRIFTGEN_EFFECTS`.
+        ``effect`` is not one of :data:`DRIFTGEN_EFFECTS` or :data:`DRIFTGEN_SHAPES`.
     """
-    if effect not in DRIFTGEN_EFFECTS:
-        raise ValueError(f"effect must be one of {DRIFTGEN_EFFECTS}, got {effect!r}")
-    rng = np.random.default_rng([seed, DRIFTGEN_EFFECTS.index(effect), 20261127])
+    known = DRIFTGEN_EFFECTS + DRIFTGEN_SHAPES
+    if effect not in known:
+        raise ValueError(f"effect must be one of {known}, got {effect!r}")
+    rng = np.random.default_rng([seed, known.index(effect), 20261127])
     period_s, scan_s = 240.0, 120.0
     n = int(hours * 3600.0 / period_s)
     t_end = n * period_s
@@ -244,6 +276,10 @@ def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> Generat
         k = rng.uniform(30.0, 80.0, size=2) * rng.choice([-1, 1], size=2)
         hidden = np.outer(_first_order(temp, dt, tau) - t0_temp, k)
         made_of.append(f"a second thermal path with a lag of {tau / 3600:.1f} h")
+    shape: dict[str, Any] = {}
+    if effect in DRIFTGEN_SHAPES:
+        hidden, shape = _hidden_shape(rng, effect, t, t_end, period_s)
+        made_of.append(shape["what"])
     drift += hidden
 
     # --- frames and measured positions
@@ -268,7 +304,7 @@ def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> Generat
     measured += rng.normal(0.0, sigma, size=measured.shape)
     measured[0] = 0.0
     truth = drift - np.array([np.interp(mid[0], t, drift[:, a]) for a in (0, 1)])
-    answer = {
+    answer: dict[str, Any] = {
         "hidden_effect": effect,
         "named_by": _NAMED_BY[effect] or None,
         "in_afmdrift_library": effect in _IN_LIBRARY or effect == "none",
@@ -276,6 +312,8 @@ def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> Generat
         "generator_seed": seed,
         "drift_made_of": made_of,
     }
+    if shape:
+        answer["shape"] = {k: v for k, v in shape.items() if k != "what"}
     return GeneratedLog(
         effect=effect,
         seed=seed,
@@ -291,6 +329,51 @@ def generate_drift_log(effect: str, seed: int, *, hours: float = 7.5) -> Generat
         truth_nm=truth,
         answer=answer,
     )
+
+
+def _hidden_shape(
+    rng: np.random.Generator, effect: str, t: FloatArray, t_end: float, frame_s: float
+) -> tuple[FloatArray, dict[str, Any]]:
+    """The drift (m, 2) of one of :data:`DRIFTGEN_SHAPES` at ``t``, and what it is."""
+    direction = rng.normal(size=2)
+    direction /= float(np.hypot(*direction))
+    if effect in ("cycle", "thermostat"):
+        period = float(rng.uniform(1200.0, 2400.0))
+        amp = float(rng.uniform(2.0, 5.0))
+        phase = 2.0 * np.pi * t / period + rng.uniform(0.0, 2.0 * np.pi)
+        if effect == "cycle":
+            wave = np.sin(phase)
+            what = f"an unlogged cycle of {period / 60:.0f} min, {amp:.1f} nm (a sine)"
+        else:
+            wave = _first_order(np.where(np.sin(phase) >= 0.0, 1.0, -1.0), t[1] - t[0], 120.0)
+            what = f"an unlogged on/off cycle of {period / 60:.0f} min, {amp:.1f} nm"
+        return np.outer(amp * wave, direction), {
+            "kind": "periodic",
+            "period_s": period,
+            "amplitude_nm": amp,
+            "what": what,
+        }
+    if effect in ("slip", "slip_two_frames"):
+        size = float(rng.uniform(8.0, 20.0))
+        t_j = float(rng.uniform(3600.0, t_end - 3600.0))
+        spread = 2.0 * frame_s if effect == "slip_two_frames" else 30.0
+        ramp = np.clip((t - t_j) / spread, 0.0, 1.0)
+        return np.outer(size * ramp, direction), {
+            "kind": "jump",
+            "t_s": t_j + 0.5 * spread,
+            "t_start_s": t_j,
+            "t_end_s": t_j + spread,
+            "step_nm": size,
+            "what": f"an unlogged slip of {size:.0f} nm over {spread:.0f} s at {t_j:.0f} s",
+        }
+    rate = float(rng.uniform(20.0, 60.0))
+    t_k = float(rng.uniform(5400.0, t_end - 5400.0))
+    return np.outer(rate * np.maximum(t - t_k, 0.0) / 3600.0, direction), {
+        "kind": "rate_change",
+        "t_s": t_k,
+        "rate_change_nm_per_h": rate,
+        "what": f"an unlogged change of the drift rate by {rate:.0f} nm/h at {t_k:.0f} s",
+    }
 
 
 def write_drift_log(log: GeneratedLog, path: str | Path) -> Path:

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from afmdrift.session import read_drift_log
-from afmdrift.testing import DRIFTGEN_EFFECTS, GeneratedLog, generate_drift_log, write_drift_log
+from afmdrift.testing import (
+    DRIFTGEN_EFFECTS,
+    DRIFTGEN_SHAPES,
+    GeneratedLog,
+    generate_drift_log,
+    write_drift_log,
+)
 
 
 @pytest.mark.parametrize("effect", DRIFTGEN_EFFECTS)
@@ -64,3 +70,23 @@ def test_a_scan_direction_log_has_runs_of_both_directions_and_a_bias() -> None:
 def test_an_unknown_effect_is_refused() -> None:
     with pytest.raises(ValueError, match="effect must be one of"):
         generate_drift_log("gravity", 1)
+
+
+@pytest.mark.parametrize("shape", DRIFTGEN_SHAPES)
+def test_a_hidden_shape_is_in_the_truth_and_in_the_answer(shape: str) -> None:
+    """The control's drift plus the shape: the truth differs from the control
+    of the same seed by the shape alone, which answer.json describes."""
+    log = generate_drift_log(shape, 3)
+    found = log.answer["shape"]
+    assert found["kind"] in ("periodic", "jump", "rate_change")
+    assert log.answer["hidden_effect"] == shape
+    t = log.truth_t_s
+    if found["kind"] == "jump":
+        before = np.interp(found["t_start_s"] - 60.0, t, log.truth_nm[:, 0])
+        after = np.interp(found["t_end_s"] + 60.0, t, log.truth_nm[:, 0])
+        assert abs(after - before) > 0.0
+        assert 8.0 <= found["step_nm"] <= 20.0
+    elif found["kind"] == "periodic":
+        assert 1200.0 <= found["period_s"] <= 2400.0
+    else:
+        assert 20.0 <= found["rate_change_nm_per_h"] <= 60.0
