@@ -19,9 +19,10 @@ exp(−age/``memory_s``)):
    (Brent, on log θ, between the grid neighbours of the best point); the
    objective is the weighted residual sum of squares of both axes. θ is
    searched again only once the points grew by ``search_growth`` (10 %)
-   since its last search, or a term's support or the event log changed, and then from where it was (a warm start: a
-   refinement within one grid step, the whole grid only when the optimum
-   left it); the fits in between solve step 3 alone, in closed form.
+   since its last search, or a term's support or the event log changed,
+   and then from where it was (a warm start: a refinement within one grid
+   step, the whole grid only when the optimum left it); the fits in between
+   solve step 3 alone, in closed form.
 3. **Linear coefficients β** by weighted least squares with weights
    1/max(σ, ``sigma_floor_nm``)², on column-normalised designs (rank-deficient
    directions get the minimum-norm solution). Their covariance s²(XᵀWX)⁺ gives
