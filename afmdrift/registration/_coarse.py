@@ -413,9 +413,21 @@ def _overlap_score(a: F64, b: F64, dx: int, dy: int) -> float:
     on the scale of its significance (the NCC of ``n`` independent pixels
     has a chance spread of ``1/sqrt(n)``), so a thin strip must correlate
     far better than a large overlap to replace it."""
-    rows, cols = a.shape
-    share = (rows - abs(dy)) * (cols - abs(dx)) / (rows * cols)
-    return _ncc(a, b, dx, dy) * math.sqrt(max(share, 0.0))
+    return _overlap_fit(a, b, dx, dy)[2]
+
+
+def _share(shape: tuple[int, ...], dx: int, dy: int) -> float:
+    """The share of a frame ``shape`` that overlaps at shift ``(dx, dy)``."""
+    rows, cols = shape[0], shape[1]
+    return (rows - abs(dy)) * (cols - abs(dx)) / (rows * cols)
+
+
+def _overlap_fit(a: F64, b: F64, dx: int, dy: int) -> tuple[float, float, float]:
+    """``(ncc, share, evidence)`` of the overlap at shift ``(dx, dy)``: the
+    NCC once, its overlap's share of the frame, and the evidence of
+    :func:`_overlap_score`."""
+    ncc, share = _ncc(a, b, dx, dy), _share(a.shape, dx, dy)
+    return ncc, share, ncc * math.sqrt(max(share, 0.0))
 
 
 def overlap_evidence(
@@ -453,19 +465,17 @@ def _unwrap(a: F64, b: F64, dx: int, dy: int, bound_px: float | None = None) -> 
     tell apart. Alternatives beyond a stated
     bound (``bound_px``, per axis) are not considered."""
     rows, cols = a.shape
-    best, best_score = (dx, dy), _overlap_score(a, b, dx, dy)
+    best_ncc, _, best_score = _overlap_fit(a, b, dx, dy)
+    best = (dx, dy)
     alt_x = [dx] + ([dx - cols] if dx > 0 else [dx + cols] if dx < 0 else [])
     alt_y = [dy] + ([dy - rows] if dy > 0 else [dy + rows] if dy < 0 else [])
     if bound_px is not None:
         alt_x = [x for x in alt_x if x == dx or abs(x) <= bound_px + 1]
         alt_y = [y for y in alt_y if y == dy or abs(y) <= bound_px + 1]
-    best_ncc = _ncc(a, b, dx, dy)
     for ay in alt_y:
         for ax in alt_x:
             if (ax, ay) != (dx, dy):
-                score = _overlap_score(a, b, ax, ay)
-                ncc = _ncc(a, b, ax, ay)
-                share = (rows - abs(ay)) * (cols - abs(ax)) / (rows * cols)
+                ncc, share, score = _overlap_fit(a, b, ax, ay)
                 # a smooth background correlates over a large wrong overlap
                 # (NCC 0.4-0.5 on the retina); the true, smaller one fits
                 # nearly perfectly: clearly better fits win at a fair share
@@ -670,7 +680,6 @@ def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None
     (:data:`RIVAL_NCC_MARGIN`, and at least :data:`RIVAL_MIN_NCC`) makes the
     pair ambiguous; only a highest peak that is itself significant
     (:data:`COARSE_MIN_Z`) is contested."""
-    rows, cols = a.shape
     n_rows, n_cols = zs.shape
     peak_rows, peak_cols = local_peaks(zs, RIVAL_PEAK_RATIO * float(zs.max()))
     others = [
@@ -685,7 +694,7 @@ def _rival(a: F64, b: F64, top: tuple[int, int], zs: F64, bound_px: float | None
     top_ncc = _ncc(a, b, *top)
     for s in others[:RIVAL_PEAKS]:
         alt = _unwrap(a, b, *s, bound_px)
-        share = (rows - abs(alt[1])) * (cols - abs(alt[0])) / (rows * cols)
+        share = _share(a.shape, *alt)
         if alt == top or share < RIVAL_MIN_SHARE:
             continue
         ncc = _ncc(a, b, *alt)

@@ -147,6 +147,7 @@ def fit_field(
     f_min: float,
     explained_min: float,
     start: npt.NDArray[np.bool_] | None = None,
+    force: bool = False,
 ) -> FieldFit | None:
     """The smooth field over the frame that the ``usable`` block vectors follow.
 
@@ -170,6 +171,11 @@ def fit_field(
         The blocks the first fit is over (the blocks a one shift or trend
         kept, when it did: a flat region's blocks, which vote zero, must not
         bend the field); later rounds judge every usable block.
+
+    force : bool
+        Answer (mean, σ, distortion) even when the column terms are not
+        significant (the one shift or trend was refused); otherwise a field
+        that is not significant comes back with NaN in their place.
 
     Returns
     -------
@@ -198,6 +204,12 @@ def fit_field(
     noise = max(float(rss.sum()) / (2 * (n - k)), (MAD_FLOOR_PX / 2) ** 2)
     explained = 1.0 - float(rss.sum()) / max(float(rss_r.sum()), 1e-300)
     significant = gain / noise > f_min and explained >= explained_min
+    if not (force or significant):
+        # a rigid frame (every frame of most runs): the answer is not needed,
+        # and the field's means below cost more than the block pass's own
+        # post-processing
+        nan = (float("nan"), float("nan"))
+        return FieldFit(keep, nan, nan, (float(spread[0]), float(spread[1])), nan, False)
     # The drift at the kept blocks' rows, over the whole width of the
     # current frame (the reference's columns moved by the drift, in the
     # reference's coordinates the field is fitted in): the mean of the

@@ -182,7 +182,7 @@ def _non_rigid(
     fit = fit_field(
         meas.vectors_px, meas.weight_centres_px, usable, frame_shape=(rows, cols),
         independent=engine.layout.overlap_factor(), f_min=TREND_F,
-        explained_min=TREND_EXPLAINED, start=start,
+        explained_min=TREND_EXPLAINED, start=start, force=start is None,
     )  # fmt: skip
     refused = start is None
     if fit is None or int(fit.valid.sum()) < need or not (refused or fit.significant):
