@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import numpy.typing as npt
-from scipy import stats
+from scipy import special
 
 __all__ = [
     "MIN_FITTED_POINTS",
@@ -29,6 +29,7 @@ __all__ = [
     "ml_phi",
     "newey_west_lags",
     "nonzero_cols",
+    "ols_hac",
     "partial_out",
     "residual_basis",
 ]
@@ -65,8 +66,6 @@ def forecast_comparison(e_base: FloatArray, e_new: FloatArray) -> tuple[float, i
     is conservative (Clark & McCracken 2001), which keeps its false-alarm level.
     NaN when fewer than :data:`MIN_FITTED_POINTS` frames or no variance.
     """
-    from scipy.stats import t as student_t
-
     a = np.asarray(e_base, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(e_new, dtype=np.float64).reshape(-1, 2)
     ok = np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(b), axis=1)
@@ -84,7 +83,7 @@ def forecast_comparison(e_base: FloatArray, e_new: FloatArray) -> tuple[float, i
     stat = float(d.mean()) / math.sqrt(var / m)
     h = lags + 1
     stat *= math.sqrt((m + 1 - 2 * h + h * (h - 1) / m) / m)
-    return float(student_t.sf(stat, m - 1)), m
+    return float(special.stdtr(m - 1, -stat)), m  # Student's t survival
 
 
 def nonzero_cols(z: FloatArray, ref: float) -> npt.NDArray[np.bool_]:
@@ -113,6 +112,36 @@ def aicc(rss: Sequence[float], n: int, k: int) -> float:
     return -2.0 * ll + 2.0 * k + 2.0 * k * (k + 1) / (total_n - k - 1)
 
 
+def ols_hac(z: FloatArray, y: FloatArray, lags: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Least squares of ``y`` on the columns of ``z`` (full column rank, no
+    constant added): the coefficients, their OLS covariance s²(ZᵀZ)⁻¹ with
+    s² = RSS/(n−k), and their Newey–West (1987) HAC covariance with Bartlett
+    weights 1 − j/(lags+1) and the small-sample factor n/(n−k).
+
+    (The same numbers as statsmodels' ``OLS(y, z).fit()`` and its
+    ``get_robustcov_results(cov_type="HAC", maxlags=lags,
+    use_correction=True)``, which the tests check; computed here because
+    importing statsmodels' regression, with pandas, took a second of every
+    diagnosis.)
+    """
+    n, k = z.shape
+    zz_inv = np.linalg.inv(z.T @ z)
+    gamma = zz_inv @ (z.T @ y)
+    r = y - z @ gamma
+    v_ols = zz_inv * (float(r @ r) / (n - k))
+    g = z * r[:, None]
+    s = g.T @ g
+    for j in range(1, min(lags, n - 1) + 1):
+        c = g[j:].T @ g[:-j]
+        s += (1.0 - j / (lags + 1.0)) * (c + c.T)
+    v_hac = zz_inv @ s @ zz_inv * (n / (n - k))
+    return (
+        np.asarray(gamma, dtype=np.float64),
+        np.asarray(v_ols, dtype=np.float64),
+        np.asarray(v_hac, dtype=np.float64),
+    )
+
+
 def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatArray]:
     """Conservative Wald statistic of γ in e0 ≈ z γ (HAC vs OLS covariance).
 
@@ -120,8 +149,6 @@ def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatAr
     spans, partialled to zero) is tested in its column space: the degrees of
     freedom are its rank, not its column count.
     """
-    from statsmodels.regression.linear_model import OLS
-
     n, k = z.shape
     if k == 0 or n <= k + 1:
         return 0.0, 0, np.zeros(0)
@@ -131,11 +158,7 @@ def _wald(z: FloatArray, e0: FloatArray, lags: int) -> tuple[float, int, FloatAr
         return 0.0, 0, np.zeros(0)
     if rank < k:
         z, k = u[:, :rank] * sv[:rank], rank
-    fit = OLS(e0, z).fit()
-    gamma = np.asarray(fit.params, dtype=np.float64)
-    v_ols = np.asarray(fit.cov_params(), dtype=np.float64)
-    hac = fit.get_robustcov_results(cov_type="HAC", maxlags=lags, use_correction=True)
-    v_hac = np.asarray(hac.cov_params(), dtype=np.float64)
+    gamma, v_ols, v_hac = ols_hac(z, e0, lags)
     w_ols = float(gamma @ np.linalg.pinv(v_ols) @ gamma)
     w_hac = float(gamma @ np.linalg.pinv(v_hac) @ gamma)
     return min(w_ols, w_hac), k, gamma
@@ -194,7 +217,7 @@ class WaldTest:
             w, k, _ = _wald(zc[a], e0[a], lags)
             wald += w
             df += k
-        p = float(stats.chi2.sf(wald, df)) if df else 1.0
+        p = float(special.chdtrc(df, wald)) if df else 1.0
         return cls(wald, df, p, min(1.0, p * max(n_tests, 1)))
 
 

@@ -34,7 +34,6 @@ from afmdrift.diagnostics._diagnosis import Diagnosis
 from afmdrift.diagnostics._stats import cross_correlation, lomb_scargle
 from afmdrift.diagnostics._text import cv_change
 from afmdrift.errors import InputError
-from afmdrift.registration import measure_drift
 from afmdrift.session import read_session
 
 if TYPE_CHECKING:
@@ -306,6 +305,8 @@ def _fig_vector_field(
     dg: Diagnosis, data: RunData, registration: RegistrationConfig | None
 ) -> tuple[Figure | None, str]:
     import matplotlib.pyplot as plt
+
+    from afmdrift.registration import measure_drift
 
     norm = np.hypot(dg.run.errors_nm[:, 0], dg.run.errors_nm[:, 1])
     if not np.isfinite(norm).any():

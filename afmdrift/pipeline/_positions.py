@@ -55,7 +55,7 @@ import logging
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import numpy.typing as npt
@@ -71,14 +71,18 @@ from afmdrift.model import (
 )
 from afmdrift.pipeline._records import FrameRecord
 from afmdrift.records import Event, EventKind, Frame, ScanDirection
-from afmdrift.registration import DriftResult, DriftTracker, TrackStep
 from afmdrift.wire import FieldSummary
+
+if TYPE_CHECKING:
+    # The registration engine (pyFFTW, its plans) loads with the first tracker:
+    # a tool that only reads positions (a drift log's diagnosis) never needs it.
+    from afmdrift.registration import DriftResult, DriftTracker, TrackStep
 
 __all__ = ["DriftPositions", "FramePosition", "TrackerFactory", "summarise_field"]
 
 log = logging.getLogger(__name__)
 
-TrackerFactory = Callable[[tuple[float, float]], DriftTracker]
+TrackerFactory = Callable[[tuple[float, float]], "DriftTracker"]
 FloatArray = npt.NDArray[np.float64]
 
 #: Frame timings kept for the reference lookup (keyframes are rarely older).
@@ -221,6 +225,8 @@ class DriftPositions:
         self._move_times: list[float] = []
 
     def _default_tracker_factory(self, pixel_size_nm: tuple[float, float]) -> DriftTracker:
+        from afmdrift.registration import DriftTracker
+
         return DriftTracker(pixel_size_nm=pixel_size_nm, config=self.config.registration)
 
     @property

@@ -511,3 +511,43 @@ def test_wald_test_of_a_rank_deficient_candidate_counts_its_rank() -> None:
     w1, k1, _ = _wald(col[:, None], e0, lags=3)
     assert k1 == 1
     assert w == pytest.approx(w1, rel=1e-6)
+
+
+def test_own_statistics_equal_scipy_and_statsmodels() -> None:
+    """Ljung–Box, Lomb's power, Welch's t-test and the OLS/HAC covariances are
+    computed here with numpy (their libraries' imports cost a second of every
+    diagnosis); they must give the libraries' numbers."""
+    from scipy import signal, stats
+    from statsmodels.regression.linear_model import OLS
+    from statsmodels.stats.diagnostic import acorr_ljungbox
+
+    from afmdrift.diagnostics._regression import ols_hac
+    from afmdrift.diagnostics._stats import _lomb_power, welch_p
+
+    rng = np.random.default_rng(7)
+    e = np.cumsum(rng.normal(size=150)) * 0.2 + rng.normal(size=150)
+    for lags in (1, 5, 10):
+        q, p, used = ljung_box(e, lags=lags)
+        ref = acorr_ljungbox(e, lags=[lags], return_df=True)
+        assert used == lags
+        assert q == pytest.approx(float(ref["lb_stat"].iloc[0]), rel=1e-10)
+        assert p == pytest.approx(float(ref["lb_pvalue"].iloc[0]), rel=1e-8, abs=1e-300)
+    t = np.sort(rng.uniform(0.0, 5e3, 200))
+    y = np.sin(t / 200.0) + rng.normal(size=200)
+    y -= y.mean()
+    w = 2 * np.pi / np.geomspace(50.0, 5e3, 60)
+    np.testing.assert_allclose(
+        _lomb_power(t, y, w), signal.lombscargle(t, y, w, normalize=True), atol=1e-12
+    )
+    a, b = rng.normal(size=20), rng.normal(0.7, 3.0, size=33)
+    assert welch_p(a, b) == pytest.approx(
+        float(stats.ttest_ind(a, b, equal_var=False).pvalue), rel=1e-10
+    )
+    z = rng.normal(size=(90, 3))
+    yy = z @ np.array([1.0, 0.0, -0.3]) + np.cumsum(rng.normal(size=90)) * 0.3
+    fit = OLS(yy, z).fit()
+    hac = fit.get_robustcov_results(cov_type="HAC", maxlags=3, use_correction=True)
+    gamma, v_ols, v_hac = ols_hac(z, yy, 3)
+    np.testing.assert_allclose(gamma, fit.params, rtol=1e-10)
+    np.testing.assert_allclose(v_ols, fit.cov_params(), rtol=1e-10)
+    np.testing.assert_allclose(v_hac, hac.cov_params(), rtol=1e-10)
