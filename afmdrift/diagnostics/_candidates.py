@@ -78,10 +78,12 @@ from afmdrift.diagnostics._regression import (
 from afmdrift.model import EffectTerm, GenericTerm, History, windowed_design
 
 __all__ = [
+    "MAX_CV_RATIO",
     "CandidateResult",
     "ModelDesign",
     "Thresholds",
     "base_basis",
+    "cv_unstable",
     "evaluate_candidate",
     "family_candidates",
 ]
@@ -178,6 +180,19 @@ class ModelDesign:
         return np.asarray(a[1:] - self.phi[axis] * a[:-1], dtype=np.float64)
 
 
+#: No error estimate from blocked CV when the candidate's cross-validated error is
+#: more than this many times the model's: its fit is unstable out of sample
+#: (e.g. one amplitude per event with an event near a fold's edge).
+MAX_CV_RATIO = 3.0
+
+
+def cv_unstable(cv_drop: float) -> bool:
+    """Whether a change of the cross-validated error means nothing as a per
+    cent: the term's error is more than :data:`MAX_CV_RATIO` times the
+    model's (``+6188 %`` says only that the fit blew up out of sample)."""
+    return 1.0 - cv_drop > MAX_CV_RATIO
+
+
 @dataclass(slots=True)
 class CandidateResult:
     """Evidence for adding one effect term.
@@ -230,6 +245,8 @@ class CandidateResult:
             return f"not testable: {self.reason}"
         if self.cv_drop is None:
             cv = "not cross-validatable"
+        elif cv_unstable(self.cv_drop):
+            cv = f"blocked-CV error unstable (more than {MAX_CV_RATIO:g} times the model's)"
         elif self.cv_drop >= 0:
             cv = f"blocked-CV error {100 * self.cv_drop:.0f}% lower"
         else:

@@ -17,6 +17,7 @@ import numpy.typing as npt
 
 from afmdrift.config import PhysicsConfig
 from afmdrift.diagnostics._candidates import (
+    MAX_CV_RATIO,
     CandidateResult,
     ModelDesign,
     Thresholds,
@@ -299,12 +300,6 @@ def mark_indistinguishable(
         worse, _ = forecast_comparison(e_c, e_lead)
         if not (better < alpha or worse < alpha):
             lead.alike.append(c.effect)
-
-
-#: No error estimate from blocked CV when the candidate's cross-validated error is
-#: more than this many times the model's: its fit is unstable out of sample
-#: (e.g. one amplitude per event with an event near a fold's edge).
-MAX_CV_RATIO = 3.0
 
 
 def rank_candidates(

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from afmdrift.diagnostics._ranking import MAX_CV_RATIO
+from afmdrift.diagnostics._candidates import cv_unstable
 
 __all__ = ["GLOSSES", "cv_change", "diagnosis_text"]
 
@@ -56,11 +56,12 @@ def _glossed(lines: list[str], *, plain: int) -> list[str]:
 def cv_change(c: dict[str, Any]) -> str:
     """The change of the cross-validated error in per cent, or what it is when
     a per cent means nothing: ``unstable`` when the term's out-of-sample error
-    is more than :data:`MAX_CV_RATIO` times the model's (a fit that blows up
-    out of sample), ``-`` when it could not be cross-validated."""
+    is more than :data:`~afmdrift.diagnostics._candidates.MAX_CV_RATIO` times
+    the model's (a fit that blows up out of sample, :func:`cv_unstable`),
+    ``-`` when it could not be cross-validated."""
     if c["cv_drop"] is None:
         return "-"
-    if 1.0 - c["cv_drop"] > MAX_CV_RATIO:
+    if cv_unstable(c["cv_drop"]):
         return "unstable"
     return f"{-100 * c['cv_drop']:+.0f}%"
 
