@@ -143,7 +143,11 @@ async def test_slow_and_absent_subscribers_do_not_slow_the_offset_stream(tmp_pat
                             walls.append(msg.wall_s)
                     assert seqs == list(range(seqs[0], seqs[0] + len(seqs)))
                     rate = (len(seqs) - 1) / (walls[-1] - walls[0])
-                    assert rate > 400
+                    # A stream the stuck subscriber blocked would stall (no
+                    # message once its queue is full); a busy machine only
+                    # slows it a little (395/s of 500 was seen at a load of 9
+                    # on 2 cores). The rate itself is bench_service's.
+                    assert rate > 0.5 * 500.0
                     assert service.frames_processed > 0
                 finally:
                     good.close()
