@@ -118,6 +118,7 @@ class TaskPool:
         self.workers = workers
         self._warm = warm
         self._executor: concurrent.futures.ProcessPoolExecutor | None = None
+        self._ready: list[concurrent.futures.Future[int]] = []
         self.where = "serial"
         """``"dask"``, ``"processes"`` or ``"serial"``: where :meth:`map` runs tasks."""
 
@@ -131,10 +132,14 @@ class TaskPool:
                     self.workers - 1, mp_context=ctx, initializer=self._warm
                 )
                 # Start every process now: they import while the caller works.
-                for _ in range(self.workers - 1):
-                    self._executor.submit(_ready)
+                self._ready = [self._executor.submit(_ready) for _ in range(self.workers - 1)]
             self.where = "processes"
         return self
+
+    def wait_started(self, timeout_s: float = 60.0) -> None:
+        """Block until every worker process has started (a no-op without them):
+        before, :meth:`map` leaves the tasks to the caller."""
+        concurrent.futures.wait(self._ready, timeout=timeout_s)
 
     def __exit__(self, *exc: object) -> None:
         if self._executor is not None:
@@ -164,7 +169,13 @@ class TaskPool:
 
     def _map_processes(self, fn: Callable[[_A], _R], items: list[_A]) -> list[_R]:
         """The processes take tasks from the front (one feeder thread each,
-        waiting on its process), the caller from the back, until none is left."""
+        waiting on its process), the caller from the back, until none is left.
+
+        A feeder takes its first task only once its process has started
+        (imported the package and run ``warm``): until then the caller takes
+        the tasks, so a pool whose processes are still starting is never
+        slower than the caller alone (a short record's two re-runs are done
+        before a process on a busy machine has imported numpy)."""
         assert self._executor is not None
         executor = self._executor
         todo = collections.deque(range(len(items)))
@@ -179,7 +190,12 @@ class TaskPool:
                     return None
                 return todo.popleft() if front else todo.pop()
 
-        def feed() -> None:
+        def feed(ready: concurrent.futures.Future[int] | None) -> None:
+            while ready is not None and not ready.done():
+                with lock:
+                    if not todo or errors:
+                        return
+                concurrent.futures.wait([ready], timeout=0.02)
             while (i := take(front=True)) is not None:
                 try:
                     out[i] = executor.submit(fn, items[i]).result()
@@ -193,7 +209,9 @@ class TaskPool:
                         errors[i] = err
                     return
 
-        feeders = [threading.Thread(target=feed, daemon=True) for _ in range(self.workers - 1)]
+        ready: list[concurrent.futures.Future[int] | None] = list(self._ready)
+        ready += [None] * (self.workers - 1 - len(ready))
+        feeders = [threading.Thread(target=feed, args=(r,), daemon=True) for r in ready]
         for t in feeders:
             t.start()
         while (i := take(front=False)) is not None:

@@ -39,11 +39,25 @@ def _die_outside(task: tuple[int, int]) -> int:
 def test_processes_and_caller_share_the_work_and_keep_the_order() -> None:
     with TaskPool(2) as pool:
         assert pool.where == "processes"
+        pool.wait_started()
         out = pool.map(_slow_square_where, list(range(8)))
     assert [v for v, _ in out] == [x * x for x in range(8)]
     pids = {p for _, p in out}
     assert len(pids) == 2  # a spawned process and the caller
     assert os.getpid() in pids
+
+
+def _slow_start() -> None:
+    time.sleep(4.0)
+
+
+def test_tasks_wait_for_no_process_that_is_still_starting() -> None:
+    """A process still starting (importing, warming up) takes no task: the
+    caller does them, so a short map is never slower than without the pool."""
+    with TaskPool(2, warm=_slow_start) as pool:
+        out = pool.map(_square_where, list(range(6)))
+    assert [v for v, _ in out] == [x * x for x in range(6)]
+    assert {p for _, p in out} == {os.getpid()}
 
 
 def test_one_worker_runs_in_the_caller() -> None:
@@ -61,6 +75,7 @@ def test_a_task_that_raises_raises_in_the_caller() -> None:
 def test_a_dead_worker_process_loses_no_task(caplog: pytest.LogCaptureFixture) -> None:
     me = os.getpid()
     with TaskPool(2) as pool:
+        pool.wait_started()  # else the caller may do every task before the process is up
         out = pool.map(_die_outside, [(k, me) for k in range(5)])
     assert out == [1, 2, 3, 4, 5]
     assert pool.where == "serial"
