@@ -21,8 +21,8 @@ import zmq.asyncio
 from service_sim import (
     closed_port,
     driver,
+    humid_scenario,
     running_service,
-    scenario_data,
     service_config,
     sim_server,
 )
@@ -115,26 +115,6 @@ async def test_add_term_needs_the_physics_model(tmp_path: Path, ctx: zmq.asyncio
             )  # fmt: skip
         assert svc.pipeline.predictor.name == "constant_velocity"
     assert stored_changes(run) == []
-
-
-def humid_scenario(*, period_s: float = 600.0, beta_nm_per_pct: float = 6.0) -> dict[str, object]:
-    """Drift that follows the logged relative humidity (a cycle of 5 %RH).
-
-    A model without the ``humidity`` term follows it late, through its
-    residual; adding the term moves the prediction by several nm at once
-    (what d(t) must not jump by)."""
-    data = scenario_data(
-        seed=5, frame_period_s=20.0, line_rate_hz=8.0, drift_nm_per_sqrt_s=0.02, thermal=False
-    )
-    data["physics"]["humidity"] = {
-        "enabled": True,
-        "mean_pct": 45.0,
-        "amplitude_pct": 5.0,
-        "period_s": period_s,
-        "fluctuation_pct": 0.2,
-        "beta_nm_per_pct": [beta_nm_per_pct, -0.7 * beta_nm_per_pct],
-    }
-    return data
 
 
 async def _offsets_through_change(
