@@ -516,16 +516,18 @@ class FramePipeline:
         bound). The hand-over time starts at
         1.5·|Δ|/(0.8·bound) sample intervals (Δ the new prediction minus the
         published value now; 1.5 the steepest slope of a cubic Hermite blend
-        over its mean), at least ``min_blend_s``, and is doubled until the
+        over its mean), at least one interval and ``min_blend_s``, and is
+        doubled until the
         curve keeps the bound on a grid of a quarter interval. The curve
         starts at the published one's value and slope at ``t_now_s``. Without
-        a published curve, or when the prediction fails, the curve is the
-        one the pipeline would build (``curve`` is that, or ``None``).
+        a published curve, with the sinc reconstruction (which does not start
+        from the previous curve), or when the prediction fails, ``curve`` is
+        ``None``: the pipeline builds its own.
         """
         previous = self.curve
         bound = MIN_HANDOVER_STEP_NM
         none = Handover(None, t_now_s, sample_interval_s, bound, math.nan)
-        if previous is None:
+        if previous is None or self.config.model.reconstruction != "hermite":
             return none
         try:
             now = predictor.predict_drift([t_now_s], self.history)
@@ -538,8 +540,9 @@ class FramePipeline:
         tick_s = sample_interval_s
         own_step = largest_step_nm(previous, t_now_s, t_now_s, tick_s)
         allowed = max(bound, 1.05 * own_step)
-        blend_s = max(min_blend_s, 1.5 * gap * tick_s / (0.8 * bound) if math.isfinite(gap) else 0)
-        step = math.inf
+        needed_s = 1.5 * gap * tick_s / (0.8 * bound) if math.isfinite(gap) else 0.0
+        blend_s = max(min_blend_s, tick_s, needed_s)
+        step, reached_s = math.inf, t_now_s
         for _ in range(_HANDOVER_TRIES):
             try:
                 curve = reconstruct_offset(
@@ -548,12 +551,15 @@ class FramePipeline:
                     config=self.config.model,
                     t_now_s=t_now_s,
                     previous=previous,
-                    min_blend_s=blend_s,
+                    blend_s=blend_s,
                 )
             except (ValueError, ArithmeticError) as err:
                 log.warning("offset curve at t=%.3f s failed: %s", t_now_s, err)
                 return none
-            step = largest_step_nm(curve, t_now_s, t_now_s + blend_s + 2 * tick_s, tick_s)
+            # the first knot after now is on the new prediction (a hand-over
+            # shorter than the curve's smallest knot spacing ends there)
+            reached_s = float(curve.knot_t_s[1]) if curve.knot_t_s.size > 1 else t_now_s
+            step = largest_step_nm(curve, t_now_s, reached_s + 2 * tick_s, tick_s)
             if step <= allowed:
                 break
             blend_s = 2.0 * max(blend_s, tick_s)
@@ -563,7 +569,7 @@ class FramePipeline:
                 step,
                 allowed,
             )
-        return Handover(curve, t_now_s + blend_s, sample_interval_s, allowed, step)
+        return Handover(curve, max(reached_s, t_now_s + blend_s), sample_interval_s, allowed, step)
 
 
 @dataclass(frozen=True, slots=True)
@@ -573,8 +579,10 @@ class Handover:
     ``curve`` is d(t) from the change on (``None``: no curve was published
     yet, or the prediction failed: the pipeline builds its own); it reaches
     the new model's prediction at ``until_s``. ``bound_nm`` is the largest
-    step allowed between offset samples ``sample_interval_s`` apart and
-    ``step_nm`` the largest the curve makes (NaN without a curve).
+    step allowed between offset samples ``sample_interval_s`` apart
+    (max(σ, :data:`MIN_HANDOVER_STEP_NM`), or the published curve's own step
+    if larger) and ``step_nm`` the largest the curve makes (NaN without a
+    curve).
     """
 
     curve: OffsetCurve | None

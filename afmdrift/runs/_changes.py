@@ -73,7 +73,8 @@ class ModelChange:
         (NaN: no curve was published yet, so there was nothing to hand over).
     step_bound_nm : float
         The largest step d(t) was allowed between two offset samples during
-        the hand-over, max(the prediction's 1σ, 0.5 nm) (NaN as above).
+        the hand-over: max(the prediction's 1σ, 0.5 nm), or the step the
+        published curve itself made at the change if larger (NaN as above).
     """
 
     seq: int
