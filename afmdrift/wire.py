@@ -134,7 +134,9 @@ class OffsetMsg(_Chained):
 
 
 class ModelMsg(_Chained):
-    """The current model after a frame (topic ``model``).
+    """The current model after a frame, or after a change of the model by a
+    control command (topic ``model``; then ``frame`` is the last frame
+    processed and ``t_s`` the instrument time of the change).
 
     ``curve`` is ``OffsetCurve.to_dict()``; a subscriber rebuilds it with
     ``afmdrift.model.OffsetCurve.from_dict`` and evaluates d(t) at any time and
