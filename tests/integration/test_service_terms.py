@@ -29,7 +29,7 @@ from service_sim import (
 )
 
 from afmdrift.client import ControlRefusedError, Subscriber, control
-from afmdrift.config import AfmdriftConfig, parse_config
+from afmdrift.config import AfmdriftConfig, PhysicsConfig, parse_config
 from afmdrift.dashboard import RunReader
 from afmdrift.drivers.sim import parse_scenario
 from afmdrift.pipeline import MIN_HANDOVER_STEP_NM
@@ -249,3 +249,46 @@ async def test_add_term_is_stored_shown_continuous_and_kept_on_restart(
         ("add_term", ("trend", "humidity")),
         ("remove_term", ("trend",)),
     ]
+
+
+@pytest.mark.asyncio
+async def test_a_term_added_before_any_frame_outlives_a_restart(
+    tmp_path: Path, ctx: zmq.asyncio.Context
+) -> None:
+    """No instrument, no frame: the change is still stored (no instrument time,
+    nothing to hand over) and a daemon restarted on the run directory takes
+    it up; a later reload_model takes the terms of its file again."""
+    run = tmp_path / "run"
+    cfg = physics_config(run, TERMS, reload_config_dir=str(tmp_path))
+    url = f"socket://127.0.0.1:{closed_port()}"
+    async with running_service(cfg, driver(url), ctx) as svc:
+        reply = await control(
+            svc.control_endpoint, "add_term", term="humidity",
+            token_file=svc.control_token_path, ctx=ctx,
+        )  # fmt: skip
+        assert reply.status is not None
+        assert reply.status.terms == [*TERMS, "humidity"]
+    with RunReader(run) as reader:
+        (change,) = reader.model_changes()
+    assert change.seq == -1
+    assert math.isnan(change.t_s)
+    assert math.isnan(change.handover_until_s)
+    async with running_service(cfg, driver(url), ctx) as again:
+        assert await _status_terms(again, ctx) == [*TERMS, "humidity"]
+        assert again.pipeline.predictor.config.terms == [*TERMS, "humidity"]  # type: ignore[attr-defined]
+        file = tmp_path / "model.toml"
+        file.write_text('[model]\npredictor = "physics"\n', encoding="utf-8")
+        reply = await control(
+            again.control_endpoint, "reload_model", config_path=str(file),
+            token_file=again.control_token_path, ctx=ctx,
+        )  # fmt: skip
+        assert reply.status is not None
+        assert reply.status.terms == list(PhysicsConfig().terms)
+    assert stored_changes(run) == [
+        ("add_term", (*TERMS, "humidity")),
+        ("reload_model", tuple(PhysicsConfig().terms)),
+    ]
+    async with running_service(cfg, driver(url), ctx) as third:
+        # the run's last reload_model took a file's terms; the daemon's own
+        # configuration is read again, and no term change after it is replayed
+        assert await _status_terms(third, ctx) == TERMS
