@@ -31,6 +31,7 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "SCHEMA_MODELS",
     "SCHEMA_VERSION",
+    "STATE_CHANGING",
     "TOPICS",
     "ClockSync",
     "ControlReply",
@@ -43,6 +44,7 @@ __all__ = [
     "StatusMsg",
     "TrajectorySample",
     "WireError",
+    "control_request",
     "decode",
     "decode_control_reply",
     "decode_control_request",
@@ -132,7 +134,9 @@ class OffsetMsg(_Chained):
 
 
 class ModelMsg(_Chained):
-    """The current model after a frame (topic ``model``).
+    """The current model after a frame, or after a change of the model by a
+    control command (topic ``model``; then ``frame`` is the last frame
+    processed and ``t_s`` the instrument time of the change).
 
     ``curve`` is ``OffsetCurve.to_dict()``; a subscriber rebuilds it with
     ``afmdrift.model.OffsetCurve.from_dict`` and evaluates d(t) at any time and
@@ -240,7 +244,11 @@ class StatusMsg(_Published):
     the offset schedule (the stream then restarts from now instead of
     bursting). ``frames_unstored`` counts frames measured and published but
     let go unstored (held past ``service.store_hold_mb``), ``frames_failed``
-    frames whose processing failed, since the daemon started. A status
+    frames whose processing failed, since the daemon started. ``terms``
+    lists the effect terms of the physics model in use, those of the
+    configuration with the run's ``add_term`` and ``remove_term`` changes
+    applied (``null`` when the predictor is not the physics model, or in a
+    message of an older daemon). A status
     inside a control reply is a snapshot: its ``seq`` is that of the last
     published heartbeat, so replies never take numbers from the ``status``
     topic.
@@ -264,6 +272,7 @@ class StatusMsg(_Published):
     frames_unstored: int = Field(0, ge=0)
     frames_failed: int = Field(0, ge=0)
     frame_problem: str | None = None
+    terms: list[str] | None = None
 
 
 Message = Annotated[OffsetMsg | ModelMsg | FrameMsg | StatusMsg, Field(discriminator="topic")]
@@ -279,14 +288,33 @@ class ControlRequest(_Msg):
     the model and publishing valid offsets), ``resume``, ``reset_reference``
     (the next frame becomes the registration reference; the drift position
     continues), ``reload_model`` (re-read ``[model]`` from ``config_path`` or
-    the daemon's configuration file and refit on the kept history). The last
-    four change the daemon's state and need ``token`` (the content of the
+    the daemon's configuration file and refit on the kept history),
+    ``add_term`` and ``remove_term`` (add the effect term ``term`` to the
+    physics model in use, or take it out, and refit on the kept history; the
+    change belongs to the run, ``docs/service.md``). All but ``status`` and
+    ``model`` change the daemon's state and need ``token`` (the content of the
     daemon's token file) unless the daemon runs with ``control_auth = false``.
     """
 
-    cmd: Literal["status", "model", "pause", "resume", "reset_reference", "reload_model"]
+    cmd: Literal[
+        "status",
+        "model",
+        "pause",
+        "resume",
+        "reset_reference",
+        "reload_model",
+        "add_term",
+        "remove_term",
+    ]
     config_path: str | None = Field(None, max_length=4096)
+    term: str | None = Field(None, max_length=1024)
     token: str | None = Field(None, max_length=256)
+
+
+#: Control commands that change the daemon's state: they need the token.
+STATE_CHANGING: frozenset[str] = frozenset(
+    {"pause", "resume", "reset_reference", "reload_model", "add_term", "remove_term"}
+)
 
 
 class ControlReply(_Msg):
@@ -349,6 +377,14 @@ def decode(parts: list[bytes]) -> OffsetMsg | ModelMsg | FrameMsg | StatusMsg:
         return _MESSAGE_ADAPTER.validate_python(doc)
     except ValidationError as err:
         raise WireError(f"topic {topic!r}: invalid payload: {_one_line(err)}") from None
+
+
+def control_request(**fields: Any) -> ControlRequest:
+    """A :class:`ControlRequest` of ``fields``; :class:`WireError` naming the problem."""
+    try:
+        return ControlRequest.model_validate(fields)
+    except ValidationError as err:
+        raise WireError(f"control request: {_one_line(err)}") from None
 
 
 def decode_control_request(payload: bytes) -> ControlRequest:

@@ -101,6 +101,26 @@ def scenario_data(
     return data
 
 
+def humid_scenario(*, period_s: float = 600.0, beta_nm_per_pct: float = 6.0) -> dict[str, Any]:
+    """Drift that follows the logged relative humidity (a cycle of 5 %RH).
+
+    A model without the ``humidity`` term follows it late, through its
+    residual; adding the term moves the prediction by several nm at once
+    (what d(t) must not jump by)."""
+    data = scenario_data(
+        seed=5, frame_period_s=20.0, line_rate_hz=8.0, drift_nm_per_sqrt_s=0.02, thermal=False
+    )
+    data["physics"]["humidity"] = {
+        "enabled": True,
+        "mean_pct": 45.0,
+        "amplitude_pct": 5.0,
+        "period_s": period_s,
+        "fluctuation_pct": 0.2,
+        "beta_nm_per_pct": [beta_nm_per_pct, -0.7 * beta_nm_per_pct],
+    }
+    return data
+
+
 def write_scenario(path: Path, data: dict[str, Any]) -> Path:
     """Write a scenario mapping as TOML (tables of scalars and lists only)."""
 

@@ -22,7 +22,7 @@ import numpy.typing as npt
 from afmdrift.errors import InputError
 from afmdrift.model import History, HistoryFeed, Observation, scan_samples
 from afmdrift.records import ChannelSample, Event, ScanDirection
-from afmdrift.runs import DB_NAME, RunStore
+from afmdrift.runs import DB_NAME, ModelChange, RunStore
 from afmdrift.session import read_session
 
 __all__ = ["RunData", "load_run"]
@@ -74,6 +74,10 @@ class RunData:
         Scan window ``(t_start_s, t_end_s)`` each position averages over (a
         whole frame's position is the mean of p over its lines); None or NaN
         rows: point measurements at ``t_s``.
+    model_changes : list of ModelChange
+        Where the run's model changed while it ran (``add_term``,
+        ``remove_term``, ``reload_model``; ``docs/service.md``): its stored
+        predictions before and after come from different models.
     """
 
     frame: npt.NDArray[np.int64]
@@ -95,6 +99,7 @@ class RunData:
     predictor_state: dict[str, Any] | None = None
     curves: dict[int, dict[str, Any]] | None = None
     window_s: FloatArray | None = None
+    model_changes: list[ModelChange] = field(default_factory=list)
 
     @classmethod
     def from_arrays(
@@ -229,6 +234,7 @@ def load_run(run_dir: str | Path, *, session_dir: str | Path | None = None) -> R
         events = [e for _, _, e in store.events()]
         resume = store.resume_state()
         meta = store.meta()
+        changes = store.model_changes()
         curves = {}
         for r in records:
             c = store.curve(r.seq)
@@ -271,4 +277,5 @@ def load_run(run_dir: str | Path, *, session_dir: str | Path | None = None) -> R
         run_model=run_model,
         predictor_state=None if resume is None else resume.predictor_state,
         curves=curves,
+        model_changes=changes,
     )

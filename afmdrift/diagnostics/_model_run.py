@@ -123,10 +123,13 @@ def run_from_store(data: RunData, physics: PhysicsConfig) -> ModelRun | None:
     that predictor is the physics model with exactly this configuration, the
     online re-run of :func:`run_model` would repeat the same computation.
     The continuous error against truth then uses the published curves d(t).
-    Returns None when the run cannot be reused.
+    Returns None when the run cannot be reused, as for a run whose model
+    changed while it ran (its predictions come from more than one model).
     """
     state = data.predictor_state
     if data.pred_nm is None or state is None or state.get("name") != PhysicsPredictor.name:
+        return None
+    if data.model_changes:
         return None
     try:
         stored = PhysicsConfig.model_validate(state["config"])

@@ -17,7 +17,7 @@ from afmdrift.diagnostics._data import RunData, load_run
 from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
 from afmdrift.diagnostics._driftlog import load_drift_log
 from afmdrift.errors import InputError
-from afmdrift.runs import DB_NAME, replay_session
+from afmdrift.runs import DB_NAME, effective_model, replay_session
 from afmdrift.session import is_drift_log
 
 __all__ = ["config_with_effects", "diagnose_path", "is_run_dir", "prepare_run"]
@@ -101,7 +101,13 @@ def diagnose_path(
     options: DiagnoseOptions | None = None,
     prior_px: tuple[float, float] | None = None,
 ) -> tuple[Diagnosis, RunData]:
-    """:func:`prepare_run` then :func:`diagnose` with the configured physics model."""
+    """:func:`prepare_run` then :func:`diagnose` with the configured physics model.
+
+    A run whose model changed while it ran (``afmdrift control add-term``) is
+    diagnosed with the terms it ended with, the configured ones with the
+    run's changes applied (:func:`~afmdrift.runs.effective_model`), unless
+    ``effects`` names them: the diagnosis says what that model still misses.
+    """
     data = prepare_run(
         path,
         config=config,
@@ -110,4 +116,7 @@ def diagnose_path(
         session_dir=session_dir,
         prior_px=prior_px,
     )
-    return diagnose(data, config.model.physics, effects=effects, options=options), data
+    model = config.model
+    if data.model_changes:
+        model = effective_model(model, data.model_changes)
+    return diagnose(data, model.physics, effects=effects, options=options), data

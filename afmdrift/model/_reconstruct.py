@@ -368,6 +368,7 @@ def reconstruct_offset(
     config: ModelConfig,
     t_now_s: float,
     previous: OffsetCurve | None = None,
+    blend_s: float | None = None,
 ) -> OffsetCurve:
     """The curve to publish now, built as ``config`` (``[model]``) says.
 
@@ -376,7 +377,10 @@ def reconstruct_offset(
     (:meth:`Predictor.observed`), the frame period their median spacing, and
     the method and look-ahead come from ``config.reconstruction`` and
     ``config.lookahead``. Pass the previously published curve as ``previous``
-    to keep d(t) and d′(t) continuous across publications.
+    to keep d(t) and d′(t) continuous across publications; the Hermite curve
+    hands over from it to the new prediction within ``blend_s`` (default
+    ``blend_fraction`` of a frame period; a model change sets its own,
+    :meth:`afmdrift.pipeline.FramePipeline.plan_handover`).
 
     Raises
     ------
@@ -399,5 +403,5 @@ def reconstruct_offset(
         frame_period_s=period,
         lookahead=config.lookahead,
         previous=previous,
-        blend_s=config.blend_fraction * period,
+        blend_s=config.blend_fraction * period if blend_s is None else blend_s,
     )
