@@ -26,6 +26,7 @@ from afmdrift.runs._record import HeldWrites, process_and_record, record_outcome
 from afmdrift.runs._replay import MIN_REPLAY_FRAMES, ReplaySummary, replay_session
 from afmdrift.runs._schema import DB_NAME, STORE_SCHEMA_VERSION, StoreError
 from afmdrift.runs._series import measure_session, series_from_drift_log, series_from_records
+from afmdrift.runs._snapshot import snapshot_store
 from afmdrift.runs._store import RunStore
 from afmdrift.runs._track import track_session, track_stack
 
@@ -48,6 +49,7 @@ __all__ = [
     "replay_session",
     "series_from_drift_log",
     "series_from_records",
+    "snapshot_store",
     "track_session",
     "track_stack",
     "trajectory_rows",

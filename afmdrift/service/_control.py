@@ -6,7 +6,10 @@ Trust model (``docs/service.md``, *Control socket*):
   change the daemon's state (``pause``, ``resume``, ``reset_reference``,
   ``reload_model``) need a token: a random string the daemon writes at start
   to ``service.control_token_file`` (default ``RUN_DIR/control.token``),
-  readable only by the daemon's user. ``status`` and ``model`` only read.
+  readable only by the daemon's user. ``status`` and ``model`` only read;
+  ``diagnose`` starts a live diagnosis (a child process at the lowest CPU
+  priority, at most one at a time), which changes nothing the daemon
+  measures or publishes, so it needs no token either.
   ``control_auth = false`` turns the check off; endpoints off loopback
   require CURVE as well.
 * ``reload_model`` reads only regular files in the directory of the daemon's
@@ -26,7 +29,7 @@ import os
 import secrets
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Protocol, TypeVar
+from typing import Literal, Protocol, TypeVar
 
 from afmdrift.config import AfmdriftConfig, load_config
 from afmdrift.errors import AfmdriftError, ConfigError
@@ -94,6 +97,8 @@ class Controller:
     publishing : Publishing
     in_worker : callable
         Runs a function in the daemon's worker thread.
+    diagnose : callable, optional
+        Starts a live diagnosis (``diagnose``); returns whether it started.
     """
 
     def __init__(
@@ -104,12 +109,14 @@ class Controller:
         pipeline: FramePipeline,
         publishing: Publishing,
         in_worker: InWorker,
+        diagnose: Callable[[Literal["request"]], bool] | None = None,
     ) -> None:
         self.config = config
         self.config_path = config_path
         self.pipeline = pipeline
         self.publishing = publishing
         self._in_worker = in_worker
+        self._diagnose = diagnose
         svc = config.service
         self.token_path = Path(svc.control_token_file or Path(svc.run_dir) / "control.token")
         self._token: str | None = None
@@ -181,6 +188,11 @@ class Controller:
             self.pipeline.request_reset()
         elif req.cmd == "reload_model":
             await self._reload_model(req.config_path)
+        elif req.cmd == "diagnose":
+            if self._diagnose is None:
+                raise AfmdriftError("diagnose: this daemon has no live diagnosis")
+            started = self._diagnose("request")
+            return ControlReply(ok=True, status=self.publishing.status_snapshot(), started=started)
         elif req.cmd == "model":
             return ControlReply(
                 ok=True,
