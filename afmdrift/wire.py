@@ -31,6 +31,7 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "SCHEMA_MODELS",
     "SCHEMA_VERSION",
+    "STATE_CHANGING",
     "TOPICS",
     "ClockSync",
     "ControlReply",
@@ -45,6 +46,7 @@ __all__ = [
     "StatusMsg",
     "TrajectorySample",
     "WireError",
+    "control_request",
     "decode",
     "decode_control_reply",
     "decode_control_request",
@@ -242,7 +244,11 @@ class StatusMsg(_Published):
     the offset schedule (the stream then restarts from now instead of
     bursting). ``frames_unstored`` counts frames measured and published but
     let go unstored (held past ``service.store_hold_mb``), ``frames_failed``
-    frames whose processing failed, since the daemon started. A status
+    frames whose processing failed, since the daemon started. ``terms``
+    lists the effect terms of the physics model in use, those of the
+    configuration with the run's ``add_term`` and ``remove_term`` changes
+    applied (``null`` when the predictor is not the physics model, or in a
+    message of an older daemon). A status
     inside a control reply is a snapshot: its ``seq`` is that of the last
     published heartbeat, so replies never take numbers from the ``status``
     topic.
@@ -266,6 +272,7 @@ class StatusMsg(_Published):
     frames_unstored: int = Field(0, ge=0)
     frames_failed: int = Field(0, ge=0)
     frame_problem: str | None = None
+    terms: list[str] | None = None
 
 
 class DiagnosisMsg(_Published):
@@ -305,20 +312,39 @@ class ControlRequest(_Msg):
     the model and publishing valid offsets), ``resume``, ``reset_reference``
     (the next frame becomes the registration reference; the drift position
     continues), ``reload_model`` (re-read ``[model]`` from ``config_path`` or
-    the daemon's configuration file and refit on the kept history). These
-    four change the daemon's state and need ``token`` (the content of the
-    daemon's token file) unless the daemon runs with ``control_auth = false``.
-    ``diagnose`` starts a live diagnosis of the run now (the result comes on
-    the ``diagnosis`` topic; the reply's ``started`` is false when one is
-    already running); it needs no token: it changes nothing the daemon
-    measures or publishes, and at most one runs at a time.
+    the daemon's configuration file and refit on the kept history),
+    ``add_term`` and ``remove_term`` (add the effect term ``term`` to the
+    physics model in use, or take it out, and refit on the kept history; the
+    change belongs to the run, ``docs/service.md``). All but ``status``,
+    ``model`` and ``diagnose`` change the daemon's state and need ``token``
+    (the content of the daemon's token file) unless the daemon runs with
+    ``control_auth = false``. ``diagnose`` starts a live diagnosis of the
+    run now (the result comes on the ``diagnosis`` topic; the reply's
+    ``started`` is false when one is already running); it needs no token: it
+    changes nothing the daemon measures or publishes, and at most one runs at
+    a time.
     """
 
     cmd: Literal[
-        "status", "model", "pause", "resume", "reset_reference", "reload_model", "diagnose"
+        "status",
+        "model",
+        "pause",
+        "resume",
+        "reset_reference",
+        "reload_model",
+        "add_term",
+        "remove_term",
+        "diagnose",
     ]
     config_path: str | None = Field(None, max_length=4096)
+    term: str | None = Field(None, max_length=1024)
     token: str | None = Field(None, max_length=256)
+
+
+#: Control commands that change the daemon's state: they need the token.
+STATE_CHANGING: frozenset[str] = frozenset(
+    {"pause", "resume", "reset_reference", "reload_model", "add_term", "remove_term"}
+)
 
 
 class ControlReply(_Msg):
@@ -386,6 +412,14 @@ def decode(parts: list[bytes]) -> Published:
         return _MESSAGE_ADAPTER.validate_python(doc)
     except ValidationError as err:
         raise WireError(f"topic {topic!r}: invalid payload: {_one_line(err)}") from None
+
+
+def control_request(**fields: Any) -> ControlRequest:
+    """A :class:`ControlRequest` of ``fields``; :class:`WireError` naming the problem."""
+    try:
+        return ControlRequest.model_validate(fields)
+    except ValidationError as err:
+        raise WireError(f"control request: {_one_line(err)}") from None
 
 
 def decode_control_request(payload: bytes) -> ControlRequest:

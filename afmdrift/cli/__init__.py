@@ -45,6 +45,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "afmdrift.cli._replay",
     "afmdrift.cli._correct",
     "afmdrift.cli._watch",
+    "afmdrift.cli._control",
     "afmdrift.cli._diagnose",
     "afmdrift.cli._dashboard",
     "afmdrift.cli._demo",

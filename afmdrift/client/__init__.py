@@ -11,6 +11,7 @@ Example
 
 from afmdrift.client._subscriber import (
     ClientError,
+    ControlRefusedError,
     CurveClientKeys,
     NoModelError,
     Subscriber,
@@ -18,4 +19,12 @@ from afmdrift.client._subscriber import (
     subscribe,
 )
 
-__all__ = ["ClientError", "CurveClientKeys", "NoModelError", "Subscriber", "control", "subscribe"]
+__all__ = [
+    "ClientError",
+    "ControlRefusedError",
+    "CurveClientKeys",
+    "NoModelError",
+    "Subscriber",
+    "control",
+    "subscribe",
+]

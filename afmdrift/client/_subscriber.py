@@ -25,18 +25,26 @@ from afmdrift.model import OffsetCurve
 from afmdrift.wire import (
     TOPICS,
     ControlReply,
-    ControlRequest,
     DiagnosisMsg,
     FrameMsg,
     ModelMsg,
     OffsetMsg,
     Published,
     StatusMsg,
+    control_request,
     decode,
     decode_control_reply,
 )
 
-__all__ = ["ClientError", "CurveClientKeys", "NoModelError", "Subscriber", "control", "subscribe"]
+__all__ = [
+    "ClientError",
+    "ControlRefusedError",
+    "CurveClientKeys",
+    "NoModelError",
+    "Subscriber",
+    "control",
+    "subscribe",
+]
 
 Message = Published
 
@@ -216,6 +224,7 @@ async def control(
     cmd: str,
     *,
     config_path: str | None = None,
+    term: str | None = None,
     token: str | None = None,
     token_file: str | Path | None = None,
     timeout_s: float = 5.0,
@@ -226,22 +235,25 @@ async def control(
 
     ``cmd`` is ``status``, ``diagnose`` (start a live diagnosis; the reply says
     whether it ``started``), ``model`` (the reply carries the current model
-    message), ``pause``, ``resume``, ``reset_reference`` or ``reload_model``
-    (with an optional ``config_path``). The last four need the daemon's
+    message), ``pause``, ``resume``, ``reset_reference``, ``reload_model``
+    (with an optional ``config_path``), ``add_term`` or ``remove_term``
+    (with ``term``). All but ``status``, ``diagnose`` and ``model`` need the daemon's
     token: pass it, or the file the daemon wrote it to (``token_file``,
     default for a daemon: ``RUN_DIR/control.token``).
 
     Raises
     ------
+    ControlRefusedError
+        The service answered ``ok: false`` (its reason in the message and
+        in :attr:`ControlRefusedError.reply`).
     ClientError
-        The token file cannot be read, no reply within ``timeout_s``, or the
-        service answered ``ok: false``.
+        The token file cannot be read, or no reply came within ``timeout_s``.
+    WireError
+        The request is not a valid one (an unknown command, a field too long).
     """
     if token is None and token_file is not None:
         token = await asyncio.to_thread(_read_token, cmd, Path(token_file))
-    request = ControlRequest.model_validate(
-        {"cmd": cmd, "config_path": config_path, "token": token}
-    )
+    request = control_request(cmd=cmd, config_path=config_path, term=term, token=token)
     context = ctx or zmq.asyncio.Context.instance()
     sock = context.socket(zmq.REQ)
     sock.setsockopt(zmq.LINGER, 0)
@@ -260,8 +272,17 @@ async def control(
         sock.close(linger=0)
     reply = decode_control_reply(payload)
     if not reply.ok:
-        raise ClientError(f"control {cmd!r} refused: {reply.error}")
+        raise ControlRefusedError(f"control {cmd!r} refused: {reply.error}", reply)
     return reply
+
+
+class ControlRefusedError(ClientError):
+    """The service answered a control command with ``ok: false``."""
+
+    def __init__(self, message: str, reply: ControlReply) -> None:
+        super().__init__(message)
+        #: The service's reply (``error`` says why).
+        self.reply = reply
 
 
 def _read_token(cmd: str, path: Path) -> str:

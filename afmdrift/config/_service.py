@@ -9,6 +9,7 @@ replay behaves like the real instrument.
 from __future__ import annotations
 
 import ipaddress
+from pathlib import Path
 from typing import Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -85,7 +86,7 @@ class ServiceConfig(BaseModel):
     control_auth: bool = Field(
         True,
         description="State-changing control commands (pause, resume, reset_reference, "
-        "reload_model) need the token in control_token_file.",
+        "reload_model, add_term, remove_term) need the token in control_token_file.",
     )
     control_token_file: str | None = Field(
         None,
@@ -202,6 +203,11 @@ class ServiceConfig(BaseModel):
     @classmethod
     def _check_endpoint(cls, endpoint: str) -> str:
         return check_endpoint(endpoint)
+
+    @property
+    def token_path(self) -> Path:
+        """The control token file: ``control_token_file``, else ``RUN_DIR/control.token``."""
+        return Path(self.control_token_file or Path(self.run_dir) / "control.token")
 
     @model_validator(mode="after")
     def _require_curve_off_loopback(self) -> Self:

@@ -22,7 +22,13 @@ from typing import Any
 
 from afmdrift.errors import AfmdriftError
 from afmdrift.pipeline import FRAME_COLUMNS, FrameRecord, record_from_row
-from afmdrift.runs import DB_NAME, STORE_SCHEMA_VERSION
+from afmdrift.runs import (
+    DB_NAME,
+    MODEL_CHANGE_COLUMNS,
+    STORE_SCHEMA_VERSION,
+    ModelChange,
+    model_change_from_row,
+)
 
 __all__ = ["DB_FILE", "DashboardError", "RunReader", "StoreNotReadyError", "StoreRows"]
 
@@ -188,6 +194,30 @@ class RunReader:
         except sqlite3.DatabaseError as err:
             raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
         return None if row is None else record_from_row(row)
+
+    def model_changes(self) -> list[ModelChange]:
+        """Where the run's model changed (``add_term``, ``remove_term``,
+        ``reload_model``), oldest first; empty for a store without the table
+        (written before it existed).
+
+        Raises
+        ------
+        DashboardError
+            The database cannot be read.
+        """
+        try:
+            with self._lock:
+                have = self._db.execute(
+                    "SELECT 1 FROM sqlite_master WHERE type = 'table' AND name = 'model_changes'"
+                ).fetchone()
+                if have is None:
+                    return []
+                rows = self._db.execute(
+                    f"SELECT {MODEL_CHANGE_COLUMNS} FROM model_changes ORDER BY id"
+                ).fetchall()
+            return [model_change_from_row(r) for r in rows]
+        except (sqlite3.DatabaseError, ValueError) as err:
+            raise DashboardError(f"{self.path}: cannot read the run store ({err})") from None
 
     def stored_curves(self) -> list[tuple[float, dict[str, Any]]]:
         """``(t_end_s, curve)`` of every offset curve kept in the store, oldest first.

@@ -368,6 +368,7 @@ def reconstruct_offset(
     config: ModelConfig,
     t_now_s: float,
     previous: OffsetCurve | None = None,
+    min_blend_s: float = 0.0,
 ) -> OffsetCurve:
     """The curve to publish now, built as ``config`` (``[model]``) says.
 
@@ -376,7 +377,10 @@ def reconstruct_offset(
     (:meth:`Predictor.observed`), the frame period their median spacing, and
     the method and look-ahead come from ``config.reconstruction`` and
     ``config.lookahead``. Pass the previously published curve as ``previous``
-    to keep d(t) and d′(t) continuous across publications.
+    to keep d(t) and d′(t) continuous across publications; the Hermite curve
+    hands over from it to the new prediction within ``blend_fraction`` of a
+    frame period, or ``min_blend_s`` if that is longer (a model change,
+    :meth:`afmdrift.pipeline.FramePipeline.use_model`).
 
     Raises
     ------
@@ -399,5 +403,5 @@ def reconstruct_offset(
         frame_period_s=period,
         lookahead=config.lookahead,
         previous=previous,
-        blend_s=config.blend_fraction * period,
+        blend_s=max(config.blend_fraction * period, min_blend_s),
     )

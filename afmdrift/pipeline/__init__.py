@@ -9,7 +9,13 @@ iterates :meth:`FramePipeline.run`, which reads the recording one frame ahead
 """
 
 from afmdrift.pipeline._dewarp import dewarp_frame, image_positions
-from afmdrift.pipeline._frame import FrameOutcome, FramePipeline
+from afmdrift.pipeline._frame import (
+    MIN_HANDOVER_STEP_NM,
+    FrameOutcome,
+    FramePipeline,
+    Handover,
+    largest_step_nm,
+)
 from afmdrift.pipeline._positions import DriftPositions, FramePosition, summarise_field
 from afmdrift.pipeline._records import (
     FRAME_COLUMNS,
@@ -25,14 +31,17 @@ from afmdrift.pipeline._records import (
 __all__ = [
     "FRAME_COLUMNS",
     "MEASUREMENT_COLUMNS",
+    "MIN_HANDOVER_STEP_NM",
     "DriftPositions",
     "FrameOutcome",
     "FramePipeline",
     "FramePosition",
     "FrameRecord",
+    "Handover",
     "ResumeState",
     "dewarp_frame",
     "image_positions",
+    "largest_step_nm",
     "measurement_row",
     "observation_from_record",
     "record_from_row",

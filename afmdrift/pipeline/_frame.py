@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 import numpy.typing as npt
+from pydantic import BaseModel
 
 from afmdrift.config import AfmdriftConfig
 from afmdrift.errors import InputError
@@ -152,6 +153,11 @@ class FramePipeline:
         self.observations: deque[Observation] = deque(maxlen=config.service.training_window)
         self.n_fed = 0
         self.curve: OffsetCurve | None = None
+        #: The last frame processed (-1: none yet).
+        self.last_seq = -1
+        # After a model change, d(t) hands over to the new model until this time.
+        self._handover_until_s = -math.inf
+        self._sample_interval_s = 1.0 / config.service.offset_rate_hz
 
     @property
     def history(self) -> History:
@@ -184,13 +190,37 @@ class FramePipeline:
         self.positions.request_reset()
 
     def reload_model(self, predictor: Predictor) -> int:
-        """Replace the predictor and refit it on the kept observations; return their count."""
+        """Replace the predictor and refit it on the kept observations; return
+        their count (:meth:`refit`, then :meth:`use_model`)."""
+        n = self.refit(predictor)
+        self.use_model(predictor)
+        return n
+
+    def refit(self, predictor: Predictor) -> int:
+        """Fit a fresh ``predictor`` on the kept observations and the history;
+        return their count. The pipeline itself is not changed."""
         for obs in self.observations:
             predictor.update(obs, self.history)
+        return len(self.observations)
+
+    def use_model(self, predictor: Predictor, handover: Handover | None = None) -> None:
+        """Predict with ``predictor`` (fitted by :meth:`refit`) from now on.
+
+        With ``handover`` (:meth:`plan_handover` for this predictor; the
+        daemon's model changes) d(t) is its curve, and frames measured before
+        the hand-over ends keep handing over to its end. Without it, the curve
+        is rebuilt at the last observation's time.
+        """
         self.predictor = predictor
         self.n_fed = len(self.observations)
-        self.curve = self._build_curve(self.observations[-1].t_s) if self.observations else None
-        return self.n_fed
+        if not self.observations:
+            self.curve = None
+        elif handover is None or handover.curve is None:
+            self.curve = self._build_curve(self.observations[-1].t_s)
+        else:
+            self.curve = handover.curve
+            self._handover_until_s = handover.until_s
+            self._sample_interval_s = handover.sample_interval_s
 
     def resume(
         self,
@@ -251,6 +281,13 @@ class FramePipeline:
             )
             return False
         try:
+            if not self._same_config(state.predictor_state):
+                log.warning(
+                    "the run store's model state is for another configuration of %r "
+                    "(its terms or settings differ)",
+                    self.predictor.name,
+                )
+                return False
             self.predictor.load_state_dict(state.predictor_state)
         except (KeyError, ValueError, TypeError, IndexError) as err:
             log.warning(
@@ -259,6 +296,14 @@ class FramePipeline:
             self.predictor = self._make_predictor(self.config)  # not half-loaded
             return False
         return True
+
+    def _same_config(self, stored: dict[str, Any]) -> bool:
+        """The stored state's configuration is this predictor's (one without a
+        configuration of its own in its state matches any)."""
+        own = getattr(self.predictor, "config", None)
+        if not isinstance(own, BaseModel) or "config" not in stored:
+            return True
+        return bool(type(own).model_validate(stored["config"]) == own)
 
     @staticmethod
     def _stored_curve(state: ResumeState) -> OffsetCurve | None:
@@ -344,6 +389,7 @@ class FramePipeline:
         finally:
             if ahead is not None:
                 self.positions.finish_ahead()
+        self.last_seq = seq
         return FrameOutcome(
             record=record,
             curve=self.curve,
@@ -426,7 +472,16 @@ class FramePipeline:
         return mean, float(np.hypot(sig[0], sig[1]) / math.sqrt(2.0))
 
     def _build_curve(self, t_now_s: float) -> OffsetCurve | None:
-        """d(t) from now on, continuous in value and slope with the previous curve."""
+        """d(t) from now on, continuous in value and slope with the previous curve
+        (still handing over after a model change while that lasts)."""
+        if self.curve is not None and t_now_s < self._handover_until_s:
+            plan = self.plan_handover(
+                self.predictor, t_now_s=t_now_s, sample_interval_s=self._sample_interval_s,
+                min_blend_s=self._handover_until_s - t_now_s,
+            )  # fmt: skip
+            if plan.curve is not None:
+                self._handover_until_s = plan.until_s
+                return plan.curve
         try:
             return reconstruct_offset(
                 self.predictor,
@@ -440,6 +495,112 @@ class FramePipeline:
                 "offset curve at t=%.3f s failed: %s; keeping the previous one", t_now_s, err
             )
             return self.curve
+
+    def plan_handover(
+        self,
+        predictor: Predictor,
+        *,
+        t_now_s: float,
+        sample_interval_s: float,
+        min_blend_s: float = 0.0,
+    ) -> Handover:
+        """d(t) from ``t_now_s`` on, handing over from the published curve to
+        ``predictor``'s prediction with no step between two offset samples
+        ``sample_interval_s`` apart (instrument time) larger than the bound
+        (``docs/service.md``, *Changing the model*). Nothing is changed.
+
+        The bound is max(the prediction's 1σ at ``t_now_s``,
+        :data:`MIN_HANDOVER_STEP_NM`), or the step the published curve itself
+        makes over one interval at ``t_now_s`` if that is larger (its slope
+        goes on at first: the hand-over adds no step of its own beyond the
+        bound). The hand-over time starts at
+        1.5·|Δ|/(0.8·bound) sample intervals (Δ the new prediction minus the
+        published value now; 1.5 the steepest slope of a cubic Hermite blend
+        over its mean), at least ``min_blend_s``, and is doubled until the
+        curve keeps the bound on a grid of a quarter interval. The curve
+        starts at the published one's value and slope at ``t_now_s``. Without
+        a published curve, or when the prediction fails, the curve is the
+        one the pipeline would build (``curve`` is that, or ``None``).
+        """
+        previous = self.curve
+        bound = MIN_HANDOVER_STEP_NM
+        none = Handover(None, t_now_s, sample_interval_s, bound, math.nan)
+        if previous is None:
+            return none
+        try:
+            now = predictor.predict_drift([t_now_s], self.history)
+        except (ValueError, ArithmeticError) as err:
+            log.warning("prediction at t=%.3f s failed: %s", t_now_s, err)
+            return none
+        sigma = float(np.hypot(*now.sigma_nm[0]) / math.sqrt(2.0))
+        gap = float(np.hypot(*(now.mean_nm[0] - previous.at([t_now_s])[0])))
+        bound = max(sigma if math.isfinite(sigma) else 0.0, MIN_HANDOVER_STEP_NM)
+        tick_s = sample_interval_s
+        own_step = largest_step_nm(previous, t_now_s, t_now_s, tick_s)
+        allowed = max(bound, 1.05 * own_step)
+        blend_s = max(min_blend_s, 1.5 * gap * tick_s / (0.8 * bound) if math.isfinite(gap) else 0)
+        step = math.inf
+        for _ in range(_HANDOVER_TRIES):
+            try:
+                curve = reconstruct_offset(
+                    predictor,
+                    self.history,
+                    config=self.config.model,
+                    t_now_s=t_now_s,
+                    previous=previous,
+                    min_blend_s=blend_s,
+                )
+            except (ValueError, ArithmeticError) as err:
+                log.warning("offset curve at t=%.3f s failed: %s", t_now_s, err)
+                return none
+            step = largest_step_nm(curve, t_now_s, t_now_s + blend_s + 2 * tick_s, tick_s)
+            if step <= allowed:
+                break
+            blend_s = 2.0 * max(blend_s, tick_s)
+        else:
+            log.warning(
+                "d(t) hands over to the changed model with steps of %.3g nm (bound %.3g nm)",
+                step,
+                allowed,
+            )
+        return Handover(curve, t_now_s + blend_s, sample_interval_s, allowed, step)
+
+
+@dataclass(frozen=True, slots=True)
+class Handover:
+    """How d(t) goes over to a changed model (:meth:`FramePipeline.plan_handover`).
+
+    ``curve`` is d(t) from the change on (``None``: no curve was published
+    yet, or the prediction failed: the pipeline builds its own); it reaches
+    the new model's prediction at ``until_s``. ``bound_nm`` is the largest
+    step allowed between offset samples ``sample_interval_s`` apart and
+    ``step_nm`` the largest the curve makes (NaN without a curve).
+    """
+
+    curve: OffsetCurve | None
+    until_s: float
+    sample_interval_s: float
+    bound_nm: float
+    step_nm: float
+
+
+#: The smallest bound of a step of d(t) between two offset samples while d(t)
+#: hands over to a changed model, nm (the prediction's 1σ when larger).
+MIN_HANDOVER_STEP_NM = 0.5
+#: Hand-over times tried (each twice the last) before the bound is given up.
+_HANDOVER_TRIES = 12
+#: Most times :func:`largest_step_nm` evaluates (a longer span gets a coarser grid).
+_STEP_GRID_MAX = 200_000
+
+
+def largest_step_nm(curve: OffsetCurve, t0_s: float, t1_s: float, tick_s: float) -> float:
+    """The largest |d(t + tick_s) − d(t)| (Euclidean, nm) for t in [t0_s, t1_s],
+    on a grid of a quarter of ``tick_s``: the largest step a stream of
+    samples ``tick_s`` apart can see there."""
+    n = max(math.ceil((t1_s - t0_s) / (0.25 * tick_s)), 1) + 1
+    t = np.linspace(t0_s, t1_s, min(n, _STEP_GRID_MAX))
+    steps = curve.at(t + tick_s) - curve.at(t)
+    return float(np.max(np.hypot(steps[:, 0], steps[:, 1])))
 
 
 def _observed(frame: Frame, pos: FramePosition) -> tuple[float, FloatArray, float]:

@@ -27,6 +27,8 @@ import numpy.typing as npt
 from afmdrift.model import FrameTrajectory
 from afmdrift.pipeline import FrameOutcome, FramePipeline, FrameRecord
 from afmdrift.records import ChannelSample, Event, Frame, LoggedEvent
+from afmdrift.runs._changes import ModelChange
+from afmdrift.runs._schema import StoreError
 from afmdrift.runs._store import UNSTORED_KEY, RunStore, SeqRanges
 
 __all__ = ["HeldWrites", "process_and_record", "record_outcome"]
@@ -215,6 +217,23 @@ class HeldWrites:
         self._meta.update(items)
         if not self._held:
             self.flush()
+
+    def add_model_change(self, change: ModelChange) -> None:
+        """Commit a change of the run's model now, or refuse it.
+
+        Raises
+        ------
+        StoreError
+            The store cannot write (frames are held, or this write fails);
+            nothing is committed. A change the store does not keep would not
+            outlive a restart, so the caller does not make it.
+        """
+        if self.problem is not None or self._held:
+            raise StoreError(f"the run store cannot write ({self.problem})")
+        try:
+            self.store.add_model_change(change)
+        except (sqlite3.Error, OSError) as err:
+            raise StoreError(f"{self.store.path}: the run store cannot write ({err})") from None
 
     def record(self, outcome: FrameOutcome) -> None:
         """Write this frame (after any held ones); hold it if the store cannot."""

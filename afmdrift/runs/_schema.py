@@ -11,24 +11,30 @@ date when it is opened; any other version is refused.
 from __future__ import annotations
 
 import contextlib
+import json
 import math
 import sqlite3
 import time
+from collections.abc import Sequence
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
 from afmdrift.errors import AfmdriftError
 from afmdrift.pipeline import FRAME_COLUMNS, FrameRecord
+from afmdrift.runs._changes import ModelChange
 
 __all__ = [
     "DB_NAME",
     "FRAME_FIELDS",
+    "MODEL_CHANGE_COLUMNS",
     "STORE_SCHEMA_VERSION",
     "StoreError",
     "Transaction",
     "meta_get",
     "meta_set",
+    "model_change_from_row",
+    "model_change_row",
     "nan_to_none",
     "open_database",
 ]
@@ -67,7 +73,73 @@ def _schema() -> list[str]:
         "CREATE INDEX IF NOT EXISTS channels_t ON channels (t_s)",
         "CREATE TABLE IF NOT EXISTS trajectory (seq INTEGER NOT NULL REFERENCES frames(seq), "
         "t_s REAL NOT NULL, x_nm REAL, y_nm REAL, sigma_x_nm REAL, sigma_y_nm REAL)",
+        # Added within version 2: a store without it has had no model change,
+        # and a reader that does not know it is not disturbed by it.
+        f"CREATE TABLE IF NOT EXISTS model_changes (id INTEGER PRIMARY KEY, "
+        f"{', '.join(f'{n} {t}' for n, t in _CHANGE_COLUMNS)})",
     ]
+
+
+#: Columns of the ``model_changes`` table, in :class:`ModelChange` order
+#: (the terms as JSON lists, NULL for a predictor without terms).
+_CHANGE_COLUMNS = (
+    ("seq", "INTEGER NOT NULL"),
+    ("t_s", "REAL"),
+    ("wall_s", "REAL NOT NULL"),
+    ("command", "TEXT NOT NULL"),
+    ("term", "TEXT"),
+    ("predictor", "TEXT NOT NULL"),
+    ("terms_before", "TEXT"),
+    ("terms_after", "TEXT"),
+    ("handover_until_s", "REAL"),
+    ("step_bound_nm", "REAL"),
+)
+#: ``SELECT`` list of the ``model_changes`` table for :func:`model_change_from_row`.
+MODEL_CHANGE_COLUMNS = ", ".join(n for n, _ in _CHANGE_COLUMNS)
+
+
+def model_change_row(change: ModelChange) -> tuple[Any, ...]:
+    """The ``model_changes`` row of ``change`` (columns :data:`MODEL_CHANGE_COLUMNS`)."""
+
+    def terms(v: tuple[str, ...] | None) -> str | None:
+        return None if v is None else json.dumps(list(v))
+
+    return (
+        change.seq,
+        nan_to_none(change.t_s),
+        change.wall_s,
+        change.command,
+        change.term,
+        change.predictor,
+        terms(change.terms_before),
+        terms(change.terms_after),
+        nan_to_none(change.handover_until_s),
+        nan_to_none(change.step_bound_nm),
+    )
+
+
+def model_change_from_row(row: Sequence[Any]) -> ModelChange:
+    """A :class:`ModelChange` from a row of :data:`MODEL_CHANGE_COLUMNS`."""
+    seq, t_s, wall_s, command, term, predictor, before, after, until_s, bound_nm = row
+
+    def real(v: Any) -> float:
+        return math.nan if v is None else float(v)
+
+    def terms(text: str | None) -> tuple[str, ...] | None:
+        return None if text is None else tuple(str(t) for t in json.loads(text))
+
+    return ModelChange(
+        seq=int(seq),
+        t_s=real(t_s),
+        wall_s=float(wall_s),
+        command=str(command),
+        term=None if term is None else str(term),
+        predictor=str(predictor),
+        terms_before=terms(before),
+        terms_after=terms(after),
+        handover_until_s=real(until_s),
+        step_bound_nm=real(bound_nm),
+    )
 
 
 def open_database(path: Path, *, check_same_thread: bool = True) -> sqlite3.Connection:

@@ -29,15 +29,19 @@ import numpy.typing as npt
 from afmdrift.model import FrameTrajectory
 from afmdrift.pipeline import FrameRecord, ResumeState, record_from_row
 from afmdrift.records import ChannelSample, Event, LoggedEvent, event_kind
+from afmdrift.runs._changes import ModelChange
 from afmdrift.runs._csv import trajectory_rows, write_measurements_csv, write_trajectory_csv
 from afmdrift.runs._images import load_reference_image, save_image
 from afmdrift.runs._schema import (
     DB_NAME,
     FRAME_FIELDS,
+    MODEL_CHANGE_COLUMNS,
     StoreError,
     Transaction,
     meta_get,
     meta_set,
+    model_change_from_row,
+    model_change_row,
     nan_to_none,
     open_database,
 )
@@ -139,6 +143,21 @@ class RunStore:
     def add_event(self, *, epoch: int, log_index: int, event: Event) -> None:
         """Queue an event-log entry; committed with the next frame (or on close)."""
         self._pending_events.append((epoch, log_index, event))
+
+    def add_model_change(self, change: ModelChange) -> None:
+        """Commit one change of the run's model now (its own transaction).
+
+        Raises
+        ------
+        sqlite3.Error
+            The store cannot write; nothing is committed.
+        """
+        placeholders = ", ".join("?" for _ in MODEL_CHANGE_COLUMNS.split(", "))
+        with self._transaction():
+            self._db.execute(
+                f"INSERT INTO model_changes ({MODEL_CHANGE_COLUMNS}) VALUES ({placeholders})",
+                model_change_row(change),
+            )
 
     def record_frame(
         self,
@@ -306,6 +325,11 @@ class RunStore:
             )
             for e, i, t, k, x, y in cur
         ]
+
+    def model_changes(self) -> list[ModelChange]:
+        """The run's model changes, oldest first (``docs/service.md``)."""
+        cur = self._db.execute(f"SELECT {MODEL_CHANGE_COLUMNS} FROM model_changes ORDER BY id")
+        return [model_change_from_row(row) for row in cur]
 
     def curve(self, seq: int) -> dict[str, Any] | None:
         row = self._db.execute(

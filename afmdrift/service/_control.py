@@ -4,7 +4,8 @@ Trust model (``docs/service.md``, *Control socket*):
 
 * Any local process can connect to a loopback endpoint, so commands that
   change the daemon's state (``pause``, ``resume``, ``reset_reference``,
-  ``reload_model``) need a token: a random string the daemon writes at start
+  ``reload_model``, ``add_term``, ``remove_term``; :data:`STATE_CHANGING`)
+  need a token: a random string the daemon writes at start
   to ``service.control_token_file`` (default ``RUN_DIR/control.token``),
   readable only by the daemon's user. ``status`` and ``model`` only read;
   ``diagnose`` starts a live diagnosis (a child process at the lowest CPU
@@ -19,6 +20,14 @@ Trust model (``docs/service.md``, *Control socket*):
   they name are imported.
 * Every message gets exactly one reply; no message, however malformed, ends
   the control task.
+
+Model changes (``reload_model``, ``add_term``, ``remove_term``) run in the
+worker thread, so they fall between two frames: the new predictor is fitted
+on the kept history, the change is committed to the run store (a store that
+cannot write refuses the change: it would not outlive a restart), and only
+then does the pipeline predict with it, d(t) handing over without a step
+(:meth:`~afmdrift.pipeline.FramePipeline.use_model`). A refused change
+leaves everything as it was.
 """
 
 from __future__ import annotations
@@ -27,17 +36,19 @@ import hmac
 import logging
 import os
 import secrets
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Literal, Protocol, TypeVar
 
-from afmdrift.config import AfmdriftConfig, load_config
+from afmdrift.config import AfmdriftConfig, ModelConfig, load_config
 from afmdrift.errors import AfmdriftError, ConfigError
-from afmdrift.model import make_predictor
+from afmdrift.model import Predictor, make_predictor
 from afmdrift.pipeline import FramePipeline
+from afmdrift.runs import TERM_COMMANDS, ModelChange, change_terms, model_terms
 from afmdrift.service._publish import Publishing
 from afmdrift.service._zmq import ControlMessage, ControlSocket
-from afmdrift.wire import ControlReply, ControlRequest
+from afmdrift.wire import STATE_CHANGING, ControlReply, ControlRequest
 
 __all__ = ["STATE_CHANGING", "Controller", "write_token"]
 
@@ -50,10 +61,6 @@ class InWorker(Protocol):
     """Runs a function in the daemon's worker thread."""
 
     def __call__(self, fn: Callable[[], _T], /) -> Awaitable[_T]: ...
-
-
-#: Commands that change the daemon's state (they need the token).
-STATE_CHANGING = frozenset({"pause", "resume", "reset_reference", "reload_model"})
 
 
 def write_token(path: Path) -> str:
@@ -97,6 +104,10 @@ class Controller:
     publishing : Publishing
     in_worker : callable
         Runs a function in the daemon's worker thread.
+    record_change : callable
+        Commits a :class:`~afmdrift.runs.ModelChange` to the run store (in
+        the worker thread); raises :class:`~afmdrift.errors.AfmdriftError`
+        when the store cannot write.
     diagnose : callable, optional
         Starts a live diagnosis (``diagnose``); returns whether it started.
     """
@@ -109,6 +120,7 @@ class Controller:
         pipeline: FramePipeline,
         publishing: Publishing,
         in_worker: InWorker,
+        record_change: Callable[[ModelChange], None],
         diagnose: Callable[[Literal["request"]], bool] | None = None,
     ) -> None:
         self.config = config
@@ -117,8 +129,10 @@ class Controller:
         self.publishing = publishing
         self._in_worker = in_worker
         self._diagnose = diagnose
+        self._record_change = record_change
+        publishing.terms = model_terms(config.model)
         svc = config.service
-        self.token_path = Path(svc.control_token_file or Path(svc.run_dir) / "control.token")
+        self.token_path = svc.token_path
         self._token: str | None = None
         dirs = [config_path.resolve().parent] if config_path is not None else []
         if svc.reload_config_dir is not None:
@@ -193,6 +207,8 @@ class Controller:
                 raise AfmdriftError("diagnose: this daemon has no live diagnosis")
             started = self._diagnose("request")
             return ControlReply(ok=True, status=self.publishing.status_snapshot(), started=started)
+        elif req.cmd in TERM_COMMANDS:
+            await self._change_terms(req.cmd, req.term)
         elif req.cmd == "model":
             return ControlReply(
                 ok=True,
@@ -238,16 +254,79 @@ class Controller:
     async def _reload_model(self, config_path: str | None) -> None:
         path = self._allowed_path(config_path)
 
-        def reload() -> tuple[AfmdriftConfig, int]:
+        def reload() -> tuple[ModelConfig, int]:
             new = load_config(path)  # a regular file of bounded size, UTF-8 (read_toml)
             predictor = make_predictor(new.model.predictor, new.model)
-            return new, self.pipeline.reload_model(predictor)
+            return new.model, self._use(new.model, predictor, "reload_model", None)
 
-        new, n = await self._in_worker(reload)
-        self.config = self.config.model_copy(update={"model": new.model})
-        self.pipeline.config = self.config
-        if self.pipeline.curve is not None:
-            self.publishing.curve = self.pipeline.curve
+        model, n = await self._in_worker(reload)
+        await self._changed(model)
+        log.info("reloaded [model] from %s (%s), refitted on %d points", path, model.predictor, n)
+
+    async def _change_terms(self, cmd: str, term: str | None) -> None:
+        if term is None:
+            raise ConfigError(f"{cmd}: needs 'term' (a term name or spec, docs/model.md)")
+
+        def change() -> tuple[ModelConfig, int]:
+            model, predictor = change_terms(self.config.model, cmd, term)
+            return model, self._use(model, predictor, cmd, term.strip())
+
+        model, n = await self._in_worker(change)
+        await self._changed(model)
         log.info(
-            "reloaded [model] from %s (%s), refitted on %d points", path, new.model.predictor, n
-        )
+            "%s %r: terms now %s, refitted on %d points", cmd, term.strip(),
+            model.physics.terms, n,
+        )  # fmt: skip
+
+    def _use(self, model: ModelConfig, predictor: Predictor, cmd: str, term: str | None) -> int:
+        """In the worker, between two frames: fit ``predictor`` on the kept
+        history, commit the change to the run store, then predict with it.
+        Nothing changes when the fit or the store fails."""
+        n = self.pipeline.refit(predictor)
+        now = time.time()
+        t_now = self.publishing.clock.at(now)
+        plan = None
+        if t_now is not None:
+            # Offset samples are 1/offset_rate_hz apart in wall time; the bound
+            # holds for two such periods (a sample one period late), on the
+            # instrument's clock.
+            clock = self.publishing.clock
+            interval_s = clock.rate * 2.0 / self.config.service.offset_rate_hz
+            plan = self.pipeline.plan_handover(
+                predictor, t_now_s=t_now, sample_interval_s=interval_s
+            )
+        handed = plan is not None and plan.curve is not None
+        try:
+            self._record_change(
+                ModelChange(
+                    seq=self.pipeline.last_seq,
+                    t_s=float("nan") if t_now is None else t_now,
+                    wall_s=now,
+                    command=cmd,
+                    term=term,
+                    predictor=model.predictor,
+                    terms_before=_terms(self.config.model),
+                    terms_after=_terms(model),
+                    handover_until_s=plan.until_s if plan and handed else float("nan"),
+                    step_bound_nm=plan.bound_nm if plan and handed else float("nan"),
+                )
+            )
+        except AfmdriftError as err:
+            raise AfmdriftError(f"{cmd}: refused, nothing changed: {err}") from None
+        self.pipeline.use_model(predictor, plan)
+        return n
+
+    async def _changed(self, model: ModelConfig) -> None:
+        """Take up the model the worker now predicts with (on the event loop)."""
+        self.config = self.config.model_copy(update={"model": model})
+        self.pipeline.config = self.config
+        self.publishing.terms = model_terms(model)
+        if self.pipeline.curve is not None:
+            await self.publishing.model_changed(
+                self.pipeline.curve, self.pipeline.predictor.name, self.pipeline.last_seq
+            )
+
+
+def _terms(model: ModelConfig) -> tuple[str, ...] | None:
+    terms = model_terms(model)
+    return None if terms is None else tuple(terms)

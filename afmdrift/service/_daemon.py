@@ -52,19 +52,17 @@ import zmq.asyncio
 from afmdrift.config import AfmdriftConfig
 from afmdrift.drivers import Instrument, VelocityActuator
 from afmdrift.errors import ConfigError
-from afmdrift.model import (
-    warm_up_effects,
-)
+from afmdrift.model import make_predictor, warm_up_effects
 from afmdrift.pipeline import FrameOutcome, FramePipeline
 from afmdrift.records import InstrumentInfo
 from afmdrift.registration import warm_up
-from afmdrift.runs import HeldWrites, RunStore
+from afmdrift.runs import HeldWrites, ModelChange, RunStore, effective_model, model_terms
 from afmdrift.service._acquire import Acquisition, FrameBatch
 from afmdrift.service._closed_loop import ClosedLoop
 from afmdrift.service._control import Controller
 from afmdrift.service._link import INSTRUMENT_ERRORS, InstrumentLink, every
 from afmdrift.service._live_diagnosis import LiveDiagnosis
-from afmdrift.service._publish import Publishing
+from afmdrift.service._publish import OFFSET_CATCH_UP_S, Publishing
 from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
 from afmdrift.wire import DiagnosisMsg, OffsetMsg, StatusMsg
 
@@ -153,6 +151,7 @@ class DriftService:
             pipeline=self.pipeline,
             publishing=self.publishing,
             in_worker=self._in_worker,
+            record_change=self._record_model_change,
             diagnose=self.diagnosis.request,
         )
         self.link.on_epoch(self._new_epoch)
@@ -290,7 +289,7 @@ class DriftService:
             "offset": lambda: every(
                 1.0 / svc.offset_rate_hz,
                 self.publishing.offset_tick,
-                catch_up_s=0.05,
+                catch_up_s=OFFSET_CATCH_UP_S,
                 skipped=self.publishing.offset_ticks_skipped,
             ),
             "status": lambda: every(svc.heartbeat_interval_s, self._status_tick),
@@ -306,9 +305,15 @@ class DriftService:
         assert self._executor is not None
         return await asyncio.get_running_loop().run_in_executor(self._executor, fn)
 
+    def _record_model_change(self, change: ModelChange) -> None:
+        """Commit a change of the model to the run store (in the worker thread)."""
+        assert self._writer is not None
+        self._writer.add_model_change(change)
+
     async def _resume_from_store(self) -> None:
         assert self._store is not None
         store = self._store
+        await self._in_worker(functools.partial(self._take_up_changes, store.model_changes()))
         state = store.resume_state()
         if state is None:
             return
@@ -340,6 +345,19 @@ class DriftService:
         log.info(
             "resumed run store %s after frame %d (epoch %d)", store.path, last.seq, state.epoch
         )
+
+    def _take_up_changes(self, changes: list[ModelChange]) -> None:
+        """The run's term changes on the configured model (in the worker, before
+        the pipeline resumes): an added term belongs to the run."""
+        model = effective_model(self.config.model, changes)
+        if model == self.config.model:
+            return
+        self.config = self.config.model_copy(update={"model": model})
+        self.controller.config = self.controller.config.model_copy(update={"model": model})
+        self.pipeline.config = self.controller.config
+        self.pipeline.predictor = make_predictor(model.predictor, model)
+        self.publishing.terms = model_terms(model)
+        log.info("the run's model changes applied: terms %s", model.physics.terms)
 
     # ------------------------------------------------------------------ link events
 

@@ -18,7 +18,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -29,9 +29,14 @@ from afmdrift.service._safety import InstrumentClock, OffsetLimiter, is_stale
 from afmdrift.service._zmq import Publisher
 from afmdrift.wire import ClockSync, FrameMsg, ModelMsg, OffsetMsg, StatusMsg, TrajectorySample
 
-__all__ = ["Publishing"]
+__all__ = ["OFFSET_CATCH_UP_S", "Publishing"]
 
 State = Literal["starting", "running", "paused", "stale", "stopping"]
+
+
+#: How late (wall s) an offset sample may come and the stream still catch up
+#: with the missed ones (later, it restarts from now: ``dropped_offset_ticks``).
+OFFSET_CATCH_UP_S = 0.05
 
 
 class Publishing:
@@ -59,6 +64,9 @@ class Publishing:
         Set by the ``pause`` control command: offsets are published invalid.
     chain : int
         The position chain of the last frame processed (``chain`` on the wire).
+    terms : list of str or None
+        The physics model's effect terms in use (``terms`` in the status;
+        ``None`` for a predictor without terms).
     """
 
     def __init__(
@@ -91,6 +99,7 @@ class Publishing:
         self.last_frame_t_s: float | None = None
         self.frames_seen = 0
         self.chain = 0
+        self.terms: list[str] | None = None
         self.publisher: Publisher | None = None
         self._frame_ends: deque[float] = deque(maxlen=16)
         self._errors_nm: deque[float] = deque(maxlen=config.rolling_window)
@@ -148,23 +157,10 @@ class Publishing:
         assert self.publisher is not None
         now = time.time()
         if outcome.curve_dict is not None and r.fed_model:
-            anchor = self.clock.anchor()
-            wall, inst, rate = anchor if anchor is not None else (now, r.t_end_s, 1.0)
-            self.last_model = ModelMsg(
-                seq=self._next("model"),
-                frame=r.seq,
-                t_s=r.t_mid_s,
-                wall_s=now,
-                predictor=outcome.predictor_name,
-                curve=outcome.curve_dict,
-                clock=ClockSync(wall_s=wall, instrument_s=inst, rate=rate),
-                max_offset_nm=self.config.max_offset_nm,
-                max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
-                run_id=self.run_id,
-                epoch=self.epoch(),
-                chain=self.chain,
-            )
-            await self.publisher.send(self.last_model)
+            await self._publish_model(
+                frame=r.seq, t_s=r.t_mid_s, predictor=outcome.predictor_name,
+                curve=outcome.curve_dict, wall_s=now, t_fallback_s=r.t_end_s,
+            )  # fmt: skip
         latency = time.time() - detected_wall_s
         await self.publisher.send(
             FrameMsg(
@@ -195,6 +191,50 @@ class Publishing:
             )
         )
         return latency
+
+    async def model_changed(self, curve: OffsetCurve | None, predictor: str, frame: int) -> None:
+        """The model changed between frames (a control command): publish its
+        curve, from the last frame processed, ``frame``, on."""
+        self.curve = curve
+        if curve is None or frame < 0:
+            return
+        now = time.time()
+        t_s = self.clock.at(now)
+        await self._publish_model(
+            frame=frame, t_s=t_s if t_s is not None else curve.t_valid_s[0], predictor=predictor,
+            curve=curve.to_dict(), wall_s=now, t_fallback_s=curve.t_valid_s[0],
+        )  # fmt: skip
+
+    async def _publish_model(
+        self,
+        *,
+        frame: int,
+        t_s: float,
+        predictor: str,
+        curve: dict[str, Any],
+        wall_s: float,
+        t_fallback_s: float,
+    ) -> None:
+        """Publish a ``model`` message (``t_fallback_s``: the instrument time
+        the clock mapping starts from while the clock has no reading yet)."""
+        assert self.publisher is not None
+        anchor = self.clock.anchor()
+        wall, inst, rate = anchor if anchor is not None else (wall_s, t_fallback_s, 1.0)
+        self.last_model = ModelMsg(
+            seq=self._next("model"),
+            frame=frame,
+            t_s=t_s,
+            wall_s=wall_s,
+            predictor=predictor,
+            curve=curve,
+            clock=ClockSync(wall_s=wall, instrument_s=inst, rate=rate),
+            max_offset_nm=self.config.max_offset_nm,
+            max_offset_rate_nm_s=self.config.max_offset_rate_nm_s,
+            run_id=self.run_id,
+            epoch=self.epoch(),
+            chain=self.chain,
+        )
+        await self.publisher.send(self.last_model)
 
     # ------------------------------------------------------------------ staleness
 
@@ -317,6 +357,7 @@ class Publishing:
             frames_unstored=self.faults.frames_unstored,
             frames_failed=self.faults.frames_failed,
             frame_problem=self.faults.frame_problem,
+            terms=None if self.terms is None else list(self.terms),
             run_id=self.run_id,
             epoch=self.epoch(),
         )
