@@ -52,7 +52,13 @@ from afmdrift._bounded import loads_json
 from afmdrift.config import ServiceConfig
 from afmdrift.wire import MAX_PAYLOAD_BYTES, DiagnosisMsg
 
-__all__ = ["DIAGNOSES_FILE", "LiveDiagnosis", "diagnose_command", "read_diagnoses"]
+__all__ = [
+    "DIAGNOSES_FILE",
+    "LiveDiagnosis",
+    "diagnose_command",
+    "last_diagnosis",
+    "read_diagnoses",
+]
 
 log = logging.getLogger(__name__)
 
@@ -84,19 +90,34 @@ def diagnose_command(
 
 
 def read_diagnoses(run_dir: str | Path) -> list[DiagnosisMsg]:
-    """The live diagnoses stored in ``run_dir`` (oldest first; a torn last line,
-    from a daemon killed while appending, is left out)."""
-    path = Path(run_dir) / DIAGNOSES_FILE
-    if not path.is_file():
+    """The live diagnoses stored in ``run_dir``, oldest first (a line that is not
+    one, such as a torn last line of a daemon killed while appending, is left out)."""
+    return [m for m in map(_parse_line, _lines(run_dir)) if m is not None]
+
+
+def last_diagnosis(run_dir: str | Path) -> DiagnosisMsg | None:
+    """The newest live diagnosis stored in ``run_dir``, or None."""
+    for line in reversed(_lines(run_dir)):
+        msg = _parse_line(line)
+        if msg is not None:
+            return msg
+    return None
+
+
+def _lines(run_dir: str | Path) -> list[bytes]:
+    try:
+        return (Path(run_dir) / DIAGNOSES_FILE).read_bytes().splitlines()
+    except FileNotFoundError:
         return []
-    out: list[DiagnosisMsg] = []
-    with path.open("rb") as fh:
-        for line in fh:
-            try:
-                out.append(DiagnosisMsg.model_validate_json(line))
-            except ValueError:
-                continue
-    return out
+
+
+def _parse_line(line: bytes) -> DiagnosisMsg | None:
+    if len(line) > MAX_PAYLOAD_BYTES:
+        return None
+    try:
+        return DiagnosisMsg.model_validate_json(line)
+    except ValueError:
+        return None
 
 
 def _die_with_parent(parent: int) -> Callable[[], None]:

@@ -24,7 +24,7 @@ from service_sim import REPO, SimProcess, driver, running_service, service_confi
 from afmdrift.client import Subscriber, control
 from afmdrift.config import AfmdriftConfig
 from afmdrift.drivers.sim import load_scenario
-from afmdrift.service._live_diagnosis import DIAGNOSES_FILE, read_diagnoses
+from afmdrift.service import DIAGNOSES_FILE, read_diagnoses
 from afmdrift.wire import DiagnosisMsg, FrameMsg
 
 pytestmark = [pytest.mark.asyncio]
