@@ -409,10 +409,13 @@ class DriftService:
         pub.frames_seen += 1
         writer = self._writer
         assert writer is not None
-        t_now = self.link.clock.at(time.time())
         hold = batch.hold or ("paused" if paused else None)
 
         def process() -> FrameOutcome:
+            # The curve starts from "now" as the worker takes the frame up, not
+            # as it was queued: behind a model change it may wait, and each
+            # wall second is many seconds of drift for an accelerated simulator.
+            t_now = self.link.clock.at(time.time())
             self.pipeline.push(batch.channels, batch.events)
             outcome = self.pipeline.process(
                 batch.frame,

@@ -26,7 +26,7 @@ from afmdrift.config import parse_config
 from afmdrift.dashboard import Dashboard
 from afmdrift.dashboard._chromium import HeadlessChromium, find_chromium
 from afmdrift.drivers.sim import load_scenario
-from afmdrift.wire import OffsetMsg
+from afmdrift.wire import ModelMsg, OffsetMsg
 
 pytestmark = [pytest.mark.asyncio]
 
@@ -148,8 +148,9 @@ async def _post_text(
         return r.status, await r.text()
 
 
-def _model_changes(run_dir: Path) -> list[tuple[int, str | None, float]]:
-    """``(seq, term, wall_s)`` of the run's model changes, read beside the daemon."""
+def _model_changes(run_dir: Path) -> list[tuple[int, str | None, float, float]]:
+    """``(seq, term, wall_s, handover_until_s)`` of the run's model changes, read
+    beside the daemon."""
     with contextlib.closing(
         sqlite3.connect(f"file:{run_dir / 'run.sqlite'}?mode=ro", uri=True)
     ) as db:
@@ -158,8 +159,10 @@ def _model_changes(run_dir: Path) -> list[tuple[int, str | None, float]]:
         ).fetchone()
         if have is None:
             return []
-        rows = db.execute("SELECT seq, term, wall_s FROM model_changes ORDER BY id")
-        return [(int(r[0]), r[1], float(r[2])) for r in rows]
+        rows = db.execute(
+            "SELECT seq, term, wall_s, handover_until_s FROM model_changes ORDER BY id"
+        )
+        return [(int(r[0]), r[1], float(r[2]), float(r[3])) for r in rows]
 
 
 def _frames(run_dir: Path) -> list[tuple[int, int, float | None, float | None]]:
@@ -167,12 +170,13 @@ def _frames(run_dir: Path) -> list[tuple[int, int, float | None, float | None]]:
     with contextlib.closing(
         sqlite3.connect(f"file:{run_dir / 'run.sqlite'}?mode=ro", uri=True)
     ) as db:
+        rows = db.execute(
+            "SELECT seq, instrument_frame, x_nm - pred_x_nm, y_nm - pred_y_nm, pred_sigma_nm "
+            "FROM frames ORDER BY seq"
+        )
         return [
-            (int(r[0]), int(r[1]), r[2], r[3])
-            for r in db.execute(
-                "SELECT seq, instrument_frame, pred_error_nm, pred_sigma_nm FROM frames "
-                "ORDER BY seq"
-            )
+            (int(r[0]), int(r[1]), None if r[2] is None else math.hypot(r[2], r[3]), r[4])
+            for r in rows
         ]
 
 
@@ -196,20 +200,26 @@ async def test_done_when_the_page_finds_humidity_adds_it_and_the_error_falls(
     run_dir = tmp_path / "run"
     scenario = load_scenario(HIDDEN / "humidity.toml")
     offsets: list[OffsetMsg] = []
+    models: list[ModelMsg] = []
     try:
-        async with sim_server(scenario, speed=150.0) as (_, url):
+        # A frame every 4 wall seconds: the change's hand-over (its 1 s lead and
+        # blend) ends before the next frame's curve (each frame's own update is
+        # not what this test is about).
+        async with sim_server(scenario, speed=75.0) as (_, url):
             cfg = service_config(
                 run_dir, model={}, registration=SMALL_FRAMES, diagnose_every_frames=10
             )
             async with running_service(cfg, driver(url), ctx) as service:
                 token = service.control_token_path.read_text(encoding="utf-8")
-                sub = Subscriber(service.pub_endpoint, ctx=ctx, topics=["offset"])
+                sub = Subscriber(service.pub_endpoint, ctx=ctx, topics=["offset", "model"])
 
                 async def follow() -> None:
                     while True:
                         msg = await sub.recv()
-                        assert isinstance(msg, OffsetMsg)
-                        offsets.append(msg)
+                        if isinstance(msg, OffsetMsg):
+                            offsets.append(msg)
+                        elif isinstance(msg, ModelMsg):
+                            models.append(msg)
 
                 follower = asyncio.create_task(follow())
                 dash = Dashboard(
@@ -237,13 +247,18 @@ async def test_done_when_the_page_finds_humidity_adds_it_and_the_error_falls(
                             "document.getElementById('add-term-term').textContent"
                         )
                         assert term == "humidity"
+                        # Click just after a frame, as a user would at any moment
+                        # between two: the hand-over then has the time to the next.
+                        await service.wait_for_frames(service.frames_processed + 1)
                         await browser.evaluate("document.getElementById('add-term').click()")
                         await browser.wait_for(
                             "window.afmdriftDashboard.addTerm !== null", timeout_s=30
                         )
                         answer = await browser.evaluate("window.afmdriftDashboard.addTerm")
                         assert answer["status"] == 200, answer
-                        (change_seq, added, change_wall_s) = _model_changes(run_dir)[0]
+                        (change_seq, added, change_wall_s, handover_until_s) = _model_changes(
+                            run_dir
+                        )[0]
                         assert added == "humidity"
                         await service.wait_for_frames(change_seq + 22)
                         # The page marks the change and measures before and after.
@@ -271,18 +286,34 @@ async def test_done_when_the_page_finds_humidity_adds_it_and_the_error_falls(
         assert None not in after
         ratio = _rms(after) / _rms(before)  # type: ignore[arg-type]
         assert ratio <= 0.7, (ratio, before, after)
-        # d(t) on the wire across the change (the samples of the wall second
-        # from just before it, before the next frame's model): no step above
+        # d(t) on the wire across the change, from just before it to the end of its
+        # hand-over (frames that come meanwhile included): no step above
         # max(prediction 1σ, 0.5 nm).
         sigma = by_seq[change_seq + 1][3] or 0.0
         limit = max(sigma, 0.5)
-        near = [m for m in offsets if change_wall_s - 0.2 <= m.wall_s <= change_wall_s + 1.0]
-        steps = [
-            math.hypot(b.x_nm - a.x_nm, b.y_nm - a.y_nm)
-            for a, b in itertools.pairwise(near)
-            if a.valid and b.valid and b.seq == a.seq + 1
+        near = [
+            m
+            for m in offsets
+            if m.wall_s >= change_wall_s - 0.2 and m.t_s <= handover_until_s + 3.0
         ]
-        assert steps
-        assert max(steps) <= limit, (max(steps), limit)
+        curves_in = [round(m.wall_s - change_wall_s, 2) for m in models if m.frame > change_seq]
+        # Consecutive samples at most two periods apart in wall time (100 Hz): the
+        # interval the bound is kept for (a sample the loaded machine sent late
+        # has more drift behind it).
+        pairs = [
+            (a, b)
+            for a, b in itertools.pairwise(near)
+            if a.valid and b.valid and b.seq == a.seq + 1 and b.wall_s - a.wall_s <= 0.02
+        ]
+        assert len(pairs) > 10
+        steps = [math.hypot(b.x_nm - a.x_nm, b.y_nm - a.y_nm) for a, b in pairs]
+        worst = max(range(len(steps)), key=steps.__getitem__)
+        a, b = pairs[worst]
+        assert steps[worst] <= limit, (
+            f"step {steps[worst]:.3f} nm > {limit:.3f} nm at {b.wall_s - change_wall_s:.3f} s "
+            f"after the change, samples {b.wall_s - a.wall_s:.4f} s apart; hand-over to "
+            f"t = {handover_until_s:.1f} s, sample at t = {b.t_s:.1f} s; frames published at "
+            f"{curves_in[:6]}"
+        )
     finally:
         ctx.term()
