@@ -56,10 +56,6 @@ log = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 
-#: Wall seconds from planning a model change's hand-over to its start: longer
-#: than storing the change and handing the curve to the event loop takes.
-_HANDOVER_LEAD_S = 1.0
-
 
 class InWorker(Protocol):
     """Runs a function in the daemon's worker thread."""
@@ -296,14 +292,8 @@ class Controller:
             # instrument's clock.
             clock = self.publishing.clock
             interval_s = clock.rate * 2.0 / self.config.service.offset_rate_hz
-            # The offset stream takes the new curve only once the change is
-            # stored and the event loop has it; a hand-over starting now would
-            # be entered part-way, a step (at 150x speed, 0.1 s of wall time is
-            # 15 s of drift). It starts _HANDOVER_LEAD_S later instead; until
-            # then the new curve is the published one's tangent there.
-            t_start = t_now + clock.rate * _HANDOVER_LEAD_S
             plan = self.pipeline.plan_handover(
-                predictor, t_now_s=t_start, sample_interval_s=interval_s
+                predictor, t_now_s=t_now, sample_interval_s=interval_s
             )
         handed = plan is not None and plan.curve is not None
         try:
