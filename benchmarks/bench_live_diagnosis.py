@@ -120,7 +120,7 @@ async def latency(speed: float, frames: int) -> None:
         off = await _one_run(scenario, Path(tmp) / "off", speed=speed, frames=frames, every=0)
         on = await _one_run(scenario, Path(tmp) / "on", speed=speed, frames=frames, every=10)
     print(f"latency: humidity scenario, speed-up {speed:g} ({300.0 / speed:.1f} s per frame), "
-          f"{frames} frames each, load before {os.getloadavg()}")  # fmt: skip
+          f"{frames} frames each, load after {os.getloadavg()}")  # fmt: skip
     for name, r in (("off", off), ("on", on)):
         print(
             f"  diagnosis {name:3s}: frames {r['frames']}, lost {r['lost']}, twice {r['twice']}, "
