@@ -2,7 +2,7 @@
 
 Every message on the PUB socket is a two-part ZeroMQ message
 ``[topic, payload]``: the topic is one of ``offset``, ``model``, ``frame``,
-``status`` (ASCII, used for subscription filtering) and the payload is a UTF-8
+``status``, ``diagnosis`` (ASCII, used for subscription filtering) and the payload is a UTF-8
 JSON object validated by the pydantic schema of that topic. Every payload
 carries ``"v"`` (the schema version, :data:`SCHEMA_VERSION`) and ``"topic"``.
 A decoder rejects another version with :class:`WireError` instead of guessing.
@@ -36,11 +36,13 @@ __all__ = [
     "ClockSync",
     "ControlReply",
     "ControlRequest",
+    "DiagnosisMsg",
     "FieldSummary",
     "FrameMsg",
     "Message",
     "ModelMsg",
     "OffsetMsg",
+    "Published",
     "StatusMsg",
     "TrajectorySample",
     "WireError",
@@ -56,7 +58,7 @@ __all__ = [
 #: Version of every schema in this module; bumped on any incompatible change.
 SCHEMA_VERSION: Literal[1] = 1
 
-TOPICS: tuple[str, ...] = ("offset", "model", "frame", "status")
+TOPICS: tuple[str, ...] = ("offset", "model", "frame", "status", "diagnosis")
 
 
 class WireError(AfmdriftError, ValueError):
@@ -275,8 +277,32 @@ class StatusMsg(_Published):
     terms: list[str] | None = None
 
 
-Message = Annotated[OffsetMsg | ModelMsg | FrameMsg | StatusMsg, Field(discriminator="topic")]
-_MESSAGE_ADAPTER: TypeAdapter[OffsetMsg | ModelMsg | FrameMsg | StatusMsg] = TypeAdapter(Message)
+class DiagnosisMsg(_Published):
+    """A live diagnosis of the daemon's own run (topic ``diagnosis``).
+
+    ``diagnosis`` is the object ``afmdrift diagnose RUN_DIR --json`` prints
+    (``docs/diagnostics.md``), made over a consistent copy of the run store
+    that held frames ``first_frame`` to ``last_frame``; ``look`` numbers the
+    diagnoses of this run from 1 (each is tested at its share of the run's
+    false-alarm level, ``diagnosis.thresholds``); ``reason`` is ``every``
+    (``service.diagnose_every_frames``) or ``request`` (the ``diagnose``
+    control command).
+    """
+
+    topic: Literal["diagnosis"] = "diagnosis"
+    seq: int = Field(ge=0)
+    wall_s: float
+    look: int = Field(ge=1)
+    first_frame: int = Field(ge=0)
+    last_frame: int = Field(ge=0)
+    reason: Literal["every", "request"]
+    duration_s: float = Field(ge=0)
+    diagnosis: dict[str, Any]
+
+
+Published = OffsetMsg | ModelMsg | FrameMsg | StatusMsg | DiagnosisMsg
+Message = Annotated[Published, Field(discriminator="topic")]
+_MESSAGE_ADAPTER: TypeAdapter[Published] = TypeAdapter(Message)
 
 
 class ControlRequest(_Msg):
@@ -291,9 +317,14 @@ class ControlRequest(_Msg):
     the daemon's configuration file and refit on the kept history),
     ``add_term`` and ``remove_term`` (add the effect term ``term`` to the
     physics model in use, or take it out, and refit on the kept history; the
-    change belongs to the run, ``docs/service.md``). All but ``status`` and
-    ``model`` change the daemon's state and need ``token`` (the content of the
-    daemon's token file) unless the daemon runs with ``control_auth = false``.
+    change belongs to the run, ``docs/service.md``). All but ``status``,
+    ``model`` and ``diagnose`` change the daemon's state and need ``token``
+    (the content of the daemon's token file) unless the daemon runs with
+    ``control_auth = false``. ``diagnose`` starts a live diagnosis of the
+    run now (the result comes on the ``diagnosis`` topic; the reply's
+    ``started`` is false when one is already running); it needs no token: it
+    changes nothing the daemon measures or publishes, and at most one runs at
+    a time.
     """
 
     cmd: Literal[
@@ -305,6 +336,7 @@ class ControlRequest(_Msg):
         "reload_model",
         "add_term",
         "remove_term",
+        "diagnose",
     ]
     config_path: str | None = Field(None, max_length=4096)
     term: str | None = Field(None, max_length=1024)
@@ -318,20 +350,25 @@ STATE_CHANGING: frozenset[str] = frozenset(
 
 
 class ControlReply(_Msg):
-    """Answer to a :class:`ControlRequest`; ``error`` is set when ``ok`` is false."""
+    """Answer to a :class:`ControlRequest`; ``error`` is set when ``ok`` is false.
+
+    ``started`` (``diagnose`` only): a diagnosis was started by this request.
+    """
 
     ok: bool
     error: str | None = None
     status: StatusMsg | None = None
     model: ModelMsg | None = None
+    started: bool | None = None
 
 
-def encode(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> list[bytes]:
+def encode(msg: Published) -> list[bytes]:
     """``[topic, payload]`` frames of a PUB message."""
     return [msg.topic.encode("ascii"), msg.model_dump_json().encode("utf-8")]
 
 
-#: Largest payload a decoder parses, bytes (a model message is a few kB).
+#: Largest payload a decoder parses, bytes (a model message is a few kB, a
+#: diagnosis some tens of kB).
 MAX_PAYLOAD_BYTES = 1 << 20
 
 
@@ -356,7 +393,7 @@ def _load_json(payload: bytes, what: str) -> dict[str, Any]:
     return doc
 
 
-def decode(parts: list[bytes]) -> OffsetMsg | ModelMsg | FrameMsg | StatusMsg:
+def decode(parts: list[bytes]) -> Published:
     """Validate a received ``[topic, payload]`` message.
 
     Raises
@@ -419,6 +456,7 @@ SCHEMA_MODELS: dict[str, type[BaseModel]] = {
     "model": ModelMsg,
     "frame": FrameMsg,
     "status": StatusMsg,
+    "diagnosis": DiagnosisMsg,
     "control_request": ControlRequest,
     "control_reply": ControlReply,
 }

@@ -218,8 +218,15 @@ async def sim_server(
         await server.stop()
 
 
-def service_config(run_dir: Path, **service: Any) -> AfmdriftConfig:
-    """Configuration for tests: loopback with free ports, fast loops, small blocks."""
+def service_config(
+    run_dir: Path,
+    *,
+    model: dict[str, Any] | None = None,
+    registration: dict[str, Any] | None = None,
+    **service: Any,
+) -> AfmdriftConfig:
+    """Configuration for tests: loopback with free ports, fast loops, small blocks
+    (``model`` and ``registration`` replace those sections' test defaults)."""
     base: dict[str, Any] = {
         "pub_endpoint": "tcp://127.0.0.1:*",
         "control_endpoint": "tcp://127.0.0.1:*",
@@ -231,13 +238,15 @@ def service_config(run_dir: Path, **service: Any) -> AfmdriftConfig:
         "heartbeat_interval_s": 0.1,
         "reconnect_delay_s": 0.1,
         "max_offset_rate_nm_s": 1000.0,
+        # A test of the live diagnosis turns it on; the others need no child process.
+        "diagnose_every_frames": 0,
     }
     base.update(service)
     return parse_config(
         {
             "service": base,
-            "registration": {"block_size": 32, "extended_size": 64},
-            "model": {"predictor": "constant_velocity"},
+            "registration": registration or {"block_size": 32, "extended_size": 64},
+            "model": {"predictor": "constant_velocity"} if model is None else model,
         }
     )
 

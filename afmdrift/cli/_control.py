@@ -2,7 +2,9 @@
 
 One subcommand per command of the control socket (``docs/wire.md``):
 ``status``, ``model``, ``pause``, ``resume``, ``reset-reference``,
-``reload-model [PATH]``, ``add-term TERM``, ``remove-term TERM``. The
+``reload-model [PATH]``, ``add-term TERM``, ``remove-term TERM``,
+``diagnose`` (start a live diagnosis; its result comes on topic
+``diagnosis``). The
 endpoint and the token file default to the configuration's
 (``service.control_endpoint``, ``service.control_token_file`` or
 ``RUN_DIR/control.token``). The answer is one line, or the reply as JSON with
@@ -44,6 +46,12 @@ _COMMANDS: dict[str, tuple[str, str, tuple[str, str] | None]] = {
         "remove_term",
         "Take an effect term out of the running physics model and refit.",
         ("term", "a term of the model (see `afmdrift control status`)"),
+    ),
+    "diagnose": (
+        "diagnose",
+        "Diagnose the run now, beside the daemon (the result on topic diagnosis and in "
+        "RUN_DIR/diagnoses.jsonl; not started while one runs).",
+        None,
     ),
 }
 
@@ -140,4 +148,8 @@ def answer_line(cmd: str, reply: ControlReply) -> str:
         return f"{st.state}: {st.frames} frames, error {err}; terms: {terms}; flags: {flags}"
     if cmd in ("add_term", "remove_term", "reload_model"):
         return f"{cmd}: ok; terms: {terms}"
+    if cmd == "diagnose":
+        if reply.started:
+            return "diagnose: started (its result comes on topic diagnosis)"
+        return "diagnose: not started, one is running"
     return f"{cmd}: ok ({st.state})"

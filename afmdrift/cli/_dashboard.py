@@ -29,6 +29,12 @@ def register(sub: Any) -> None:
     )
     p.add_argument("--pub", default=None, help="the daemon's PUB endpoint to follow")
     p.add_argument(
+        "--control",
+        default=None,
+        help="the daemon's control endpoint, for the page's 'Add to model' (default: "
+        "service.control_endpoint when following the configured daemon)",
+    )
+    p.add_argument(
         "--live",
         action="store_true",
         help="with --run-dir: also follow the configured daemon (service.pub_endpoint)",
@@ -49,7 +55,9 @@ def register(sub: Any) -> None:
         "--token-file",
         default=None,
         help="file holding the access token (required reading for a non-loopback --host; "
-        "without it one is generated and printed)",
+        "without it one is generated and printed). Give the daemon's RUN_DIR/control.token "
+        "to let the page add a diagnosed term to the daemon's model (add_term): the page "
+        "then needs that token to open",
     )
     p.add_argument(
         "--wait-s",
@@ -79,14 +87,17 @@ def _dashboard(args: argparse.Namespace) -> int:
         raise DashboardError(f"--wait-s must be > 0, got {args.wait_s}")
     run_dir = args.run_dir
     pub = args.pub
+    control_endpoint = args.control
     if run_dir is None and pub is None:
         run_dir, pub = config.service.run_dir, config.service.pub_endpoint
+        control_endpoint = control_endpoint or config.service.control_endpoint
     elif args.live and pub is None:
         pub = config.service.pub_endpoint
+        control_endpoint = control_endpoint or config.service.control_endpoint
     # Following a daemon: its run directory and store appear when it starts,
     # which may be after the dashboard (a service unit, a script starting both).
     wait_for_store = run_dir is not None and pub is not None
-    token = None
+    token = control_token = None
     if args.token_file is not None:
         try:
             token = Path(args.token_file).read_text(encoding="utf-8").strip()
@@ -96,6 +107,7 @@ def _dashboard(args: argparse.Namespace) -> int:
             raise DashboardError(
                 f"--token-file {args.token_file}: token shorter than 16 characters"
             )
+        control_token = token
     elif not host_is_loopback(args.host):
         token = secrets.token_urlsafe(24)
     return asyncio.run(
@@ -105,6 +117,7 @@ def _dashboard(args: argparse.Namespace) -> int:
             run_dir=run_dir,
             pub=pub,
             token=token,
+            control=(control_endpoint, control_token),
             wait_for_store=wait_for_store,
         )
     )
@@ -117,6 +130,7 @@ async def _serve(
     run_dir: str | None,
     pub: str | None,
     token: str | None,
+    control: tuple[str | None, str | None],
     wait_for_store: bool,
 ) -> int:
     import asyncio
@@ -135,6 +149,8 @@ async def _serve(
         host=args.host,
         port=args.port,
         token=token,
+        control_endpoint=control[0],
+        control_token=control[1],
         truth=truth,
         session=session,
         diagnosis_path=args.diagnosis,

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import tempfile
 from typing import Any
 
 from afmdrift.cli._options import (
@@ -60,6 +62,21 @@ def register(sub: Any) -> None:
         help="processes for the candidates' online re-runs, side by side "
         "(default: one per core this process may use; 1 runs them in this process)",
     )
+    p.add_argument(
+        "--look",
+        type=int,
+        help="this diagnosis is the K-th of a sequence over one growing run (the daemon's "
+        "live diagnoses): its candidates are tested at alpha*6/(pi^2*K^2), so the whole "
+        "sequence raises a false alarm with probability at most alpha "
+        "(docs/diagnostics.md, Repeated diagnoses)",
+        metavar="K",
+    )
+    p.add_argument(
+        "--snapshot",
+        action="store_true",
+        help="for a RUN_DIR a daemon is writing: read a consistent copy of its store "
+        "(SQLite online backup into a temporary directory) instead of the live file",
+    )
     add_prior_option(
         p, help=PRIOR_HELP + " (a SESSION only: a run directory is read as it was measured)"
     )
@@ -69,32 +86,49 @@ def register(sub: Any) -> None:
 
 def _diagnose(args: argparse.Namespace) -> int:
     from afmdrift.config import load_config
-    from afmdrift.diagnostics import DiagnoseOptions, diagnose_path, diagnosis_text
+    from afmdrift.diagnostics import (
+        DiagnoseOptions,
+        Thresholds,
+        diagnose_path,
+        diagnosis_text,
+        is_run_dir,
+    )
     from afmdrift.errors import InputError
-    from afmdrift.runs import available_cores
+    from afmdrift.runs import available_cores, snapshot_store
 
     if args.burn_in < 0:
         raise InputError(f"--burn-in must be >= 0, got {args.burn_in}")
     if args.workers is not None and args.workers < 1:
         raise InputError(f"--workers must be >= 1, got {args.workers}")
+    if args.look is not None and args.look < 1:
+        raise InputError(f"--look must be >= 1 (the first diagnosis is 1), got {args.look}")
     workers = available_cores() if args.workers is None else args.workers
     config = registration_options(args, load_config(args.config))
     effects = None
     if args.effects is not None:
         effects = [e.strip() for e in args.effects.split(",") if e.strip()]
-    diagnosis, data = diagnose_path(
-        args.path,
-        config=config,
-        effects=effects,
-        run_dir=args.run_dir,
-        session_dir=args.session,
-        options=DiagnoseOptions(burn_in_frames=args.burn_in, workers=workers),
-        prior_px=prior_option(args),
-    )
-    if args.report:
-        from afmdrift.diagnostics import write_report
+    thresholds = Thresholds() if args.look is None else Thresholds().at_look(args.look)
+    options = DiagnoseOptions(burn_in_frames=args.burn_in, workers=workers, thresholds=thresholds)
+    with contextlib.ExitStack() as stack:
+        path = args.path
+        if args.snapshot:
+            if not is_run_dir(path):
+                raise InputError(f"--snapshot: {path} is not a run directory (no run.sqlite)")
+            path = stack.enter_context(tempfile.TemporaryDirectory(prefix="afmdrift-snapshot-"))
+            snapshot_store(args.path, path)
+        diagnosis, data = diagnose_path(
+            path,
+            config=config,
+            effects=effects,
+            run_dir=args.run_dir,
+            session_dir=args.session,
+            options=options,
+            prior_px=prior_option(args),
+        )
+        if args.report:  # while a snapshot's directory still exists
+            from afmdrift.diagnostics import write_report
 
-        write_report(diagnosis, data, args.report, registration=config.registration)
+            write_report(diagnosis, data, args.report, registration=config.registration)
     if args.json:
         print(json.dumps(diagnosis.to_json(), indent=2))
     else:

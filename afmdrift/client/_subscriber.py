@@ -25,9 +25,11 @@ from afmdrift.model import OffsetCurve
 from afmdrift.wire import (
     TOPICS,
     ControlReply,
+    DiagnosisMsg,
     FrameMsg,
     ModelMsg,
     OffsetMsg,
+    Published,
     StatusMsg,
     control_request,
     decode,
@@ -44,7 +46,7 @@ __all__ = [
     "subscribe",
 ]
 
-Message = OffsetMsg | ModelMsg | FrameMsg | StatusMsg
+Message = Published
 
 
 class ClientError(AfmdriftError):
@@ -81,7 +83,7 @@ class Subscriber:
     endpoint : str
         The service's ``pub_endpoint`` (e.g. ``tcp://127.0.0.1:5560``).
     topics : sequence of str
-        Topics to receive (default: all four).
+        Topics to receive (default: all).
     ctx : zmq.asyncio.Context, optional
         Context for the socket (default: the process-wide instance).
     curve : CurveClientKeys, optional
@@ -89,7 +91,7 @@ class Subscriber:
 
     Attributes
     ----------
-    model, status, offset, frame : message or None
+    model, status, offset, frame, diagnosis : message or None
         The latest message received on each topic.
     """
 
@@ -117,6 +119,7 @@ class Subscriber:
         self.status: StatusMsg | None = None
         self.offset: OffsetMsg | None = None
         self.frame: FrameMsg | None = None
+        self.diagnosis: DiagnosisMsg | None = None
         self.last_received_wall_s: float | None = None
         self.received = 0
         self._curve: Any = None
@@ -134,6 +137,8 @@ class Subscriber:
             self.status = msg
         elif isinstance(msg, OffsetMsg):
             self.offset = msg
+        elif isinstance(msg, DiagnosisMsg):
+            self.diagnosis = msg
         else:
             self.frame = msg
         return msg
@@ -228,10 +233,11 @@ async def control(
 ) -> ControlReply:
     """Send one command to the control socket and return the reply.
 
-    ``cmd`` is ``status``, ``model`` (the reply carries the current model
+    ``cmd`` is ``status``, ``diagnose`` (start a live diagnosis; the reply says
+    whether it ``started``), ``model`` (the reply carries the current model
     message), ``pause``, ``resume``, ``reset_reference``, ``reload_model``
     (with an optional ``config_path``), ``add_term`` or ``remove_term``
-    (with ``term``). All but ``status`` and ``model`` need the daemon's
+    (with ``term``). All but ``status``, ``diagnose`` and ``model`` need the daemon's
     token: pass it, or the file the daemon wrote it to (``token_file``,
     default for a daemon: ``RUN_DIR/control.token``).
 

@@ -183,6 +183,21 @@ class ServiceConfig(BaseModel):
     sndhwm: int = Field(
         10000, ge=1, le=10_000_000, description="PUB high-water mark; slow subscribers drop."
     )
+    diagnose_every_frames: int = Field(
+        10,
+        ge=0,
+        le=1_000_000,
+        description="Diagnose the run (as `afmdrift diagnose RUN_DIR`) in a separate process "
+        "after every this many frames, and publish it on topic diagnosis; 0: only on the "
+        "diagnose control command.",
+    )
+    diagnose_timeout_s: float = Field(
+        300.0,
+        gt=0,
+        le=86400.0,
+        description="Wall seconds a live diagnosis may take; past it, it is killed, logged "
+        "and skipped.",
+    )
 
     @field_validator("pub_endpoint", "control_endpoint")
     @classmethod

@@ -23,6 +23,7 @@ import hmac
 import json
 import logging
 import math
+import secrets
 import socket
 import time
 from importlib import resources
@@ -34,14 +35,24 @@ import zmq
 import zmq.asyncio
 from aiohttp import WSMsgType, web
 
+from afmdrift.client import ClientError, control
 from afmdrift.config import AfmdriftConfig, check_endpoint, host_is_loopback
+from afmdrift.dashboard._live import LiveDiagnoses, live_finding
 from afmdrift.dashboard._sources import DiagnosisFile, FrameImages, frame_view
 from afmdrift.dashboard._state import RunState, TruthSource
 from afmdrift.dashboard._store import DB_FILE, DashboardError, RunReader, StoreNotReadyError
 from afmdrift.errors import AfmdriftError, InputError
-from afmdrift.model import OffsetCurve
+from afmdrift.model import OffsetCurve, resolve_terms
 from afmdrift.service import OffsetLimiter
-from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg, StatusMsg, WireError, decode
+from afmdrift.wire import (
+    DiagnosisMsg,
+    FrameMsg,
+    ModelMsg,
+    OffsetMsg,
+    StatusMsg,
+    WireError,
+    decode,
+)
 
 __all__ = ["Dashboard"]
 
@@ -58,6 +69,10 @@ _DRAIN_MAX = 2000
 _BATCH_S = 0.01
 #: While waiting for a run store, the log repeats that it waits this often, s.
 _STORE_WAIT_LOG_S = 60.0
+#: Where the page's per-process secret against cross-site requests goes in index.html.
+_CSRF_SLOT = b"__AFMDRIFT_CSRF__"
+#: Largest body of a control request from the page, bytes.
+_MAX_CONTROL_BODY = 4096
 
 
 def _dumps(doc: Any) -> str:
@@ -102,6 +117,13 @@ class Dashboard:
     token : str, optional
         Access token; required when ``host`` is not a loopback address. Pages
         pass it once as ``?token=...`` and then hold it in a cookie.
+    control_endpoint : str, optional
+        The daemon's control socket (``service.control_endpoint``): with
+        ``control_token``, the page's "Add to model" sends ``add_term`` there.
+    control_token : str, optional
+        The daemon's control token (its ``control.token``); it must also be
+        the access ``token``, so only a page opened with it can change the
+        model. Without it the button is shown disabled with the reason.
     truth : TruthSource, optional
         The true drift (a session's ``truth.csv``, an in-process simulator).
     session : Session, optional
@@ -133,6 +155,8 @@ class Dashboard:
         host: str = "127.0.0.1",
         port: int = 0,
         token: str | None = None,
+        control_endpoint: str | None = None,
+        control_token: str | None = None,
         truth: TruthSource | None = None,
         session: Any = None,
         diagnosis_path: str | Path | None = None,
@@ -157,6 +181,16 @@ class Dashboard:
         self.host = host
         self.port = port
         self.token = token
+        if control_token is not None and control_token != token:
+            raise DashboardError(
+                "the control token must be the dashboard's access token as well (--token-file "
+                "RUN_DIR/control.token): a page without it must not change the model"
+            )
+        self.control_endpoint = control_endpoint
+        self.control_token = control_token
+        #: Embedded in the page and required on its POSTs: another site's page
+        #: cannot read it, so it cannot forge them (docs/dashboard.md).
+        self._csrf = secrets.token_urlsafe(32)
         self.state = RunState(
             max_frames=max_frames,
             rolling_window=self.config.service.rolling_window,
@@ -170,6 +204,8 @@ class Dashboard:
         self.diagnosis = None if diag is None else DiagnosisFile(Path(diag))
         if self.diagnosis is None:
             self.state.diagnosis_note = "no run directory, so no diagnose result"
+        self.live_diagnoses = None if self.run_dir is None else LiveDiagnoses(self.run_dir)
+        self.state.control = self._control_state()
         self._own_ctx = ctx is None
         self._ctx = ctx
         self.store_poll_s = store_poll_s
@@ -193,7 +229,23 @@ class Dashboard:
         self._view_seq: int | None = None
         self._plotly_js: bytes | None = None
         self._heard = asyncio.Event()
+        self._served_hosts: set[str] = set()
         self.url = ""
+
+    def _control_state(self) -> dict[str, Any]:
+        """Whether the page may change the model, and if not, why (shown on the button)."""
+        if self.control_token is None:
+            return {
+                "enabled": False,
+                "reason": "this dashboard was started without the daemon's control token: "
+                "start it with --token-file RUN_DIR/control.token to add terms from here",
+            }
+        if self.control_endpoint is None:
+            return {
+                "enabled": False,
+                "reason": "this dashboard does not know the daemon's control socket (--control)",
+            }
+        return {"enabled": True, "reason": f"add_term on {self.control_endpoint}"}
 
     # ------------------------------------------------------------------ lifecycle
 
@@ -313,6 +365,7 @@ class Dashboard:
         app.router.add_get("/plotly.min.js", self._plotly)
         app.router.add_get("/ws", self._websocket)
         app.router.add_get("/state.json", self._state_json)
+        app.router.add_post("/control/add_term", self._add_term)
         self._runner = web.AppRunner(app, access_log=None, handle_signals=False)
         await self._runner.setup()
         family = socket.AF_INET6 if ":" in self.host else socket.AF_INET
@@ -329,6 +382,9 @@ class Dashboard:
         await site.start()
         port = sock.getsockname()[1]
         host = f"[{self.host}]" if family == socket.AF_INET6 else self.host
+        self._served_hosts = {f"{host}:{port}"}
+        if host_is_loopback(self.host):
+            self._served_hosts |= {f"{h}:{port}" for h in ("localhost", "127.0.0.1", "[::1]")}
         self.url = f"http://{host}:{port}/" + (f"?token={self.token}" if self.token else "")
 
     @web.middleware
@@ -351,7 +407,7 @@ class Dashboard:
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
         return web.Response(
-            body=_resource("index.html"),
+            body=_resource("index.html").replace(_CSRF_SLOT, self._csrf.encode("ascii")),
             content_type="text/html",
             headers={"Cache-Control": "no-store"},
         )
@@ -381,6 +437,55 @@ class Dashboard:
             ),
             content_type="application/json",
         )
+
+    async def _add_term(self, request: web.Request) -> web.StreamResponse:
+        """``POST /control/add_term`` ``{"term": TERM}`` from the page: ``add_term`` to the daemon.
+
+        Refused (nothing sent, nothing changed) with 403 without the control
+        token (the access middleware already refused a request without the
+        page's token), from another origin, to another host, or without this
+        process's page secret (header ``X-Afmdrift-Csrf``); with 400 for a body
+        that is not ``{"term": str}`` or a term that does not parse; with 409
+        when the daemon refuses it (its reason), 502 when it does not answer.
+        """
+        if not self.state.control["enabled"]:
+            return _refuse(403, self.state.control["reason"])
+        origin = request.headers.get("Origin")
+        if origin is None or origin != f"{request.scheme}://{request.host}":
+            return _refuse(403, f"cross-site request refused (Origin {origin!r})")
+        if request.host not in self._served_hosts:
+            return _refuse(403, f"request for another host ({request.host!r}) refused")
+        given = request.headers.get("X-Afmdrift-Csrf", "")
+        if not hmac.compare_digest(given.encode(), self._csrf.encode()):
+            return _refuse(403, "the page's secret is missing or wrong (reload the page)")
+        if request.content_length is None or request.content_length > _MAX_CONTROL_BODY:
+            return _refuse(400, f"a body of at most {_MAX_CONTROL_BODY} bytes is expected")
+        try:
+            body = json.loads(await request.read())
+        except (ValueError, UnicodeDecodeError):
+            return _refuse(400, 'the body is not JSON {"term": "..."}')
+        term = body.get("term") if isinstance(body, dict) else None
+        if not isinstance(term, str) or not term.strip():
+            return _refuse(400, 'the body is not {"term": "<a term, docs/model.md>"}')
+        plugins = self.config.model.physics.plugins
+        try:
+            resolve_terms([term.strip()], plugins, key="term")
+        except AfmdriftError as err:
+            return _refuse(400, str(err))
+        assert self.control_endpoint is not None
+        try:
+            reply = await control(
+                self.control_endpoint, "add_term", term=term.strip(),
+                token=self.control_token, ctx=self._ctx, timeout_s=10.0,
+            )  # fmt: skip
+        except WireError as err:
+            return _refuse(400, str(err))
+        except ClientError as err:
+            refused = getattr(err, "reply", None) is not None
+            return _refuse(409 if refused else 502, str(err))
+        log.info("added the term %r to the daemon's model (from the page)", term.strip())
+        terms = None if reply.status is None else getattr(reply.status, "terms", None)
+        return web.json_response({"ok": True, "term": term.strip(), "terms": terms})
 
     async def _websocket(self, request: web.Request) -> web.StreamResponse:
         origin = request.headers.get("Origin")
@@ -473,6 +578,8 @@ class Dashboard:
             self.state.add_status(msg)
         elif isinstance(msg, ModelMsg):
             self.state.add_model(msg)
+        elif isinstance(msg, DiagnosisMsg):
+            self.state.add_live_diagnosis(live_finding(msg))
 
     def _send_frames(self, rows: list[dict[str, Any]]) -> None:
         reset, truth = self.state.take_new_truth()
@@ -572,6 +679,21 @@ class Dashboard:
             self.state.set_model_state(rows.model[1], rows.model[2])
         if rows.meta != self.state.meta:
             self._set_meta(rows.meta)
+        changes = await asyncio.to_thread(reader.model_changes)
+        if len(changes) != len(self.state.model_changes):
+            self.state.set_model_changes(
+                [
+                    {
+                        "seq": c.seq,
+                        "t_s": _finite(c.t_s),
+                        "command": c.command,
+                        "term": c.term,
+                        "terms_before": None if c.terms_before is None else list(c.terms_before),
+                        "terms_after": None if c.terms_after is None else list(c.terms_after),
+                    }
+                    for c in changes
+                ]
+            )
         self.state.store_state = "open"
         self.state.store_note = f"{reader.path} (read-only)"
 
@@ -657,6 +779,10 @@ class Dashboard:
             if self.diagnosis is not None and due and await asyncio.to_thread(self.diagnosis.poll):
                 self.state.diagnosis = self.diagnosis.result
                 self.state.diagnosis_note = self.diagnosis.note
+            live = self.live_diagnoses
+            if live is not None and due and await asyncio.to_thread(live.poll):
+                assert live.latest is not None
+                self.state.add_live_diagnosis(live_finding(live.latest))
             if not self._pages:
                 self._new_events.clear()
                 continue
@@ -760,3 +886,13 @@ def _plotly_js() -> bytes:
         raise DashboardError(f"the dashboard needs the plotly package ({err})") from None
     text: str = get_plotlyjs()
     return text.encode("utf-8")
+
+
+def _finite(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def _refuse(status: int, reason: str) -> web.StreamResponse:
+    """A refused control request: its reason, as JSON, for the page to show."""
+    log.warning("dashboard control request refused (%d): %s", status, reason)
+    return web.json_response({"ok": False, "error": reason}, status=status)

@@ -27,6 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.dashboard._envelope import Envelope
+from afmdrift.dashboard._live import change_effect
 from afmdrift.pipeline import FrameRecord
 from afmdrift.wire import FrameMsg, ModelMsg, OffsetMsg, StatusMsg
 
@@ -38,6 +39,8 @@ _TRUTH_POINTS_PER_FRAME = 8
 _TRUTH_CAP = 8000
 #: Events kept (the newest).
 _EVENT_CAP = 2000
+#: The newest model changes whose error before and after the summary measures.
+_CHANGES_MEASURED = 5
 #: Channels followed (the first this many names seen).
 _CHANNEL_CAP = 32
 
@@ -241,6 +244,12 @@ class RunState:
         self.reference: dict[str, Any] | None = None
         self.diagnosis: dict[str, Any] | None = None
         self.diagnosis_note = ""
+        #: The daemon's newest live diagnosis (:func:`~afmdrift.dashboard._live.live_finding`).
+        self.live_diagnosis: dict[str, Any] | None = None
+        #: Whether the page may add a term, and why not (the dashboard sets it).
+        self.control: dict[str, Any] = {"enabled": False, "reason": ""}
+        #: The run's model changes (``add_term``, ``remove_term``, ``reload_model``).
+        self.model_changes: list[dict[str, Any]] = []
         self.frame_view: dict[str, Any] | None = None
         self.store_note = ""
         #: The run store: "" (none followed), "waiting" (not there yet), "open", "error".
@@ -387,6 +396,28 @@ class RunState:
         self.predictor = msg.predictor
         self.model_wall_s = msg.wall_s
 
+    def add_live_diagnosis(self, finding: dict[str, Any]) -> None:
+        """A live diagnosis (from the wire or the run directory); the newest is kept."""
+        old = self.live_diagnosis
+        if old is None or finding["wall_s"] > old["wall_s"]:
+            self.live_diagnosis = finding
+
+    def set_model_changes(self, changes: list[dict[str, Any]]) -> None:
+        """The run's model changes, oldest first (each with ``seq``, ``t_s``,
+        ``command``, ``term``, ``terms_before``, ``terms_after``)."""
+        self.model_changes = changes
+
+    def _changes_json(self) -> list[dict[str, Any]]:
+        """The model changes, the newest few with their error before and after."""
+        rows = list(self.frames.values())
+        out = []
+        for k, change in enumerate(self.model_changes):
+            effect = None
+            if k >= len(self.model_changes) - _CHANGES_MEASURED:
+                effect = change_effect(rows, int(change["seq"]))
+            out.append(change | {"effect": effect})
+        return out
+
     def wire_rejected(self, error: str) -> None:
         self.link.rejected += 1
         self.link.last_error = error
@@ -508,6 +539,9 @@ class RunState:
             "truth_aligned": self._truth_ref is not None,
             "diagnosis": self.diagnosis,
             "diagnosis_note": self.diagnosis_note,
+            "live_diagnosis": self.live_diagnosis,
+            "control": self.control,
+            "model_changes": self._changes_json(),
             "store_note": self.store_note,
             "store_state": self.store_state,
             "store_path": self.store_path,

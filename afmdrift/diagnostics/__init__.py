@@ -35,7 +35,7 @@ from afmdrift.diagnostics._candidates import (
 from afmdrift.diagnostics._data import RunData, load_run
 from afmdrift.diagnostics._diagnose import DiagnoseOptions, Diagnosis, diagnose
 from afmdrift.diagnostics._model_run import ModelRun, run_model
-from afmdrift.diagnostics._run import diagnose_path
+from afmdrift.diagnostics._run import diagnose_path, is_run_dir
 from afmdrift.diagnostics._stats import Failure
 from afmdrift.diagnostics._text import diagnosis_text
 
@@ -55,6 +55,7 @@ __all__ = [
     "diagnose_path",
     "diagnosis_text",
     "evaluate_candidate",
+    "is_run_dir",
     "load_run",
     "run_model",
     "write_report",

@@ -131,6 +131,12 @@ class Thresholds:
         support" margin, Burnham & Anderson 2002). A named effect with
         physical parameters is worth more to a user than a generic term that
         fits as well.
+    look : int or None
+        This diagnosis is the ``look``-th of a sequence over one growing run
+        (the daemon's live diagnoses); ``alpha`` is then this look's share of
+        ``run_alpha`` (:meth:`at_look`). None: a diagnosis on its own.
+    run_alpha : float or None
+        With ``look``: the false-alarm level over the whole sequence.
     """
 
     min_delta_aicc: float = 10.0
@@ -141,6 +147,29 @@ class Thresholds:
     generic_min_drop: float = 0.10
     min_effect: float = 0.10
     named_margin_aicc: float = 10.0
+    look: int | None = None
+    run_alpha: float | None = None
+
+    def at_look(self, look: int) -> Thresholds:
+        """The rule for the ``look``-th diagnosis of one growing run (alpha spending).
+
+        The diagnoses of a growing run test the same data again and again;
+        each at ``alpha`` would raise a false alarm in most long runs. The
+        ``k``-th is tested at ``alpha · 6 / (π² k²)`` instead: since
+        ``Σ 6 / (π² k²) = 1``, the chance that any diagnosis of the run, however
+        many, calls a candidate significant by chance stays at most ``alpha``
+        (a union bound; it needs no planned number of looks).
+
+        Raises
+        ------
+        ValueError
+            ``look`` < 1.
+        """
+        if look < 1:
+            raise ValueError(f"look must be >= 1 (the first diagnosis is 1), got {look}")
+        base = self.alpha if self.run_alpha is None else self.run_alpha
+        share = 6.0 / (math.pi**2 * look**2)
+        return replace(self, alpha=base * share, look=look, run_alpha=base)
 
     def min_drop(self, *, generic: bool) -> float:
         """The out-of-sample drop required of a named or a generic candidate."""

@@ -174,6 +174,7 @@ def _diagnose(
         config_terms=config_terms,
         after=after,
         after_summary=after_summary,
+        frame_range=(int(data.frame.min()), int(data.frame.max())),
     )
 
 

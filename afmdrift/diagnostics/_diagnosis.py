@@ -86,6 +86,7 @@ class Diagnosis:
     plain: str = ""
     after: ModelRun | None = None
     after_summary: dict[str, float] | None = None
+    frame_range: tuple[int, int] | None = None
 
     @property
     def top(self) -> CandidateResult | None:
@@ -110,6 +111,7 @@ class Diagnosis:
             "model_effects": list(self.model_effects),
             "active_effects": list(self.active_effects),
             "frames": int(self.run.t_s.size),
+            "frame_range": None if self.frame_range is None else list(self.frame_range),
             "burn_in_frames": self.burn_in_frames,
             "rmse_nm": _num(s["rmse_nm"]),
             "rmse_x_nm": _num(s["rmse_x_nm"]),
@@ -190,6 +192,8 @@ class Diagnosis:
                 "generic_min_drop": self.thresholds.generic_min_drop,
                 "min_effect": self.thresholds.min_effect,
                 "named_margin_aicc": self.thresholds.named_margin_aicc,
+                "look": self.thresholds.look,
+                "run_alpha": self.thresholds.run_alpha,
             },
             "plain_finding": self.plain,
             "finding": self.finding,

@@ -43,6 +43,7 @@ from afmdrift.runs._schema import (
     model_change_from_row,
 )
 from afmdrift.runs._series import measure_session, series_from_drift_log, series_from_records
+from afmdrift.runs._snapshot import snapshot_store
 from afmdrift.runs._store import RunStore
 from afmdrift.runs._track import track_session, track_stack
 
@@ -74,6 +75,7 @@ __all__ = [
     "replay_session",
     "series_from_drift_log",
     "series_from_records",
+    "snapshot_store",
     "track_session",
     "track_stack",
     "trajectory_rows",

@@ -34,12 +34,14 @@ from afmdrift.runs import (
 )
 from afmdrift.service._check import check_config
 from afmdrift.service._daemon import INSTRUMENT_ERRORS, DriftService
+from afmdrift.service._live_diagnosis import DIAGNOSES_FILE, last_diagnosis, read_diagnoses
 from afmdrift.service._runner import open_instrument, run_until_signalled
 from afmdrift.service._safety import OffsetLimiter
 from afmdrift.service._zmq import ServiceSocketError
 
 __all__ = [
     "DB_NAME",
+    "DIAGNOSES_FILE",
     "INSTRUMENT_ERRORS",
     "MEASUREMENT_COLUMNS",
     "STORE_SCHEMA_VERSION",
@@ -53,8 +55,10 @@ __all__ = [
     "StoreError",
     "check_config",
     "endpoint_is_local",
+    "last_diagnosis",
     "open_instrument",
     "process_and_record",
+    "read_diagnoses",
     "replay_session",
     "run_until_signalled",
 ]

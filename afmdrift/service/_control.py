@@ -7,7 +7,10 @@ Trust model (``docs/service.md``, *Control socket*):
   ``reload_model``, ``add_term``, ``remove_term``; :data:`STATE_CHANGING`)
   need a token: a random string the daemon writes at start
   to ``service.control_token_file`` (default ``RUN_DIR/control.token``),
-  readable only by the daemon's user. ``status`` and ``model`` only read.
+  readable only by the daemon's user. ``status`` and ``model`` only read;
+  ``diagnose`` starts a live diagnosis (a child process at the lowest CPU
+  priority, at most one at a time), which changes nothing the daemon
+  measures or publishes, so it needs no token either.
   ``control_auth = false`` turns the check off; endpoints off loopback
   require CURVE as well.
 * ``reload_model`` reads only regular files in the directory of the daemon's
@@ -36,7 +39,7 @@ import secrets
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Protocol, TypeVar
+from typing import Literal, Protocol, TypeVar
 
 from afmdrift.config import AfmdriftConfig, ModelConfig, load_config
 from afmdrift.errors import AfmdriftError, ConfigError
@@ -105,6 +108,8 @@ class Controller:
         Commits a :class:`~afmdrift.runs.ModelChange` to the run store (in
         the worker thread); raises :class:`~afmdrift.errors.AfmdriftError`
         when the store cannot write.
+    diagnose : callable, optional
+        Starts a live diagnosis (``diagnose``); returns whether it started.
     """
 
     def __init__(
@@ -116,12 +121,14 @@ class Controller:
         publishing: Publishing,
         in_worker: InWorker,
         record_change: Callable[[ModelChange], None],
+        diagnose: Callable[[Literal["request"]], bool] | None = None,
     ) -> None:
         self.config = config
         self.config_path = config_path
         self.pipeline = pipeline
         self.publishing = publishing
         self._in_worker = in_worker
+        self._diagnose = diagnose
         self._record_change = record_change
         publishing.terms = model_terms(config.model)
         svc = config.service
@@ -195,6 +202,11 @@ class Controller:
             self.pipeline.request_reset()
         elif req.cmd == "reload_model":
             await self._reload_model(req.config_path)
+        elif req.cmd == "diagnose":
+            if self._diagnose is None:
+                raise AfmdriftError("diagnose: this daemon has no live diagnosis")
+            started = self._diagnose("request")
+            return ControlReply(ok=True, status=self.publishing.status_snapshot(), started=started)
         elif req.cmd in TERM_COMMANDS:
             await self._change_terms(req.cmd, req.term)
         elif req.cmd == "model":

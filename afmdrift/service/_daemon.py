@@ -27,8 +27,10 @@ is reported and skipped, a store that cannot write holds the frames):
 ``connect``, ``clock``, ``frames``, ``channels``, ``events`` (the link and
 acquisition), ``process`` (the worker), ``offset`` and ``status``
 (publishing), ``control`` (the control socket) and, in closed loop,
-``closed`` (applies the offset on the instrument), and ``store`` (retries
-writing held frames while the run store cannot write).
+``closed`` (applies the offset on the instrument), ``store`` (retries
+writing held frames while the run store cannot write) and ``diagnosis``
+(the live diagnosis of the run in a child process,
+:class:`~afmdrift.service._live_diagnosis.LiveDiagnosis`).
 """
 
 from __future__ import annotations
@@ -59,9 +61,10 @@ from afmdrift.service._acquire import Acquisition, FrameBatch
 from afmdrift.service._closed_loop import ClosedLoop
 from afmdrift.service._control import Controller
 from afmdrift.service._link import INSTRUMENT_ERRORS, InstrumentLink, every
+from afmdrift.service._live_diagnosis import LiveDiagnosis
 from afmdrift.service._publish import OFFSET_CATCH_UP_S, Publishing
 from afmdrift.service._zmq import ControlSocket, CurveKeys, Publisher, load_curve_keys
-from afmdrift.wire import OffsetMsg, StatusMsg
+from afmdrift.wire import DiagnosisMsg, OffsetMsg, StatusMsg
 
 __all__ = ["INSTRUMENT_ERRORS", "DriftService"]
 
@@ -134,6 +137,14 @@ class DriftService:
             epoch=lambda: self.link.epoch,
             silent_s=self.link.silent_s,
         )
+        self.diagnosis = LiveDiagnosis(
+            self.svc,
+            effects=lambda: self.controller.config.model.physics.terms,
+            config_path=lambda: self.config_path,
+            publish=self._publish_diagnosis,
+            run_id=self.publishing.run_id,
+            epoch=lambda: self.link.epoch,
+        )
         self.controller = Controller(
             config=config,
             config_path=self.config_path,
@@ -141,6 +152,7 @@ class DriftService:
             publishing=self.publishing,
             in_worker=self._in_worker,
             record_change=self._record_model_change,
+            diagnose=self.diagnosis.request,
         )
         self.link.on_epoch(self._new_epoch)
         self.link.on_connected(self._on_connected)
@@ -223,6 +235,7 @@ class DriftService:
             # ... and the effect terms' (the play compensation runs on the loop)
             await self._in_worker(warm_up_effects)
             await self._resume_from_store()
+            self.diagnosis.resume()
             publisher = Publisher(
                 self.svc.pub_endpoint, ctx=ctx, sndhwm=self.svc.sndhwm, curve=curve_keys
             )
@@ -282,6 +295,7 @@ class DriftService:
             "status": lambda: every(svc.heartbeat_interval_s, self._status_tick),
             "control": self._serve_control,
             "store": lambda: every(_STORE_RETRY_S, self._store_retry),
+            "diagnosis": self.diagnosis.loop,
         }
         if svc.closed_loop:
             loops["closed"] = lambda: every(svc.closed_loop_interval_s, self.closed_loop.tick)
@@ -395,10 +409,13 @@ class DriftService:
         pub.frames_seen += 1
         writer = self._writer
         assert writer is not None
-        t_now = self.link.clock.at(time.time())
         hold = batch.hold or ("paused" if paused else None)
 
         def process() -> FrameOutcome:
+            # The curve starts from "now" as the worker takes the frame up, not
+            # as it was queued: behind a model change it may wait, and each
+            # wall second is many seconds of drift for an accelerated simulator.
+            t_now = self.link.clock.at(time.time())
             self.pipeline.push(batch.channels, batch.events)
             outcome = self.pipeline.process(
                 batch.frame,
@@ -422,6 +439,7 @@ class DriftService:
         pub.faults.frame_problem = None
         self.frames_processed += 1
         self._frame_done.set()
+        self.diagnosis.frame_done(self.frames_processed)
         self.link.see_frame_end(outcome.record.t_end_s)
         try:
             self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))
@@ -500,6 +518,10 @@ class DriftService:
             if flag in self.flags:
                 return
             await asyncio.sleep(poll_s)
+
+    async def _publish_diagnosis(self, msg: DiagnosisMsg) -> None:
+        if self.publishing.publisher is not None:
+            await self.publishing.publisher.send(msg)
 
     async def _serve_control(self) -> None:
         assert self._control is not None

@@ -25,10 +25,7 @@ from afmdrift.errors import AfmdriftError
 from afmdrift.wire import (
     ControlReply,
     ControlRequest,
-    FrameMsg,
-    ModelMsg,
-    OffsetMsg,
-    StatusMsg,
+    Published,
     WireError,
     decode_control_request,
     encode,
@@ -143,7 +140,7 @@ def _bind(
 
 
 class Publisher:
-    """PUB socket for the four topics.
+    """PUB socket for the topics (``afmdrift.wire.TOPICS``).
 
     Parameters
     ----------
@@ -174,7 +171,7 @@ class Publisher:
         self.sent = 0
         self.dropped = 0
 
-    async def send(self, msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> None:
+    async def send(self, msg: Published) -> None:
         """Publish ``msg`` without ever waiting for subscribers."""
         try:
             await self._sock.send_multipart(encode(msg), flags=zmq.NOBLOCK)

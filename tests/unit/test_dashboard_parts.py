@@ -649,3 +649,54 @@ def test_cli_bad_endpoint_is_one_line(capsys: pytest.CaptureFixture[str]) -> Non
     err = capsys.readouterr().err.strip()
     assert err.startswith("afmdrift: error: --pub 'nonsense': use tcp://HOST:PORT")
     assert "\n" not in err
+
+
+def test_before_and_after_a_model_change_are_over_equal_numbers_of_frames() -> None:
+    """Guards against comparing 20 frames before a change with the 3 after it
+    (or the other way round): n grows with the frames after, up to 20."""
+    from afmdrift.dashboard._live import change_effect
+
+    rows = [{"seq": s, "pred_error_nm": 4.0} for s in range(30)]
+    rows[7]["pred_error_nm"] = None  # no prediction: not counted
+    assert change_effect(rows, 29) is None  # nothing predicted by the new model yet
+    rows += [{"seq": 30, "pred_error_nm": 1.0}, {"seq": 31, "pred_error_nm": 2.0}]
+    e = change_effect(rows, 29)
+    assert e is not None
+    assert e["frames"] == 2
+    assert e["before_rms_nm"] == pytest.approx(4.0)
+    assert e["after_rms_nm"] == pytest.approx(math.sqrt(2.5))
+    assert e["ratio"] == pytest.approx(math.sqrt(2.5) / 4.0)
+    rows += [{"seq": s, "pred_error_nm": 1.0} for s in range(32, 80)]
+    e = change_effect(rows, 29)
+    assert e is not None
+    assert e["frames"] == 20
+    # Only two frames before a change early in a run: two on each side.
+    e = change_effect(rows, 1)
+    assert e is not None
+    assert e["frames"] == 2
+
+
+def test_the_live_finding_offers_the_leading_significant_candidate_and_its_channel() -> None:
+    """A named library term's logged channel (humidity -> humidity_pct) and a
+    generic term's are found for the evidence plot; nothing significant offers nothing."""
+    from afmdrift.dashboard._live import live_finding
+    from afmdrift.wire import DiagnosisMsg
+
+    def msg(candidates: list[dict[str, Any]]) -> DiagnosisMsg:
+        return DiagnosisMsg(
+            seq=0, wall_s=1.0, look=2, first_frame=0, last_frame=21, reason="every",
+            duration_s=3.0,
+            diagnosis={"plain_finding": "Missing: humidity.", "candidates": candidates,
+                       "thresholds": {"alpha": 0.0015, "run_alpha": 0.01}},
+        )  # fmt: skip
+
+    named = {"term": "humidity", "effect": "humidity", "significant": True, "params": {}}
+    generic = {"term": "channel:pressure_hpa", "significant": True,
+               "params": {"channel": "pressure_hpa"}}  # fmt: skip
+    weak = {"term": "creep", "significant": False, "params": {}}
+    found = live_finding(msg([weak, named, generic]))
+    assert found["candidate"]["term"] == "humidity"
+    assert found["candidate"]["channel"] == "humidity_pct"
+    assert found["plain_finding"] == "Missing: humidity."
+    assert live_finding(msg([generic]))["candidate"]["channel"] == "pressure_hpa"
+    assert live_finding(msg([weak]))["candidate"] is None

@@ -551,3 +551,18 @@ def test_own_statistics_equal_scipy_and_statsmodels() -> None:
     np.testing.assert_allclose(gamma, fit.params, rtol=1e-10)
     np.testing.assert_allclose(v_ols, fit.cov_params(), rtol=1e-10)
     np.testing.assert_allclose(v_hac, hac.cov_params(), rtol=1e-10)
+
+
+def test_repeated_diagnoses_spend_alpha_so_the_whole_run_stays_at_alpha() -> None:
+    """Guards against a run's sequence of live diagnoses each testing at the full
+    alpha: the K-th look is tested at alpha*6/(pi^2 K^2), summing to at most alpha."""
+    base = Thresholds(alpha=0.01)
+    looks = [base.at_look(k) for k in range(1, 100_001)]
+    assert sum(t.alpha for t in looks) <= base.alpha
+    assert sum(t.alpha for t in looks) > 0.9999 * base.alpha
+    assert looks[0].alpha == pytest.approx(0.01 * 6 / math.pi**2)
+    assert all(t.run_alpha == 0.01 and t.look == k for k, t in enumerate(looks, 1))
+    # A look of a look spends from the run's level, not from the look's.
+    assert looks[4].at_look(2).alpha == base.at_look(2).alpha
+    with pytest.raises(ValueError, match=r"look must be >= 1.*got 0"):
+        base.at_look(0)

@@ -13,10 +13,12 @@ from afmdrift.wire import (
     ClockSync,
     ControlReply,
     ControlRequest,
+    DiagnosisMsg,
     FieldSummary,
     FrameMsg,
     ModelMsg,
     OffsetMsg,
+    Published,
     StatusMsg,
     WireError,
     decode,
@@ -28,7 +30,7 @@ from afmdrift.wire import (
 finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
 
-def _examples() -> list[OffsetMsg | ModelMsg | FrameMsg | StatusMsg]:
+def _examples() -> list[Published]:
     clock = ClockSync(wall_s=1.7e9, instrument_s=12.5, rate=40.0)
     return [
         OffsetMsg(seq=3, t_s=12.5, wall_s=1.7e9, x_nm=1.25, y_nm=-0.5, valid=True),
@@ -86,11 +88,21 @@ def _examples() -> list[OffsetMsg | ModelMsg | FrameMsg | StatusMsg]:
             rolling_max_error_nm=None,
             rolling_window=20,
         ),
+        DiagnosisMsg(
+            seq=0,
+            wall_s=1.7e9,
+            look=3,
+            first_frame=0,
+            last_frame=29,
+            reason="every",
+            duration_s=4.5,
+            diagnosis={"schema_version": 1, "plain_finding": "Nothing is missing.", "tests": 12},
+        ),
     ]
 
 
 @pytest.mark.parametrize("msg", _examples(), ids=lambda m: m.topic)
-def test_every_topic_round_trips(msg: OffsetMsg | ModelMsg | FrameMsg | StatusMsg) -> None:
+def test_every_topic_round_trips(msg: Published) -> None:
     parts = encode(msg)
     assert parts[0] == msg.topic.encode()
     assert json.loads(parts[1])["v"] == SCHEMA_VERSION

@@ -20,6 +20,7 @@
     latenciesMs: [],          // drawn − published (frame wall_s), frames first seen on the wire
     renders: {},              // plot id -> number of completed renders
     lastError: null,
+    addTerm: null,            // the last "Add to model" answer: {status, body}
   };
   window.afmdriftDashboard = probe;
 
@@ -183,6 +184,23 @@
     });
   }
 
+  // Where a model change took effect: between its last frame and the next one.
+  function changeTimes() {
+    const s = state.summary;
+    const changes = (s && s.model_changes) || [];
+    const out = [];
+    for (const c of changes) {
+      const before = state.frames.get(c.seq);
+      const after = state.frames.get(c.seq + 1);
+      let t = null;
+      if (before && after && before.t_s !== null && after.t_s !== null) t = (before.t_s + after.t_s) / 2;
+      else if (before && before.t_end_s !== null && before.t_end_s !== undefined) t = before.t_end_s;
+      else if (c.t_s !== null) t = c.t_s;
+      if (t !== null) out.push({ t: t, label: c.command + (c.term ? " " + c.term : "") });
+    }
+    return out;
+  }
+
   function errorPlot() {
     const rows = sortedFrames().filter((r) => r.t_s !== null);
     const err = rows.filter((r) => r.pred_error_nm !== null);
@@ -201,10 +219,103 @@
     } else {
       $("trend-note").textContent = err.length ? "too few errors for a trend" : "no prediction errors yet";
     }
+    const marks = changeTimes();
+    probe.changeMarks = marks.length;
     return render("plot-error", data, {
       margin: { l: 60, r: 10, t: 10, b: 40 }, legend: { orientation: "h", y: 1.12 },
       xaxis: T_AXIS, yaxis: { title: { text: "error (nm)" }, rangemode: "tozero" }, uirevision: "error",
+      shapes: marks.map((m) => ({ type: "line", xref: "x", yref: "paper", x0: m.t, x1: m.t, y0: 0, y1: 1, line: { color: "#1f7a3d", width: 2, dash: "dash" } })),
+      annotations: marks.map((m) => ({ x: m.t, xref: "x", y: 1, yref: "paper", yanchor: "bottom", text: "model: " + m.label, showarrow: false, font: { size: 10, color: "#1f7a3d" } })),
     });
+  }
+
+  // The evidence of the live finding: the one-step errors beside the channel the
+  // candidate responds to, over the frames diagnosed and since.
+  function evidencePlot() {
+    const s = state.summary;
+    const live = s && s.live_diagnosis;
+    if (!live) return render("plot-evidence", [], { margin: { l: 60, r: 10, t: 10, b: 40 }, xaxis: T_AXIS, uirevision: "evidence" });
+    const rows = sortedFrames().filter((r) => r.seq >= live.first_frame && r.t_s !== null && r.pred_x_nm !== null && r.x_nm !== null);
+    const data = [
+      { x: rows.map((r) => r.t_s), y: rows.map((r) => r.x_nm - r.pred_x_nm), mode: "markers", marker: { size: 5, color: COLORS.x }, name: "error x (nm)", type: "scatter" },
+      { x: rows.map((r) => r.t_s), y: rows.map((r) => r.y_nm - r.pred_y_nm), mode: "markers", marker: { size: 5, color: COLORS.y }, name: "error y (nm)", type: "scatter" },
+    ];
+    const layout = { margin: { l: 60, r: 60, t: 10, b: 40 }, legend: { orientation: "h", y: 1.15 }, xaxis: T_AXIS,
+      yaxis: { title: { text: "one-step error (nm)" } }, uirevision: "evidence", shapes: [] };
+    const cand = live.candidate;
+    if (cand && cand.channel && state.channels[cand.channel]) {
+      for (const tr of envelopeTraces(state.channels[cand.channel], 0, "rgb(44,160,44)", cand.channel, "y2", true)) data.push(tr);
+      layout.yaxis2 = { title: { text: cand.channel }, overlaying: "y", side: "right" };
+    }
+    if (rows.length) {
+      const last = state.frames.get(live.last_frame);
+      if (last && last.t_s !== null) layout.shapes.push({ type: "line", xref: "x", yref: "paper", x0: last.t_s, x1: last.t_s, y0: 0, y1: 1, line: { color: "#5a6275", width: 1, dash: "dot" } });
+    }
+    return render("plot-evidence", data, layout);
+  }
+
+  function csrf() {
+    const m = document.querySelector('meta[name="afmdrift-csrf"]');
+    return m ? m.content : "";
+  }
+
+  function addTerm() {
+    const s = state.summary;
+    const cand = s && s.live_diagnosis && s.live_diagnosis.candidate;
+    if (!cand) return;
+    const button = $("add-term");
+    button.disabled = true;
+    $("add-term-status").textContent = "asking the daemon to add " + cand.term + "…";
+    fetch("control/add_term", {
+      method: "POST", credentials: "same-origin",
+      headers: { "Content-Type": "application/json", "X-Afmdrift-Csrf": csrf() },
+      body: JSON.stringify({ term: cand.term }),
+    }).then((r) => r.json().then((body) => {
+      probe.addTerm = { status: r.status, body: body };
+      $("add-term-status").textContent = body.ok ? "added: the model now has " + (body.terms || []).join(", ") : "refused: " + body.error;
+      if (!body.ok) button.disabled = false;
+    })).catch((e) => {
+      probe.addTerm = { status: 0, body: { ok: false, error: String(e) } };
+      $("add-term-status").textContent = "no answer from the dashboard: " + e;
+      button.disabled = false;
+    });
+  }
+
+  function liveText() {
+    const s = state.summary;
+    const live = s.live_diagnosis;
+    const control = s.control || { enabled: false, reason: "" };
+    if (live) {
+      $("live-finding").textContent = live.plain_finding || live.finding;
+      $("live-note").textContent = "diagnosis " + live.look + " of this run, frames " + live.first_frame + "–" + live.last_frame +
+        " (" + fmt(live.duration_s, 1) + " s), candidates tested at α = " + (live.alpha === null ? "–" : Number(live.alpha).toPrecision(2)) +
+        (live.run_alpha ? " so that the whole run stays at " + live.run_alpha : "");
+    }
+    const cand = live && live.candidate;
+    const terms = (s.status && s.status.terms) || (live && live.model_effects) || [];
+    const have = cand && terms.indexOf(cand.term) >= 0;
+    $("live-candidate").hidden = !cand;
+    if (cand) {
+      $("add-term-term").textContent = cand.term;
+      const button = $("add-term");
+      const pending = probe.addTerm === null ? false : probe.addTerm.body && probe.addTerm.body.ok && probe.addTerm.body.term === cand.term;
+      button.disabled = !control.enabled || have || pending;
+      button.title = !control.enabled ? control.reason : have ? cand.term + " is in the model" : "send add_term " + cand.term + " to the daemon";
+      if (!control.enabled) $("add-term-status").textContent = control.reason;
+      else if (have && !pending) $("add-term-status").textContent = cand.term + " is in the model already";
+    }
+    const changes = s.model_changes || [];
+    const last = changes.length ? changes[changes.length - 1] : null;
+    if (last) {
+      const what = last.command + (last.term ? " " + last.term : "") + " after frame " + last.seq;
+      const e = last.effect;
+      $("change-text").textContent = e
+        ? "Since " + what + ": one-step error RMS " + fmt(e.after_rms_nm) + " nm over the " + e.frames + " frames after, against " +
+          fmt(e.before_rms_nm) + " nm over the " + e.frames + " frames before" + (e.ratio === null ? "" : " (× " + fmt(e.ratio, 2) + ")") + "."
+        : what + ": waiting for frames predicted by the new model.";
+    } else {
+      $("change-text").textContent = "";
+    }
   }
 
   function framePlot() {
@@ -349,6 +460,7 @@
       $("diagnosis-config").textContent = "";
     }
     $("diagnosis-note").textContent = s.diagnosis_note || "";
+    liveText();
   }
 
   // ------------------------------------------------------------------ scheduling
@@ -357,7 +469,7 @@
   function queue(fn) { busy = busy.then(fn).catch((e) => { probe.lastError = String(e); console.error(e); }); return busy; }
 
   function renderAll() {
-    return queue(() => Promise.all([driftPlot(), offsetPlot(), errorPlot(), framePlot(), channelsPlot()]));
+    return queue(() => Promise.all([driftPlot(), offsetPlot(), errorPlot(), framePlot(), channelsPlot(), evidencePlot()]));
   }
 
   function onFrames(msg) {
@@ -374,7 +486,7 @@
         if (probe.latenciesMs.length > MAX_LATENCIES) probe.latenciesMs.splice(0, probe.latenciesMs.length - MAX_LATENCIES);
       }
       probe.lastFrameReceivedMs = received;
-      return Promise.all([errorPlot(), framePlot()]);
+      return Promise.all([errorPlot(), framePlot(), evidencePlot()]);
     }));
   }
 
@@ -404,7 +516,7 @@
       state.summary = msg.summary;
       summaryText();
       queue(() => Promise.all([offsetPlot(), msg.events.length ? channelsPlot() : null,
-        Object.keys(msg.channels).length ? channelsPlot() : null, errorPlot()]));
+        Object.keys(msg.channels).length ? channelsPlot() : null, errorPlot(), evidencePlot()]));
     } else if (msg.type === "frame_view") {
       state.view = msg.view;
       queue(framePlot);
@@ -429,5 +541,6 @@
       delayMs = Math.min(5000, delayMs * 2);
     };
   }
+  $("add-term").addEventListener("click", addTerm);
   connect();
 })();
