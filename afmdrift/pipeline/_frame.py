@@ -503,6 +503,7 @@ class FramePipeline:
         t_now_s: float,
         sample_interval_s: float,
         min_blend_s: float = 0.0,
+        lead_s: float = 0.0,
     ) -> Handover:
         """d(t) from ``t_now_s`` on, handing over from the published curve to
         ``predictor``'s prediction with no step between two offset samples
@@ -518,8 +519,14 @@ class FramePipeline:
         published value now; 1.5 the steepest slope of a cubic Hermite blend
         over its mean), at least one interval and ``min_blend_s``, and is
         doubled until the
-        curve keeps the bound on a grid of a quarter interval. The curve
-        starts at the published one's value and slope at ``t_now_s``. Without
+        curve keeps the bound on a grid of a quarter interval.
+
+        With ``lead_s`` the curve *is* the published one (its knots) up to
+        ``t_now_s + lead_s`` and hands over from there, from its value and
+        slope then: the offset stream takes the new curve up some time after
+        it is planned (the store's commit, the event loop; at a simulator's
+        speed-up that wall time is minutes of instrument time), and wherever
+        before the lead it does, it sees no step. Without
         a published curve, with the sinc reconstruction (which does not start
         from the previous curve), or when the prediction fails, ``curve`` is
         ``None``: the pipeline builds its own.
@@ -534,31 +541,34 @@ class FramePipeline:
         except (ValueError, ArithmeticError) as err:
             log.warning("prediction at t=%.3f s failed: %s", t_now_s, err)
             return none
+        t_start = t_now_s + max(lead_s, 0.0)
         sigma = float(np.hypot(*now.sigma_nm[0]) / math.sqrt(2.0))
-        gap = float(np.hypot(*(now.mean_nm[0] - previous.at([t_now_s])[0])))
+        gap = float(np.hypot(*(now.mean_nm[0] - previous.at([t_start])[0])))
         bound = max(sigma if math.isfinite(sigma) else 0.0, MIN_HANDOVER_STEP_NM)
         tick_s = sample_interval_s
         own_step = largest_step_nm(previous, t_now_s, t_now_s, tick_s)
         allowed = max(bound, 1.05 * own_step)
         needed_s = 1.5 * gap * tick_s / (0.8 * bound) if math.isfinite(gap) else 0.0
         blend_s = max(min_blend_s, tick_s, needed_s)
-        step, reached_s = math.inf, t_now_s
+        step, reached_s = math.inf, t_start
         for _ in range(_HANDOVER_TRIES):
             try:
                 curve = reconstruct_offset(
                     predictor,
                     self.history,
                     config=self.config.model,
-                    t_now_s=t_now_s,
+                    t_now_s=t_start,
                     previous=previous,
                     blend_s=blend_s,
                 )
             except (ValueError, ArithmeticError) as err:
-                log.warning("offset curve at t=%.3f s failed: %s", t_now_s, err)
+                log.warning("offset curve at t=%.3f s failed: %s", t_start, err)
                 return none
-            # the first knot after now is on the new prediction (a hand-over
-            # shorter than the curve's smallest knot spacing ends there)
-            reached_s = float(curve.knot_t_s[1]) if curve.knot_t_s.size > 1 else t_now_s
+            # the first knot after the start is on the new prediction (a
+            # hand-over shorter than the curve's smallest knot spacing ends there)
+            reached_s = float(curve.knot_t_s[1]) if curve.knot_t_s.size > 1 else t_start
+            if t_start > t_now_s:
+                curve = _published_until(previous, curve, t_now_s, t_start)
             step = largest_step_nm(curve, t_now_s, reached_s + 2 * tick_s, tick_s)
             if step <= allowed:
                 break
@@ -569,7 +579,7 @@ class FramePipeline:
                 step,
                 allowed,
             )
-        return Handover(curve, max(reached_s, t_now_s + blend_s), sample_interval_s, allowed, step)
+        return Handover(curve, max(reached_s, t_start + blend_s), sample_interval_s, allowed, step)
 
 
 @dataclass(frozen=True, slots=True)
@@ -599,6 +609,26 @@ MIN_HANDOVER_STEP_NM = 0.5
 _HANDOVER_TRIES = 12
 #: Most times :func:`largest_step_nm` evaluates (a longer span gets a coarser grid).
 _STEP_GRID_MAX = 200_000
+
+
+def _published_until(
+    previous: OffsetCurve, curve: OffsetCurve, t_from_s: float, t_start_s: float
+) -> OffsetCurve:
+    """``curve`` (a Hermite curve starting at ``t_start_s`` from ``previous``'s
+    value and slope there) preceded by ``previous``'s own knots from
+    ``t_from_s``: on [t_from_s, t_start_s] it is ``previous`` exactly (a cubic
+    segment is fixed by the values and slopes at its ends)."""
+    k = previous.knot_t_s
+    first = max(int(np.searchsorted(k, t_from_s, side="right")) - 1, 0)
+    keep = np.arange(k.size)
+    keep = keep[(keep >= first) & (k < t_start_s)]
+    return OffsetCurve(
+        "hermite",
+        (t_from_s, curve.t_valid_s[1]),
+        np.concatenate([k[keep], curve.knot_t_s]),
+        np.concatenate([previous.knot_nm[keep], curve.knot_nm]),
+        np.concatenate([previous.slope_nm_per_s[keep], curve.slope_nm_per_s]),
+    )
 
 
 def largest_step_nm(curve: OffsetCurve, t0_s: float, t1_s: float, tick_s: float) -> float:

@@ -293,7 +293,10 @@ class Controller:
             clock = self.publishing.clock
             interval_s = clock.rate * 2.0 / self.config.service.offset_rate_hz
             plan = self.pipeline.plan_handover(
-                predictor, t_now_s=t_now, sample_interval_s=interval_s
+                predictor,
+                t_now_s=t_now,
+                sample_interval_s=interval_s,
+                lead_s=clock.rate * HANDOVER_LEAD_WALL_S,
             )
         handed = plan is not None and plan.curve is not None
         try:
@@ -325,6 +328,14 @@ class Controller:
             await self.publishing.model_changed(
                 self.pipeline.curve, self.pipeline.predictor.name, self.pipeline.last_seq
             )
+
+
+#: Wall seconds for which d(t) after a model change stays the published curve
+#: before it hands over (:meth:`FramePipeline.plan_handover` ``lead_s``, on the
+#: instrument's clock): the offset stream takes the new curve up after the
+#: store's commit and a pass of the event loop (0.65 s was seen on a loaded
+#: 2-core machine), and taken up anywhere before the lead it has no step.
+HANDOVER_LEAD_WALL_S = 2.0
 
 
 def _terms(model: ModelConfig) -> tuple[str, ...] | None:

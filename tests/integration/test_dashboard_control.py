@@ -163,8 +163,7 @@ def _model_changes(run_dir: Path) -> list[tuple[int, str | None, float, float]]:
             "SELECT seq, term, wall_s, handover_until_s FROM model_changes ORDER BY id"
         )
         return [
-            (int(r[0]), r[1], float(r[2]), math.nan if r[3] is None else float(r[3]))
-            for r in rows
+            (int(r[0]), r[1], float(r[2]), math.nan if r[3] is None else float(r[3])) for r in rows
         ]
 
 

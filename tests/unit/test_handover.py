@@ -103,3 +103,27 @@ def test_no_handover_without_a_hermite_curve() -> None:
     predictor = make_predictor("physics", _config(["trend", "periodic:period_s=600"]).model)
     plan = pipeline.plan_handover(predictor, t_now_s=790.0, sample_interval_s=0.02)
     assert plan.curve is None
+
+
+def test_with_a_lead_the_curve_is_the_published_one_until_it_hands_over() -> None:
+    """Guards against a stream that takes the new curve up late (after the
+    store's commit, at a simulator's speed-up) entering the blend part-way:
+    with a lead the new curve equals the published one up to the lead's end,
+    so wherever before it the stream switches, it sees no step."""
+    pipeline = _pipeline()
+    old = pipeline.curve
+    assert old is not None
+    predictor = make_predictor("physics", _config(["trend", "periodic:period_s=600"]).model)
+    pipeline.refit(predictor)
+    t_now, interval, lead = 790.0, 0.02, 45.0
+    plan = pipeline.plan_handover(predictor, t_now_s=t_now, sample_interval_s=interval, lead_s=lead)
+    assert plan.curve is not None
+    before = np.linspace(t_now, t_now + lead, 400)
+    np.testing.assert_allclose(plan.curve.at(before), old.at(before), atol=1e-9)
+    np.testing.assert_allclose(plan.curve.derivative(before), old.derivative(before), atol=1e-9)
+    assert plan.until_s > t_now + lead
+    t = np.arange(t_now, plan.until_s + 20.0, interval / 7)
+    steps = plan.curve.at(t + interval) - plan.curve.at(t)
+    assert float(np.max(np.hypot(steps[:, 0], steps[:, 1]))) <= plan.bound_nm
+    end = predictor.predict_drift([plan.until_s], pipeline.history).mean_nm[0]
+    np.testing.assert_allclose(plan.curve.at([plan.until_s])[0], end, atol=1e-6)
