@@ -221,12 +221,9 @@ class PhysicsPredictor(_LoggingPredictor):
         self.last_residual = np.zeros(2)
         self.residual_sd = np.full(2, math.nan)
         self._missing_logged: set[str] = set()
-        # scipy.optimize (0.3 s to import) loads with the first physics model,
-        # not with every command that imports afmdrift.model; the terms'
-        # kernels compile now, not at the first fit.
-        from scipy.optimize import minimize_scalar
-
-        self._minimize_scalar = minimize_scalar
+        # The terms' kernels compile now, not at the first fit. scipy.optimize
+        # (0.3-0.6 s to import) loads with the first θ refinement
+        # (:meth:`_refined`), not with every model (a drift log's trend needs none).
         warm_up_effects()
         self.residual_net = None
         if self.config.residual == "nn":
@@ -499,9 +496,9 @@ class PhysicsPredictor(_LoggingPredictor):
         and ``hi``, leaving θ at the better of it and ``best_log``. False when
         the optimum lies at a bound that is not the grid's own end: the
         neighbourhood did not hold it, and the caller scans the whole grid."""
-        res = self._minimize_scalar(
-            obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005}
-        )
+        from scipy.optimize import minimize_scalar
+
+        res = minimize_scalar(obj, bounds=(lo, hi), method="bounded", options={"xatol": 0.005})
         x = float(res.x)
         if float(res.fun) <= best_val:
             best_log, best_val = x, float(res.fun)
