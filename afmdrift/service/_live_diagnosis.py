@@ -121,11 +121,14 @@ def _parse_line(line: bytes) -> DiagnosisMsg | None:
 
 
 def _die_with_parent(parent: int) -> Callable[[], None]:
-    """The child's set-up before it runs: killed when the daemon dies, lowest priority."""
+    """The child's set-up before it runs: killed when the daemon dies, lowest priority.
+
+    libc is opened here, in the daemon: between fork and exec (the daemon has
+    threads) the child only calls into it, it loads nothing."""
+    libc = ctypes.CDLL(None, use_errno=True) if sys.platform.startswith("linux") else None
 
     def setup() -> None:
-        if sys.platform.startswith("linux"):
-            libc = ctypes.CDLL(None, use_errno=True)
+        if libc is not None:
             libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
             # The daemon may have died before the line above: then nobody is
             # left to be told, and the child is an orphan already.

@@ -91,9 +91,15 @@ async def test_live_diagnosis_runs_beside_the_daemon_stored_and_published(tmp_pa
                     assert read_diagnoses(run_dir)[-1] == first
 
                     # On request, without a token; a second while it runs is skipped.
-                    await _until(lambda: not service.diagnosis.running)
                     endpoint = service.control_endpoint
-                    one = await control(endpoint, "diagnose", ctx=ctx)
+                    for _ in range(20):
+                        # A periodic diagnosis may start between the wait and
+                        # the request (a frame a second here, a diagnosis
+                        # several seconds on a busy machine): then ask again.
+                        await _until(lambda: not service.diagnosis.running)
+                        one = await control(endpoint, "diagnose", ctx=ctx)
+                        if one.started:
+                            break
                     two = await control(endpoint, "diagnose", ctx=ctx)
                     assert one.started is True
                     assert two.started is False
@@ -102,7 +108,7 @@ async def test_live_diagnosis_runs_beside_the_daemon_stored_and_published(tmp_pa
                             sub, lambda m: isinstance(m, DiagnosisMsg) and m.reason == "request"
                         )
                     asked = got[-1]
-                    assert asked.look == first.look + 1
+                    assert asked.look > first.look  # periodic looks may come between
                     assert asked.last_frame >= first.last_frame
                     # The frames went on while it ran: none lost, none twice.
                     seen = [m.frame for m in got if isinstance(m, FrameMsg)]
