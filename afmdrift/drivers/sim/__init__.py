@@ -5,7 +5,9 @@ The physics (each drift effect with its equation and sources) is documented in
 package.
 """
 
+from afmdrift.drivers.sim._heat_network import HEAT_NETWORK_COMPONENTS, HeatNetworkPhysics
 from afmdrift.drivers.sim._instrument import PIEZO_RANGE_NM, SimulatedAFM
+from afmdrift.drivers.sim._models import SimPhysics, make_physics
 from afmdrift.drivers.sim._physics import COMPONENTS, DriftPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scenario import (
@@ -18,13 +20,17 @@ from afmdrift.drivers.sim._scenario import (
 
 __all__ = [
     "COMPONENTS",
+    "HEAT_NETWORK_COMPONENTS",
     "PIEZO_RANGE_NM",
     "SCENARIO_DIR",
     "DriftPhysics",
+    "HeatNetworkPhysics",
     "Sample",
     "Scenario",
+    "SimPhysics",
     "SimulatedAFM",
     "load_scenario",
+    "make_physics",
     "parse_scenario",
     "resolve_scenario_path",
 ]

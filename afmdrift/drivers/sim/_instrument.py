@@ -25,7 +25,7 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift._version import __version__
-from afmdrift.drivers.sim._physics import DriftPhysics
+from afmdrift.drivers.sim._models import SimPhysics, make_physics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scanner import FrameRaster, ScanGeometry, render_lines
 from afmdrift.drivers.sim._scenario import Scenario, check_scan_geometry, load_scenario
@@ -79,7 +79,7 @@ class SimulatedAFM:
         self.scenario = scenario
         self.seed = int(scenario.seed if seed is None else seed)
         sc = scenario.scan
-        self.physics = DriftPhysics(
+        self.physics: SimPhysics = make_physics(
             scenario.physics, seed=self.seed, start_offset_nm=sc.start_offset_nm
         )
         self.sample = (

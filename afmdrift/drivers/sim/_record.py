@@ -6,8 +6,9 @@ format-v1 files (``session.json``, ``frames.npy``/``.csv``, ``channels.csv``,
 may ignore:
 
 * ``truth_components.csv``: ``t_s`` and ``<effect>_x_nm, <effect>_y_nm`` for
-  every drift effect of :data:`afmdrift.drivers.sim.COMPONENTS`; their sum is
-  ``truth.csv``;
+  every drift effect of the scenario's physics (:data:`afmdrift.drivers.sim.COMPONENTS`,
+  or ``HEAT_NETWORK_COMPONENTS`` with ``physics.model = "heat_network"``); their
+  sum is ``truth.csv``;
 * ``scenario.json``: the full validated scenario, with the seed used.
 
 ``session.json`` carries ``"simulator": {"scenario", "seed",
@@ -31,7 +32,6 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.drivers.sim._instrument import SimulatedAFM
-from afmdrift.drivers.sim._physics import COMPONENTS
 from afmdrift.drivers.sim._scenario import Scenario, load_scenario
 from afmdrift.records import Frame, ScanDirection
 from afmdrift.session import Session, SessionMeta, write_session
@@ -217,8 +217,8 @@ def _write_components(sim: SimulatedAFM, path: Path, truth: npt.NDArray[np.float
     assert truth is not None
     t = truth[:, 0]
     comps = sim.physics.components_at(t)
-    header = ["t_s"] + [f"{c}_{a}_nm" for c in COMPONENTS for a in "xy"]
-    cols = [t] + [comps[c][:, k] for c in COMPONENTS for k in range(2)]
+    header = ["t_s"] + [f"{c}_{a}_nm" for c in comps for a in "xy"]
+    cols = [t] + [comps[c][:, k] for c in comps for k in range(2)]
     data = np.column_stack(cols)
     tmp = path.with_name(path.name + ".tmp")
     with tmp.open("w", newline="", encoding="utf-8") as fh:

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers.sim._physics import DriftPhysics
+from afmdrift.drivers.sim._models import SimPhysics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scenario import ArtefactsConfig
 from afmdrift.records import ScanDirection
@@ -111,7 +111,7 @@ class FrameRaster:
 
 
 def _window_per_pixel(
-    physics: DriftPhysics, t: FloatArray, jumps_s: FloatArray
+    physics: SimPhysics, t: FloatArray, jumps_s: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
     """Window displacement ``w = c(t) + q(t) − p(t)`` for every pixel time ``t``
     (lines × cols); ``q`` is the drift-compensation ramp.
@@ -144,7 +144,7 @@ def render_lines(
     k0: int,
     k1: int,
     *,
-    physics: DriftPhysics,
+    physics: SimPhysics,
     sample: Sample,
     artefacts: ArtefactsConfig,
     bias_nm: tuple[float, float],
@@ -157,7 +157,7 @@ def render_lines(
     frame : FrameRaster
     k0, k1 : int
         Scan-order line range.
-    physics : DriftPhysics
+    physics : SimPhysics
         Source of p(t), the commanded offset c(t) and the z offset.
     sample : Sample
     artefacts : ArtefactsConfig

@@ -27,6 +27,7 @@ __all__ = [
     "ChannelPathConfig",
     "CreepConfig",
     "ExtraChannelConfig",
+    "HeatNetworkConfig",
     "HumidityConfig",
     "HysteresisConfig",
     "LoggedEventConfig",
@@ -331,9 +332,88 @@ class LoggedEventConfig(_Model):
         return self
 
 
+class HeatNetworkConfig(_Model):
+    """The second physics (``physics.model = "heat_network"``); see docs/physics.md.
+
+    Room air on a thermostat that heats and cools at different rates inside a
+    band, a stage and a scanner each lagging the node before them, an
+    algebraic warm-up, an unlogged wander of random-phase slow sinusoids, and
+    a cross-coupling of the axes.
+    """
+
+    air_mean_c: float = Field(22.0, ge=-50, le=80, description="Thermostat set point.")
+    band_k: float = Field(0.5, gt=0, le=10, description="Half-width of the thermostat band.")
+    heating_k_per_h: float = Field(2.0, gt=0, le=100, description="Air warming rate, heater on.")
+    cooling_k_per_h: float = Field(1.0, gt=0, le=100, description="Air cooling rate, heater off.")
+    tau_stage_s: float = Field(1200.0, gt=0, le=86400, description="Stage lag behind the air.")
+    tau_scanner_s: float = Field(
+        2400.0, gt=0, le=86400, description="Scanner lag behind the stage."
+    )
+    stage_offset_k: float = Field(
+        0.0, ge=-20, le=20, description="Stage (and scanner) minus air temperature at power-on."
+    )
+    air_nm_per_k: Pair = Field((0.0, 0.0), description="Instant response to the air, per axis.")
+    stage_nm_per_k: Pair = Field((0.0, 0.0), description="Response to the stage, per axis.")
+    scanner_nm_per_k: Pair = Field((0.0, 0.0), description="Response to the scanner, per axis.")
+    warmup_nm: Pair = Field((0.0, 0.0), description="Warm-up amplitude A in A·t/(t + τ_w).")
+    warmup_tau_s: float = Field(900.0, gt=0, le=86400, description="Warm-up half time τ_w.")
+    wander_nm: Pair = Field((0.0, 0.0), description="RMS of the unlogged wander, per axis.")
+    wander_periods_s: Pair = Field(
+        (240.0, 14400.0), description="Shortest and longest period of the wander's sinusoids."
+    )
+    wander_terms: int = Field(12, ge=1, le=200, description="Sinusoids per axis.")
+    cross_coupling: Pair = Field(
+        (0.0, 0.0), description="(k_xy, k_yx): x gets k_xy·y, y gets k_yx·x (dimensionless)."
+    )
+    humidity_mean_pct: float = Field(45.0, ge=0, le=100, description="Logged RH at the set point.")
+    humidity_pct_per_k: float = Field(
+        -2.7, ge=-20, le=20, description="Logged RH change per K of air (moves nothing)."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if abs(self.tau_stage_s - self.tau_scanner_s) < 1.0:
+            raise ValueError(
+                f"tau_scanner_s = {self.tau_scanner_s} must differ from tau_stage_s = "
+                f"{self.tau_stage_s} by at least 1 s"
+            )
+        lo, hi = self.wander_periods_s
+        if not 1.0 <= lo < hi <= 864000.0:
+            raise ValueError(
+                f"wander_periods_s = {self.wander_periods_s} must be (shortest, longest) "
+                "with 1 <= shortest < longest <= 864000 s"
+            )
+        for name, k in zip(("k_xy", "k_yx"), self.cross_coupling, strict=True):
+            if abs(k) > 0.9:
+                raise ValueError(
+                    f"cross_coupling {name} = {k} is out of range (allowed: -0.9..0.9)"
+                )
+        return self
+
+
+#: Tables of ``[physics]`` that only the ``effects`` model reads.
+_EFFECTS_TABLES = (
+    "dt_s",
+    "room",
+    "thermal",
+    "warmup",
+    "creep",
+    "hysteresis",
+    "humidity",
+    "random_walk",
+    "channels",
+    "events",
+)
+
+
 class PhysicsConfig(_Model):
     """All drift effects; see docs/physics.md."""
 
+    model: Literal["effects", "heat_network"] = Field(
+        "effects",
+        description="'effects': the documented sum of effects (DriftPhysics); "
+        "'heat_network': the second physics, parameters in [physics.heat_network].",
+    )
     dt_s: float = Field(0.5, gt=0, le=60, description="Time step of the stochastic processes.")
     room: RoomConfig = Field(default_factory=RoomConfig)
     thermal: ThermalConfig = Field(default_factory=ThermalConfig)
@@ -346,12 +426,31 @@ class PhysicsConfig(_Model):
     tip_changes: TipChangesConfig = Field(default_factory=TipChangesConfig)
     channels: list[ExtraChannelConfig] = Field(default_factory=list)
     events: list[LoggedEventConfig] = Field(default_factory=list)
+    heat_network: HeatNetworkConfig = Field(default_factory=HeatNetworkConfig)
 
     @model_validator(mode="after")
     def _check_channels(self) -> Self:
         names = [c.name for c in self.channels]
         if len(set(names)) != len(names):
             raise ValueError(f"physics.channels: duplicate channel names in {names}")
+        return self
+
+    @model_validator(mode="after")
+    def _check_model_tables(self) -> Self:
+        given = self.model_fields_set
+        if self.model == "heat_network":
+            stray = [k for k in _EFFECTS_TABLES if k in given]
+            if stray:
+                raise ValueError(
+                    f"physics.model = 'heat_network' does not read physics.{stray[0]} "
+                    "(a table of the 'effects' model); its parameters are in "
+                    "[physics.heat_network]"
+                )
+        elif "heat_network" in given:
+            raise ValueError(
+                f"[physics.heat_network] is read only with physics.model = 'heat_network' "
+                f"(physics.model = {self.model!r})"
+            )
         return self
 
 
