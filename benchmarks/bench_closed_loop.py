@@ -1,0 +1,272 @@
+"""Closed-loop benchmark (issue 39): how well the daemon holds the tip on the spot.
+
+For each physics (a scenario: by default the simulator's ``default`` and the
+second physics ``heat-network-2h``) and each protocol, the daemon runs against
+the simulator over loopback TCP for ``--duration-s`` of instrument time at
+``--speed``, closing the loop:
+
+* ``nanonis``: ``nanonis://``, ``closed_loop_actuator = "velocity"``
+  (``Piezo.DriftCompSet``);
+* ``line``: the NanoScope-style line protocol, ``closed_loop_actuator =
+  "offset"`` (the only actuator that driver has).
+
+Ground truth comes from the simulator, never from the wire: where image
+content sits under the tip, ``c(t) = p(t) − o(t)`` (drift minus the scan
+window's offset, compensation ramp included), sampled every ``--sample-s`` of
+instrument time from the end of the third frame ``t_3`` to the end of the run,
+relative to ``c(t_3)``. Beside it, from the same seed and interval:
+
+* no compensation: ``p(t) − p(t_3)``;
+* a constant velocity set once after the first two frames, taken from the
+  truth: ``v = (p(t_m2) − p(t_m1)) / (t_m2 − t_m1)`` at the frames'
+  mid-times, residual ``p(t) − p(t_3) − v (t − t_3)``.
+
+Columns: RMS and peak of ``|residual|`` (nm), the ratio of the daemon's RMS to
+the constant velocity's, the driver's re-centres of the drift compensation
+(Nanonis), the commanded offset moves the instrument logged
+(``len(sim.physics.moves)``), and the frames the daemon committed.
+
+The daemon runs with the project's default registration and model (no terms
+chosen for a scenario) and the service loops of the closed-loop soak test.
+Runs are sequential (one daemon at a time).
+
+Usage::
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_closed_loop.py \\
+        [--duration-s 7200] [--speed 50] [--seed N] \\
+        [--physics default heat-network-2h] [--protocols nanonis line]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+import zmq.asyncio
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "tests"))
+
+from service_sim import driver, running_service, service_config  # noqa: E402
+
+from afmdrift.config import parse_config  # noqa: E402
+from afmdrift.drivers.nanonis import NanonisDriver  # noqa: E402
+from afmdrift.drivers.sim import SimPhysics, SimulatedAFM  # noqa: E402
+from afmdrift.drivers.sim._nanonis_server import (  # noqa: E402
+    CLOCK_SIGNAL,
+    SCAN_CHANNEL,
+    NanonisSimServer,
+)
+from afmdrift.drivers.sim._server import SimulatorServer  # noqa: E402
+from afmdrift.service import RunStore  # noqa: E402
+
+FloatArray = npt.NDArray[np.float64]
+
+ACTUATOR = {"nanonis": "velocity", "line": "offset"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Residual:
+    """RMS and peak of ``|r(t)|`` over the samples, nm."""
+
+    rms_nm: float
+    peak_nm: float
+
+    @classmethod
+    def of(cls, r: FloatArray) -> Residual:
+        """From residuals of shape (n, 2), nm."""
+        norm = np.hypot(r[:, 0], r[:, 1])
+        return cls(float(np.sqrt(np.mean(norm**2))), float(norm.max()))
+
+
+def sample_times(frame_period_s: float, duration_s: float, step_s: float) -> FloatArray:
+    """From the end of the third frame to ``duration_s``, every ``step_s``."""
+    return np.arange(3.0 * frame_period_s, duration_s + 1e-9, step_s)
+
+
+def baselines(
+    physics: SimPhysics, frame_period_s: float, t: FloatArray
+) -> tuple[Residual, Residual]:
+    """No compensation and the constant velocity of the first two frames, on ``t``.
+
+    ``t[0]`` is the end of the third frame; frames start every ``frame_period_s``
+    from power-on.
+    """
+    p = physics.drift_at(t)
+    p3 = p[0]
+    t_m1, t_m2 = 0.5 * frame_period_s, 1.5 * frame_period_s
+    v = (physics.drift_at(t_m2) - physics.drift_at(t_m1)) / (t_m2 - t_m1)
+    none = Residual.of(p - p3)
+    constant = Residual.of(p - p3 - (t - t[0])[:, None] * v[None, :])
+    return none, constant
+
+
+def content_residual(physics: SimPhysics, t: FloatArray) -> Residual:
+    """Where image content sits, ``p − o``, relative to ``t[0]``."""
+    c = physics.drift_at(t) - physics.scan_offset_at(t)
+    return Residual.of(c - c[0])
+
+
+@dataclasses.dataclass(frozen=True)
+class CaseResult:
+    physics: str
+    protocol: str
+    afmdrift: Residual
+    none: Residual
+    constant: Residual
+    recentres: int | None
+    moves: int
+    frames: int
+    wall_s: float
+
+
+def _service_config(run_dir: Path, actuator: str) -> object:
+    svc = service_config(
+        run_dir,
+        closed_loop=True,
+        closed_loop_actuator=actuator,
+        closed_loop_interval_s=0.1,
+        closed_loop_min_step_nm=0.0,
+    ).service
+    return parse_config({"service": svc.model_dump(mode="json", exclude_defaults=True)})
+
+
+async def _hold(sim: SimulatedAFM, duration_s: float, speed: float) -> None:
+    async with asyncio.timeout(2.5 * duration_s / speed + 60):
+        while sim.now_s < duration_s:  # noqa: ASYNC110 (the simulator's clock)
+            await asyncio.sleep(0.5)
+
+
+async def run_case(
+    scenario: str,
+    protocol: str,
+    *,
+    duration_s: float,
+    speed: float,
+    seed: int | None,
+    run_dir: Path,
+) -> tuple[SimulatedAFM, int | None, int]:
+    """Run the daemon against the simulator; the simulator, re-centres and frames."""
+    sim = SimulatedAFM.from_scenario(scenario, seed=seed)
+    cfg = _service_config(run_dir, ACTUATOR[protocol])
+    ctx = zmq.asyncio.Context()
+    recentres: int | None = None
+    try:
+        if protocol == "nanonis":
+            async with NanonisSimServer(sim, speed=speed) as server:
+                port = await server.start_tcp(0)
+                nanonis = NanonisDriver(
+                    f"nanonis://127.0.0.1:{port}",
+                    wait_transport=f"nanonis://127.0.0.1:{port}",
+                    channel_index=SCAN_CHANNEL,
+                    channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
+                    clock_signal=CLOCK_SIGNAL,
+                    wait_ms=100,
+                )
+                async with running_service(cfg, nanonis, ctx):  # type: ignore[arg-type]
+                    await _hold(sim, duration_s, speed)
+                recentres = nanonis.recentres
+        else:
+            server = SimulatorServer(sim, speed=speed)
+            try:
+                port = await server.start_tcp(0, host="127.0.0.1")
+                async with running_service(cfg, driver(f"socket://127.0.0.1:{port}"), ctx):  # type: ignore[arg-type]
+                    await _hold(sim, duration_s, speed)
+            finally:
+                await server.stop()
+    finally:
+        ctx.term()
+    return sim, recentres, len(RunStore(run_dir).frames())
+
+
+def measure(
+    scenario: str,
+    protocol: str,
+    *,
+    duration_s: float,
+    speed: float,
+    seed: int | None,
+    step_s: float,
+) -> CaseResult:
+    with tempfile.TemporaryDirectory(prefix="bench-closed-loop-") as tmp:
+        t0 = time.perf_counter()
+        sim, recentres, frames = asyncio.run(
+            run_case(
+                scenario,
+                protocol,
+                duration_s=duration_s,
+                speed=speed,
+                seed=seed,
+                run_dir=Path(tmp) / "run",
+            )
+        )
+        wall = time.perf_counter() - t0
+    t = sample_times(sim.frame_period_s, duration_s, step_s)
+    none, constant = baselines(sim.physics, sim.frame_period_s, t)
+    return CaseResult(
+        physics=scenario,
+        protocol=protocol,
+        afmdrift=content_residual(sim.physics, t),
+        none=none,
+        constant=constant,
+        recentres=recentres,
+        moves=len(sim.physics.moves),
+        frames=frames,
+        wall_s=wall,
+    )
+
+
+def table(results: list[CaseResult]) -> str:
+    head = (
+        "| physics | protocol (actuator) | no compensation RMS / peak | constant velocity "
+        "RMS / peak | afmdrift RMS / peak | afmdrift / constant RMS | re-centres | offset moves "
+        "| frames | wall |\n|---|---|---|---|---|---|---|---|---|---|"
+    )
+    rows = [head]
+    for r in results:
+        rc = "–" if r.recentres is None else str(r.recentres)
+        rows.append(
+            f"| {r.physics} | {r.protocol} ({ACTUATOR[r.protocol]}) "
+            f"| {r.none.rms_nm:.1f} / {r.none.peak_nm:.1f} nm "
+            f"| {r.constant.rms_nm:.1f} / {r.constant.peak_nm:.1f} nm "
+            f"| {r.afmdrift.rms_nm:.2f} / {r.afmdrift.peak_nm:.1f} nm "
+            f"| {r.afmdrift.rms_nm / r.constant.rms_nm:.3f} | {rc} | {r.moves} | {r.frames} "
+            f"| {r.wall_s:.0f} s |"
+        )
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration-s", type=float, default=7200.0, help="instrument time per run")
+    ap.add_argument("--speed", type=float, default=50.0, help="instrument clock / wall clock")
+    ap.add_argument("--seed", type=int, default=None, help="default: each scenario's own")
+    ap.add_argument("--physics", nargs="+", default=["default", "heat-network-2h"])
+    ap.add_argument("--protocols", nargs="+", choices=sorted(ACTUATOR), default=["nanonis", "line"])
+    ap.add_argument("--sample-s", type=float, default=1.0, help="truth sampling step")
+    args = ap.parse_args(argv)
+    results = []
+    for scenario in args.physics:
+        for protocol in args.protocols:
+            r = measure(
+                scenario,
+                protocol,
+                duration_s=args.duration_s,
+                speed=args.speed,
+                seed=args.seed,
+                step_s=args.sample_s,
+            )
+            print(f"{scenario} / {protocol}: {r}", file=sys.stderr, flush=True)
+            results.append(r)
+    print(table(results))
+
+
+if __name__ == "__main__":
+    main()
