@@ -14,7 +14,9 @@ Ground truth comes from the simulator, never from the wire: where image
 content sits under the tip, ``c(t) = p(t) − o(t)`` (drift minus the scan
 window's offset, compensation ramp included), sampled every ``--sample-s`` of
 instrument time from the end of the third frame ``t_3`` to the end of the run,
-relative to ``c(t_3)``. Beside it, from the same seed and interval:
+relative to ``c(t_3)``. Beside it, from the same scenario and seed left
+alone (a twin simulator with no loop, so without the creep and play that the
+loop's own offset moves cause in the first physics), on the same interval:
 
 * no compensation: ``p(t) − p(t_3)``;
 * a constant velocity set once after the first two frames, taken from the
@@ -54,16 +56,10 @@ import zmq.asyncio
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 
-from service_sim import driver, running_service, service_config  # noqa: E402
+from service_sim import closed_loop_config, driver, nanonis_driver, running_service  # noqa: E402
 
-from afmdrift.config import parse_config  # noqa: E402
-from afmdrift.drivers.nanonis import NanonisDriver  # noqa: E402
 from afmdrift.drivers.sim import SimPhysics, SimulatedAFM  # noqa: E402
-from afmdrift.drivers.sim._nanonis_server import (  # noqa: E402
-    CLOCK_SIGNAL,
-    SCAN_CHANNEL,
-    NanonisSimServer,
-)
+from afmdrift.drivers.sim._nanonis_server import NanonisSimServer  # noqa: E402
 from afmdrift.drivers.sim._server import SimulatorServer  # noqa: E402
 from afmdrift.service import RunStore  # noqa: E402
 
@@ -127,17 +123,6 @@ class CaseResult:
     wall_s: float
 
 
-def _service_config(run_dir: Path, actuator: str) -> object:
-    svc = service_config(
-        run_dir,
-        closed_loop=True,
-        closed_loop_actuator=actuator,
-        closed_loop_interval_s=0.1,
-        closed_loop_min_step_nm=0.0,
-    ).service
-    return parse_config({"service": svc.model_dump(mode="json", exclude_defaults=True)})
-
-
 async def _hold(sim: SimulatedAFM, duration_s: float, speed: float) -> None:
     async with asyncio.timeout(2.5 * duration_s / speed + 60):
         while sim.now_s < duration_s:  # noqa: ASYNC110 (the simulator's clock)
@@ -155,29 +140,22 @@ async def run_case(
 ) -> tuple[SimulatedAFM, int | None, int]:
     """Run the daemon against the simulator; the simulator, re-centres and frames."""
     sim = SimulatedAFM.from_scenario(scenario, seed=seed)
-    cfg = _service_config(run_dir, ACTUATOR[protocol])
+    cfg = closed_loop_config(run_dir, ACTUATOR[protocol])
     ctx = zmq.asyncio.Context()
     recentres: int | None = None
     try:
         if protocol == "nanonis":
-            async with NanonisSimServer(sim, speed=speed) as server:
-                port = await server.start_tcp(0)
-                nanonis = NanonisDriver(
-                    f"nanonis://127.0.0.1:{port}",
-                    wait_transport=f"nanonis://127.0.0.1:{port}",
-                    channel_index=SCAN_CHANNEL,
-                    channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
-                    clock_signal=CLOCK_SIGNAL,
-                    wait_ms=100,
-                )
-                async with running_service(cfg, nanonis, ctx):  # type: ignore[arg-type]
+            async with NanonisSimServer(sim, speed=speed) as nanonis_server:
+                port = await nanonis_server.start_tcp(0)
+                nanonis = nanonis_driver(port)
+                async with running_service(cfg, nanonis, ctx):
                     await _hold(sim, duration_s, speed)
                 recentres = nanonis.recentres
         else:
             server = SimulatorServer(sim, speed=speed)
             try:
                 port = await server.start_tcp(0, host="127.0.0.1")
-                async with running_service(cfg, driver(f"socket://127.0.0.1:{port}"), ctx):  # type: ignore[arg-type]
+                async with running_service(cfg, driver(f"socket://127.0.0.1:{port}"), ctx):
                     await _hold(sim, duration_s, speed)
             finally:
                 await server.stop()
@@ -209,7 +187,11 @@ def measure(
         )
         wall = time.perf_counter() - t0
     t = sample_times(sim.frame_period_s, duration_s, step_s)
-    none, constant = baselines(sim.physics, sim.frame_period_s, t)
+    # The baselines from a twin left alone: in the first physics the loop's own
+    # offset moves add creep and play to p(t), which no compensation would not have.
+    twin = SimulatedAFM.from_scenario(scenario, seed=seed)
+    twin.advance_to(duration_s)
+    none, constant = baselines(twin.physics, twin.frame_period_s, t)
     return CaseResult(
         physics=scenario,
         protocol=protocol,

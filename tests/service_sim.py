@@ -23,7 +23,9 @@ import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig, parse_config
 from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers.nanonis import NanonisDriver
 from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
+from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL
 from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
@@ -248,6 +250,38 @@ def service_config(
             "registration": registration or {"block_size": 32, "extended_size": 64},
             "model": {"predictor": "constant_velocity"} if model is None else model,
         }
+    )
+
+
+def closed_loop_config(
+    run_dir: Path, actuator: str, *, terms: list[str] | None = None
+) -> AfmdriftConfig:
+    """The closed-loop soak's configuration: the project's default registration and
+    model (``terms`` replaces the model's terms), the service's loops fast, the loop
+    closed every 0.1 s through ``actuator`` with no minimum step."""
+    svc = service_config(
+        run_dir,
+        closed_loop=True,
+        closed_loop_actuator=actuator,
+        closed_loop_interval_s=0.1,
+        closed_loop_min_step_nm=0.0,
+    ).service
+    data: dict[str, Any] = {"service": svc.model_dump(mode="json", exclude_defaults=True)}
+    if terms is not None:
+        data["model"] = {"physics": {"terms": terms}}
+    return parse_config(data)
+
+
+def nanonis_driver(port: int) -> NanonisDriver:
+    """The production Nanonis driver on a :class:`NanonisSimServer` at ``port``
+    (loopback), its waits for the end of scan on a connection of their own."""
+    return NanonisDriver(
+        f"nanonis://127.0.0.1:{port}",
+        wait_transport=f"nanonis://127.0.0.1:{port}",
+        channel_index=SCAN_CHANNEL,
+        channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
+        clock_signal=CLOCK_SIGNAL,
+        wait_ms=100,
     )
 
 

@@ -39,7 +39,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from afmdrift.drivers.sim._physics import DriftPhysics, OffsetMove, TipChange
+from afmdrift.drivers.sim._physics import DriftPhysics, OffsetMove, TipChange, total_drift
 from afmdrift.drivers.sim._scenario import HeatNetworkConfig, PhysicsConfig
 
 __all__ = ["HEAT_NETWORK_COMPONENTS", "HeatNetworkPhysics"]
@@ -168,7 +168,8 @@ class HeatNetworkPhysics:
             start_offset_nm=start_offset_nm,
         )
         self._nodes = _Thermostat(cfg)
-        self._nodes0 = (0.0, float(cfg.stage_offset_k), float(cfg.stage_offset_k))
+        # The nodes at power-on as the closed form gives them, so that p(0) = 0 exactly.
+        self._nodes0 = tuple(float(x[0]) for x in self._nodes.at(np.zeros(1)))
         self._couple = np.array([[1.0, cfg.cross_coupling[0]], [cfg.cross_coupling[1], 1.0]])
         self._omega, self._phase, self._amp = self._wander_terms(cfg, seed)
 
@@ -198,6 +199,11 @@ class HeatNetworkPhysics:
     def head_temperature_c(self, t_s: npt.ArrayLike) -> FloatArray:
         """Room air temperature at the head, °C; what the sensor reads."""
         out: FloatArray = self._cfg.air_mean_c + self._temperatures(t_s)[0]
+        return out
+
+    def stage_temperature_c(self, t_s: npt.ArrayLike) -> FloatArray:
+        """Stage temperature (first node), °C; not measured."""
+        out: FloatArray = self._cfg.air_mean_c + self._temperatures(t_s)[1]
         return out
 
     def scanner_temperature_c(self, t_s: npt.ArrayLike) -> FloatArray:
@@ -280,11 +286,7 @@ class HeatNetworkPhysics:
 
     def drift_at(self, t_s: npt.ArrayLike) -> FloatArray:
         """True drift p(t), shape (..., 2) in nm (sum of :meth:`components_at`)."""
-        comps = self.components_at(t_s)
-        total = np.zeros_like(comps["air"])
-        for v in comps.values():
-            total += v
-        return total
+        return total_drift(self.components_at(t_s))
 
     def z_offset_nm(self, t_s: npt.ArrayLike, *, rate_nm_per_s: float) -> FloatArray:
         """Slow height offset ``rate · t``, nm (no thermal height drift in this model)."""

@@ -238,6 +238,15 @@ class _Grid:
         return out
 
 
+def total_drift(components: dict[str, FloatArray]) -> FloatArray:
+    """p(t), the sum of the drift components (each of shape (..., 2), nm)."""
+    values = iter(components.values())
+    total = np.array(next(values), dtype=np.float64)
+    for v in values:
+        total += v
+    return total
+
+
 class DriftPhysics:
     """Ground-truth drift p(t), the sensors' true values, and the offset actuator.
 
@@ -605,11 +614,7 @@ class DriftPhysics:
 
     def drift_at(self, t_s: npt.ArrayLike) -> FloatArray:
         """True drift p(t), shape (..., 2) in nm (sum of :meth:`components_at`)."""
-        comps = self.components_at(t_s)
-        total = np.zeros_like(comps["thermal"])
-        for v in comps.values():
-            total += v
-        return total
+        return total_drift(self.components_at(t_s))
 
     def z_offset_nm(self, t_s: npt.ArrayLike, *, rate_nm_per_s: float) -> FloatArray:
         """Slow height offset: ``rate · t + α_z (T_s − T_s(0))``, nm."""
