@@ -9,7 +9,14 @@ import pytest
 from afmdrift.drivers.sim import SCENARIO_DIR, load_scenario, parse_scenario
 from afmdrift.errors import ConfigError
 
-BUILT_IN = ("default", "graphite-paper", "gold-manipulation-8h", "quiet-lab-24h", "hsafm-movie")
+BUILT_IN = (
+    "default",
+    "graphite-paper",
+    "gold-manipulation-8h",
+    "quiet-lab-24h",
+    "hsafm-movie",
+    "heat-network-2h",
+)
 
 
 @pytest.mark.parametrize("name", BUILT_IN)
