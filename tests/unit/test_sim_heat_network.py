@@ -141,6 +141,14 @@ def test_a_commanded_move_or_compensation_ramp_is_not_drift() -> None:
     np.testing.assert_allclose(c[1] - c_twin[1], [-30.0, 20.0])
 
 
+def test_the_controller_holds_its_displacement_when_the_velocity_changes() -> None:
+    physics = _shipped()
+    physics.ramp_compensation(100.0, (1.0, -0.5), (1000.0, 1000.0))
+    held = physics.ramp_compensation(300.0, (0.0, 0.0), (1000.0, 1000.0))
+    np.testing.assert_allclose(held, [200.0, -100.0])
+    np.testing.assert_allclose(physics.compensation_at(np.array([300.0, 5000.0])), [held, held])
+
+
 def test_a_tip_change_is_a_step_in_the_drift() -> None:
     physics = _shipped()
     twin = _shipped()
