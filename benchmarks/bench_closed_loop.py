@@ -29,14 +29,15 @@ the constant velocity's, the driver's re-centres of the drift compensation
 (``len(sim.physics.moves)``), and the frames the daemon committed.
 
 The daemon runs with the project's default registration and model (no terms
-chosen for a scenario) and the service loops of the closed-loop soak test.
+chosen for a scenario; ``--terms`` replaces the model's terms) and the service
+loops of the closed-loop soak test.
 Runs are sequential (one daemon at a time).
 
 Usage::
 
     OPENBLAS_NUM_THREADS=1 python benchmarks/bench_closed_loop.py \\
         [--duration-s 7200] [--speed 50] [--seed N] \\
-        [--physics default heat-network-2h] [--protocols nanonis line]
+        [--physics default heat-network-2h] [--protocols nanonis line] [--terms ...]
 """
 
 from __future__ import annotations
@@ -137,10 +138,11 @@ async def run_case(
     speed: float,
     seed: int | None,
     run_dir: Path,
+    terms: list[str] | None = None,
 ) -> tuple[SimulatedAFM, int | None, int]:
     """Run the daemon against the simulator; the simulator, re-centres and frames."""
     sim = SimulatedAFM.from_scenario(scenario, seed=seed)
-    cfg = closed_loop_config(run_dir, ACTUATOR[protocol])
+    cfg = closed_loop_config(run_dir, ACTUATOR[protocol], terms=terms)
     ctx = zmq.asyncio.Context()
     recentres: int | None = None
     try:
@@ -172,6 +174,7 @@ def measure(
     speed: float,
     seed: int | None,
     step_s: float,
+    terms: list[str] | None = None,
 ) -> CaseResult:
     with tempfile.TemporaryDirectory(prefix="bench-closed-loop-") as tmp:
         t0 = time.perf_counter()
@@ -183,6 +186,7 @@ def measure(
                 speed=speed,
                 seed=seed,
                 run_dir=Path(tmp) / "run",
+                terms=terms,
             )
         )
         wall = time.perf_counter() - t0
@@ -233,6 +237,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--physics", nargs="+", default=["default", "heat-network-2h"])
     ap.add_argument("--protocols", nargs="+", choices=sorted(ACTUATOR), default=["nanonis", "line"])
     ap.add_argument("--sample-s", type=float, default=1.0, help="truth sampling step")
+    ap.add_argument(
+        "--terms", nargs="+", default=None, help="the model's terms (default: the project's)"
+    )
     args = ap.parse_args(argv)
     results = []
     for scenario in args.physics:
@@ -244,6 +251,7 @@ def main(argv: list[str] | None = None) -> None:
                 speed=args.speed,
                 seed=args.seed,
                 step_s=args.sample_s,
+                terms=args.terms,
             )
             print(f"{scenario} / {protocol}: {r}", file=sys.stderr, flush=True)
             results.append(r)
