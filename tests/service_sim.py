@@ -23,7 +23,9 @@ import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig, parse_config
 from afmdrift.drivers._nanoscope import NanoScopeDriver
+from afmdrift.drivers.nanonis import NanonisDriver
 from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
+from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL, NanonisSimServer
 from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
@@ -277,6 +279,55 @@ async def running_service(
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+#: The model of the closed-loop runs on the Nanonis simulator: the project's
+#: default registration, with the hysteresis of the offset moves (a play)
+#: that ``afmdrift diagnose`` names on a closed-loop run of the default
+#: scenario.
+CLOSED_LOOP_TERMS = ["trend", "warmup", "thermal_lag", "creep", "hysteresis", "scan_direction"]
+
+
+@contextlib.asynccontextmanager
+async def nanonis_closed_loop(
+    sim: SimulatedAFM,
+    run_dir: Path,
+    ctx: zmq.asyncio.Context,
+    *,
+    speed: float,
+    actuator: str = "velocity",
+    **service: Any,
+) -> AsyncIterator[tuple[DriftService, NanonisDriver, NanonisSimServer]]:
+    """The daemon's closed loop on ``sim`` served over the Nanonis protocol on
+    loopback TCP at ``speed``: the production driver (with a wait connection),
+    the loop's interval 0.1 s of wall time, every correction sent, the model of
+    :data:`CLOSED_LOOP_TERMS` (``service`` overrides the service settings)."""
+    async with NanonisSimServer(sim, speed=speed) as server:
+        port = await server.start_tcp(0)
+        driver = NanonisDriver(
+            f"nanonis://127.0.0.1:{port}",
+            wait_transport=f"nanonis://127.0.0.1:{port}",
+            channel_index=SCAN_CHANNEL,
+            channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
+            clock_signal=CLOCK_SIGNAL,
+            wait_ms=100,
+        )
+        settings: dict[str, Any] = {
+            "closed_loop": True,
+            "closed_loop_actuator": actuator,
+            "closed_loop_interval_s": 0.1,
+            "closed_loop_min_step_nm": 0.0,
+            **service,
+        }
+        svc = service_config(run_dir, **settings).service
+        cfg = parse_config(
+            {
+                "service": svc.model_dump(mode="json", exclude_defaults=True),
+                "model": {"physics": {"terms": CLOSED_LOOP_TERMS}},
+            }
+        )
+        async with running_service(cfg, driver, ctx) as running:
+            yield running, driver, server
 
 
 def committed_frames(run_dir: Path) -> int:

@@ -18,14 +18,11 @@ import numpy as np
 import pytest
 import zmq.asyncio
 
-from afmdrift.config import parse_config
-from afmdrift.drivers.nanonis import NanonisDriver
 from afmdrift.drivers.sim import SCENARIO_DIR, SimulatedAFM
-from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL, NanonisSimServer
 from afmdrift.service import RunStore
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from service_sim import running_service, service_config
+from service_sim import nanonis_closed_loop
 
 # 2.5 min of wall time per actuator: excluded by default, run with -m soak.
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow, pytest.mark.soak]
@@ -38,39 +35,16 @@ async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
     sim = SimulatedAFM.from_scenario(SCENARIO_DIR / "default.toml")
     ctx = zmq.asyncio.Context()
     try:
-        async with NanonisSimServer(sim, speed=SPEED) as server:
-            port = await server.start_tcp(0)
-            driver = NanonisDriver(
-                f"nanonis://127.0.0.1:{port}",
-                wait_transport=f"nanonis://127.0.0.1:{port}",
-                channel_index=SCAN_CHANNEL,
-                channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
-                clock_signal=CLOCK_SIGNAL,
-                wait_ms=100,
-            )
-            # The project's default registration and model, with the hysteresis
-            # of the offset moves (a play) that `afmdrift diagnose` names on a
-            # closed-loop run of this scenario; the service's loops fast.
-            svc = service_config(
-                run_dir,
-                closed_loop=True,
-                closed_loop_actuator=actuator,
-                closed_loop_interval_s=0.1,
-                closed_loop_min_step_nm=0.0,
-            ).service
-            terms = ["trend", "warmup", "thermal_lag", "creep", "hysteresis", "scan_direction"]
-            cfg = parse_config(
-                {
-                    "service": svc.model_dump(mode="json", exclude_defaults=True),
-                    "model": {"physics": {"terms": terms}},
-                }
-            )
-            async with running_service(cfg, driver, ctx) as service:
-                async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
-                    while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
-                        await asyncio.sleep(0.5)
-                latencies = np.array(service.latencies_s)
-                recentres = driver.recentres
+        async with nanonis_closed_loop(sim, run_dir, ctx, speed=SPEED, actuator=actuator) as (
+            service,
+            driver,
+            _,
+        ):
+            async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
+                while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
+                    await asyncio.sleep(0.5)
+            latencies = np.array(service.latencies_s)
+            recentres = driver.recentres
     finally:
         ctx.term()
     records = RunStore(run_dir).frames()
