@@ -61,10 +61,14 @@ import zmq.asyncio
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 
-from service_sim import closed_loop_config, driver, nanonis_driver, running_service  # noqa: E402
+from service_sim import (  # noqa: E402
+    closed_loop_config,
+    driver,
+    nanonis_closed_loop,
+    running_service,
+)
 
 from afmdrift.drivers.sim import SimPhysics, SimulatedAFM  # noqa: E402
-from afmdrift.drivers.sim._nanonis_server import NanonisSimServer  # noqa: E402
 from afmdrift.drivers.sim._server import SimulatorServer  # noqa: E402
 from afmdrift.service import RunStore  # noqa: E402
 
@@ -148,18 +152,17 @@ async def run_case(
 ) -> tuple[SimulatedAFM, int | None, int]:
     """Run the daemon against the simulator; the simulator, re-centres and frames."""
     sim = SimulatedAFM.from_scenario(scenario, seed=seed)
-    cfg = closed_loop_config(run_dir, ACTUATOR[protocol], terms=terms)
     ctx = zmq.asyncio.Context()
     recentres: int | None = None
     try:
         if protocol == "nanonis":
-            async with NanonisSimServer(sim, speed=speed) as nanonis_server:
-                port = await nanonis_server.start_tcp(0)
-                nanonis = nanonis_driver(port)
-                async with running_service(cfg, nanonis, ctx):
-                    await _hold(sim, duration_s, speed)
-                recentres = nanonis.recentres
+            async with nanonis_closed_loop(
+                sim, run_dir, ctx, speed=speed, actuator=ACTUATOR[protocol], terms=terms
+            ) as (_, nanonis, _):
+                await _hold(sim, duration_s, speed)
+            recentres = nanonis.recentres
         else:
+            cfg = closed_loop_config(run_dir, ACTUATOR[protocol], terms=terms)
             server = SimulatorServer(sim, speed=speed)
             try:
                 port = await server.start_tcp(0, host="127.0.0.1")

@@ -25,7 +25,7 @@ from afmdrift.config import AfmdriftConfig, parse_config
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers.nanonis import NanonisDriver
 from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
-from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL
+from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL, NanonisSimServer
 from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
@@ -253,38 +253,6 @@ def service_config(
     )
 
 
-def closed_loop_config(
-    run_dir: Path, actuator: str, *, terms: list[str] | None = None
-) -> AfmdriftConfig:
-    """The closed-loop soak's configuration: the project's default registration and
-    model (``terms`` replaces the model's terms), the service's loops fast, the loop
-    closed every 0.1 s through ``actuator`` with no minimum step."""
-    svc = service_config(
-        run_dir,
-        closed_loop=True,
-        closed_loop_actuator=actuator,
-        closed_loop_interval_s=0.1,
-        closed_loop_min_step_nm=0.0,
-    ).service
-    data: dict[str, Any] = {"service": svc.model_dump(mode="json", exclude_defaults=True)}
-    if terms is not None:
-        data["model"] = {"physics": {"terms": terms}}
-    return parse_config(data)
-
-
-def nanonis_driver(port: int) -> NanonisDriver:
-    """The production Nanonis driver on a :class:`NanonisSimServer` at ``port``
-    (loopback), its waits for the end of scan on a connection of their own."""
-    return NanonisDriver(
-        f"nanonis://127.0.0.1:{port}",
-        wait_transport=f"nanonis://127.0.0.1:{port}",
-        channel_index=SCAN_CHANNEL,
-        channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
-        clock_signal=CLOCK_SIGNAL,
-        wait_ms=100,
-    )
-
-
 def driver(url: str) -> NanoScopeDriver:
     """The production driver on ``url`` with short timeouts for tests."""
     return NanoScopeDriver(
@@ -311,6 +279,67 @@ async def running_service(
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task
+
+
+#: The model of the closed-loop runs on the Nanonis simulator: the project's
+#: default registration, with the hysteresis of the offset moves (a play)
+#: that ``afmdrift diagnose`` names on a closed-loop run of the default
+#: scenario.
+CLOSED_LOOP_TERMS = ["trend", "warmup", "thermal_lag", "creep", "hysteresis", "scan_direction"]
+
+
+def closed_loop_config(
+    run_dir: Path,
+    actuator: str,
+    *,
+    terms: list[str] | None = CLOSED_LOOP_TERMS,
+    **service: Any,
+) -> AfmdriftConfig:
+    """The closed-loop runs' configuration: the project's default registration,
+    the model of ``terms`` (None: the project's default model), the service's
+    loops fast, the loop's interval 0.1 s of wall time, every correction sent
+    through ``actuator`` (``service`` overrides the service settings)."""
+    settings: dict[str, Any] = {
+        "closed_loop": True,
+        "closed_loop_actuator": actuator,
+        "closed_loop_interval_s": 0.1,
+        "closed_loop_min_step_nm": 0.0,
+        **service,
+    }
+    svc = service_config(run_dir, **settings).service
+    data: dict[str, Any] = {"service": svc.model_dump(mode="json", exclude_defaults=True)}
+    if terms is not None:
+        data["model"] = {"physics": {"terms": list(terms)}}
+    return parse_config(data)
+
+
+@contextlib.asynccontextmanager
+async def nanonis_closed_loop(
+    sim: SimulatedAFM,
+    run_dir: Path,
+    ctx: zmq.asyncio.Context,
+    *,
+    speed: float,
+    actuator: str = "velocity",
+    terms: list[str] | None = CLOSED_LOOP_TERMS,
+    **service: Any,
+) -> AsyncIterator[tuple[DriftService, NanonisDriver, NanonisSimServer]]:
+    """The daemon's closed loop on ``sim`` served over the Nanonis protocol on
+    loopback TCP at ``speed``: the production driver (with a wait connection)
+    and :func:`closed_loop_config` (``terms``, ``service``)."""
+    async with NanonisSimServer(sim, speed=speed) as server:
+        port = await server.start_tcp(0)
+        driver = NanonisDriver(
+            f"nanonis://127.0.0.1:{port}",
+            wait_transport=f"nanonis://127.0.0.1:{port}",
+            channel_index=SCAN_CHANNEL,
+            channels={"temperature_c": "Temperature (C)", "humidity_pct": "Humidity (%)"},
+            clock_signal=CLOCK_SIGNAL,
+            wait_ms=100,
+        )
+        cfg = closed_loop_config(run_dir, actuator, terms=terms, **service)
+        async with running_service(cfg, driver, ctx) as running:
+            yield running, driver, server
 
 
 def committed_frames(run_dir: Path) -> int:

@@ -140,6 +140,25 @@ class DriverConfig(BaseModel):
     nanonis_drift_comp_limit_pct: float = Field(
         10.0, gt=0, le=100, description="nanonis: drift compensation saturation limit, % of range."
     )
+    nanonis_drift_comp_release: Literal["unknown", "reset", "keep"] = Field(
+        "unknown",
+        description=(
+            "nanonis: what switching the drift compensation off does to its displacement on "
+            "this controller. reset: a re-centre switches it off and on (checked on the next "
+            "frame); unknown or keep: a re-centre hands the displacement to the frame centre "
+            "and ramps it out over one closed-loop interval, right either way."
+        ),
+    )
+    nanonis_min_recentre_interval_s: float = Field(
+        60.0,
+        ge=0.0,
+        le=86400.0,
+        description=(
+            "nanonis: instrument seconds at least between two re-centres of the drift "
+            "compensation (and none while the last one's check is pending): the bound on "
+            "re-centring moves."
+        ),
+    )
 
     @field_validator("transport")
     @classmethod

@@ -177,6 +177,17 @@ class ServiceConfig(BaseModel):
     closed_loop_interval_s: float = Field(
         1.0, ge=0.01, le=3600.0, description="Wall seconds between closed-loop moves."
     )
+    closed_loop_probe_nm: float = Field(
+        20.0,
+        ge=0.0,
+        le=1000.0,
+        description=(
+            "velocity actuator: once the loop acts, move the frame centre this far across the "
+            "drift while the compensation ramps it back out, and check on the next frame that "
+            "the image did not move (a compensation applying another gain than asked raises "
+            "actuator_mismatch); capped at half the re-centre threshold; 0: no probe."
+        ),
+    )
     closed_loop_min_step_nm: float = Field(
         0.2, ge=0.0, le=1000.0, description="Smaller corrections are not sent."
     )

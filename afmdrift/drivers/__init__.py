@@ -8,7 +8,13 @@ service.
 """
 
 from afmdrift.config import DriverConfig
-from afmdrift.drivers._base import EventBacklog, Instrument, VelocityActuator
+from afmdrift.drivers._base import (
+    CheckedActuator,
+    EventBacklog,
+    Instrument,
+    Recentre,
+    VelocityActuator,
+)
 from afmdrift.drivers._folder import FolderInstrument, OffsetNotSupportedError
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers._open import instrument_from_config
@@ -26,6 +32,7 @@ from afmdrift.records import ChannelSample, Event, EventKind, Frame, InstrumentI
 
 __all__ = [
     "ChannelSample",
+    "CheckedActuator",
     "ChecksumError",
     "DriverConfig",
     "Event",
@@ -42,6 +49,7 @@ __all__ = [
     "OffsetNotSupportedError",
     "OutOfSequenceError",
     "ProtocolError",
+    "Recentre",
     "ReplayInstrument",
     "ScanDirection",
     "ScriptedTransport",

@@ -8,12 +8,20 @@ simulator, or a replayed session.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from types import TracebackType
-from typing import Protocol, TypeVar, runtime_checkable
+from typing import Literal, Protocol, TypeVar, runtime_checkable
 
 from afmdrift.records import ChannelSample, Event, Frame, InstrumentInfo
 
-__all__ = ["ConnectOnEnter", "EventBacklog", "Instrument", "VelocityActuator"]
+__all__ = [
+    "CheckedActuator",
+    "ConnectOnEnter",
+    "EventBacklog",
+    "Instrument",
+    "Recentre",
+    "VelocityActuator",
+]
 
 
 @runtime_checkable
@@ -68,6 +76,56 @@ class VelocityActuator(Protocol):
     async def set_drift_velocity(self, vx_nm_per_s: float, vy_nm_per_s: float) -> None:
         """Move the XY offset at this velocity (nm/s) from now until the next call."""
         ...
+
+
+@dataclass(frozen=True, slots=True)
+class Recentre:
+    """A re-centre of the drift compensation, for the image to confirm.
+
+    At ``t_s`` the frame centre took over ``displacement_nm`` (x, y) from the
+    compensation, booked as net zero. With ``procedure = "release"`` the
+    compensation was switched off and on, booked as releasing the
+    displacement (a controller known to reset it); with ``"ramp"`` it was not
+    switched, and the displacement was ramped out over the next interval
+    between velocity commands (right whatever off does). The frame after it
+    must sit where the published d(t) of before put it; under a controller
+    that kept the displacement through a ``"release"``, it sits
+    ``alternative_jump_nm`` (drift position p, nm) off.
+    """
+
+    t_s: float
+    displacement_nm: tuple[float, float]
+    procedure: Literal["release", "ramp"]
+    #: ``"probe"``: a take-over asked for to check the actuator
+    #: (:meth:`CheckedActuator.probe`), not needed by the range.
+    kind: Literal["recentre", "probe"] = "recentre"
+
+    @property
+    def alternative_jump_nm(self) -> tuple[float, float] | None:
+        """The jump of the measured drift position if the controller kept a
+        displacement booked as released (None: the procedure does not
+        depend on it)."""
+        if self.procedure == "ramp":
+            return None
+        # the window stands +q off the books, and content (p = m + O) reads −q
+        return (-self.displacement_nm[0], -self.displacement_nm[1])
+
+
+@runtime_checkable
+class CheckedActuator(Protocol):
+    """A velocity actuator whose re-centres the daemon checks on the image
+    (an optional capability, e.g. the Nanonis driver): it says which
+    re-centre waits for its frame, is told what the frame showed, and can be
+    told to stop re-centring."""
+
+    recentre_allowed: bool
+
+    @property
+    def unchecked_recentre(self) -> Recentre | None: ...
+
+    def recentre_checked(self, *, kept: bool = False) -> None: ...
+
+    async def probe(self, dx_nm: float, dy_nm: float) -> None: ...
 
 
 @runtime_checkable

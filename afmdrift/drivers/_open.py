@@ -50,6 +50,8 @@ def instrument_from_config(config: DriverConfig) -> Instrument:
             clock_signal=config.nanonis_clock_signal,
             wait_ms=config.nanonis_wait_ms,
             drift_comp_limit_pct=config.nanonis_drift_comp_limit_pct,
+            release=config.nanonis_drift_comp_release,
+            min_recentre_interval_s=config.nanonis_min_recentre_interval_s,
             timeout_s=config.timeout_s,
             reconnect_attempts=config.reconnect_attempts,
         )

@@ -12,6 +12,16 @@ position was estimated) or the instrument was found to be another one
 (:meth:`ClosedLoop.rebaseline`), the loop does not act on the difference:
 it takes the instrument's offset as it stands, less d(t) now, as the new
 offset at the reference, and follows only how d moves from there.
+
+The actuator is checked, not trusted: after a re-centre of the controller's
+drift compensation the first frame scanned after it must sit where the
+published d(t) of before the re-centre put it (the books say the re-centre
+moved nothing). Where it sits instead where the other release behaviour
+would put it, the driver learns that behaviour
+(:meth:`~afmdrift.drivers.nanonis.NanonisDriver.observe_release`); where
+neither explains it, the loop raises ``actuator_mismatch`` (status flag,
+error log) and falls back to open loop: the velocity is set to zero once,
+nothing more is commanded, d(t) is still published.
 """
 
 from __future__ import annotations
@@ -23,9 +33,15 @@ import numpy as np
 import numpy.typing as npt
 
 from afmdrift.config import ServiceConfig
-from afmdrift.drivers import VelocityActuator
-from afmdrift.model import commanded_offset_nm, events_of_kind, offset_through_play, play_gaps
-from afmdrift.pipeline import FramePipeline
+from afmdrift.drivers import CheckedActuator, Recentre, VelocityActuator
+from afmdrift.model import (
+    OffsetCurve,
+    commanded_offset_nm,
+    events_of_kind,
+    offset_through_play,
+    play_gaps,
+)
+from afmdrift.pipeline import FramePipeline, FrameRecord
 from afmdrift.records import EventKind
 from afmdrift.service._acquire import Acquisition
 from afmdrift.service._link import InstrumentLink
@@ -79,6 +95,13 @@ class ClosedLoop:
         self._chain = 0
         self._hold: tuple[float, float] | None = None
         self._rebaseline = False
+        # The re-centre waiting for its frame, with d(t) as published before it.
+        self._check: tuple[Recentre, OffsetCurve] | None = None
+        self._probed = False
+        #: Why the loop fell back to open loop (None: it did not).
+        self.fault: str | None = None
+        #: Re-centres checked against their frame: (t_s, error vector nm, verdict).
+        self.checks: list[tuple[float, tuple[float, float], str]] = []
 
     def rebaseline(self) -> None:
         """Take the instrument's offset as it stands as the baseline at the
@@ -107,8 +130,61 @@ class ClosedLoop:
         moved_ref = commanded_offset_nm([t_ref], self.acquisition.events)[0]
         return base[0] + moved_ref[0], base[1] + moved_ref[1]
 
+    def frame_done(self, record: FrameRecord) -> None:
+        """Check the last re-centre or probe against the first frame scanned
+        after it (see the module's docstring)."""
+        if self._check is None or not record.valid:
+            return
+        rc, curve = self._check
+        if record.t_start_s < rc.t_s or not (
+            math.isfinite(record.x_nm) and math.isfinite(record.y_nm)
+        ):
+            return
+        self._check = None
+        actuator = self.link.instrument
+        assert isinstance(actuator, CheckedActuator)
+        if actuator.unchecked_recentre is not rc:
+            return  # settled meanwhile (a saturation the books could not explain)
+        t_mid = 0.5 * (record.t_start_s + record.t_end_s)
+        pred = curve.at([t_mid]).reshape(-1)
+        e = (record.x_nm - float(pred[0]), record.y_nm - float(pred[1]))
+        sigma = record.pred_sigma_nm if math.isfinite(record.pred_sigma_nm) else 0.0
+        tol = max(CHECK_K * self.publishing.error_median_nm(), CHECK_K * sigma, CHECK_MIN_NM)
+        verdict, expected = _verdict(rc, e, tol)
+        if rc.kind == "probe":
+            tol = max(PROBE_GAIN_TOL * math.hypot(*rc.displacement_nm), CHECK_MIN_NM)
+        if verdict == "kept":
+            actuator.recentre_checked(kept=True)
+        elif verdict != "mismatch":
+            actuator.recentre_checked()
+        else:
+            self._fall_back(
+                f"the frame after the {rc.kind} at t = {rc.t_s:.1f} s (frame {record.seq}, "
+                f"({rc.displacement_nm[0]:+.1f}, {rc.displacement_nm[1]:+.1f}) nm handed to the "
+                f"frame centre) sits ({e[0]:+.1f}, {e[1]:+.1f}) nm off the prediction: {expected} "
+                f"(tolerance {tol:.1f} nm)"
+            )
+        self.checks.append((rc.t_s, e, verdict))
+        log.info(
+            "closed loop: %s at t = %.1f s checked on frame %d: off by (%.2f, %.2f) nm, %s",
+            rc.kind, rc.t_s, record.seq, e[0], e[1], verdict,
+        )  # fmt: skip
+
+    def _fall_back(self, why: str) -> None:
+        """An actuator the daemon cannot explain: alarm, and open loop from now on."""
+        self.fault = why
+        self.publishing.flags.add("actuator_mismatch")
+        actuator = self.link.instrument
+        if isinstance(actuator, CheckedActuator):
+            actuator.recentre_allowed = False
+            actuator.recentre_checked()
+        log.error("closed loop: %s; open loop from now on (d(t) is still published)", why)
+
     async def tick(self) -> None:
         """Move the instrument's XY offset so the image stays on the same spot."""
+        if self.fault is not None:
+            await self._open_loop()
+            return
         hold = self.hold_offset()
         if hold is not None and (self._rebaseline or self.publishing.chain != self._chain):
             hold = await self._take_baseline()
@@ -218,4 +294,80 @@ class ClosedLoop:
         if speed > limit:
             vx, vy = vx * limit / speed, vy * limit / speed
         await self.link.call(actuator.set_drift_velocity, vx, vy)
+        first = self._last_velocity is None
         self._last_velocity = (t_now, vx, vy)
+        if not isinstance(actuator, CheckedActuator):
+            return
+        size = self.svc.closed_loop_probe_nm
+        if not first and not self._probed and size > 0 and actuator.unchecked_recentre is None:
+            # Across the drift: a prediction's lag lies along it.
+            slope = curve.at([t_now + 1.0]).reshape(-1) - curve.at([t_now]).reshape(-1)
+            norm = math.hypot(float(slope[0]), float(slope[1]))
+            ux, uy = (-float(slope[1]) / norm, float(slope[0]) / norm) if norm > 0 else (1.0, 0.0)
+            await self.link.call(actuator.probe, size * ux, size * uy)
+            self._probed = True
+        rc = actuator.unchecked_recentre
+        if rc is not None and (self._check is None or self._check[0] is not rc):
+            self._check = (rc, curve)
+
+    async def _open_loop(self) -> None:
+        """After a fault: the compensation's velocity to zero, once; nothing else."""
+        if self._last_velocity is not None and self._last_velocity[1:] != (0.0, 0.0):
+            actuator = self.link.instrument
+            assert isinstance(actuator, VelocityActuator)
+            await self.link.call(actuator.set_drift_velocity, 0.0, 0.0)
+            self._last_velocity = (self._last_velocity[0], 0.0, 0.0)
+
+
+#: The frame after a re-centre or probe is explained by the books (or by a
+#: controller that kept the displacement) when it sits within
+#: max(K × the median of the rolling one-step errors, K × the frame's
+#: prediction 1σ, the minimum) of where they put it. The median, not the
+#: RMS: the slow start's errors are in the window for the first checks. For
+#: errors Gaussian in x and y (σ each), the median of their length is
+#: 1.18 σ, and a length beyond 4 medians (4.7 σ) has probability 1.6e-5.
+CHECK_K = 4.0
+CHECK_MIN_NM = 2.0
+#: A probe's frame is off the books when it sits more than this fraction of
+#: the probe (or :data:`CHECK_MIN_NM`) along it: a compensation gain g with
+#: |1 − g| above it.
+PROBE_GAIN_TOL = 0.25
+
+
+def _verdict(rc: Recentre, e: tuple[float, float], tol: float) -> tuple[str, str]:
+    """What the frame after ``rc`` says, off the prediction by ``e`` (nm):
+    ``"as booked"``, ``"kept"`` (a displacement booked as released was
+    kept), ``"undetermined"`` (too small to tell those apart) or
+    ``"mismatch"``; and what was expected, for the alarm.
+
+    A probe is judged along its own direction, across the drift (a
+    prediction's lag lies along the drift), against a gain and not the
+    rolling errors (a wrong gain inflates those from the loop's first
+    command on): the compensation's gain g shows there as −(1 − g)·|q|,
+    and |1 − g| above :data:`PROBE_GAIN_TOL` is a mismatch.
+    """
+    qx, qy = rc.displacement_nm
+    size = math.hypot(qx, qy)
+    if rc.kind == "probe" and size > 0:
+        along = (e[0] * qx + e[1] * qy) / size
+        if abs(along) <= max(PROBE_GAIN_TOL * size, CHECK_MIN_NM):
+            return "as booked", ""
+        return "mismatch", (
+            f"{along:+.1f} nm along the probe where the books say 0: the compensation does "
+            f"not apply the velocity asked"
+        )
+    as_booked = math.hypot(*e) <= tol
+    alt = rc.alternative_jump_nm
+    kept = alt is not None and math.hypot(e[0] - alt[0], e[1] - alt[1]) <= tol
+    if as_booked and kept:
+        return "undetermined", ""
+    if as_booked:
+        return "as booked", ""
+    if kept:
+        return "kept", ""
+    if alt is None:
+        return "mismatch", "the books say 0"
+    return "mismatch", (
+        f"the books say 0, and a controller that kept the displacement would put it at "
+        f"({alt[0]:+.1f}, {alt[1]:+.1f}) nm"
+    )

@@ -440,6 +440,7 @@ class DriftService:
         self.frames_processed += 1
         self._frame_done.set()
         self.diagnosis.frame_done(self.frames_processed)
+        self.closed_loop.frame_done(outcome.record)
         self.link.see_frame_end(outcome.record.t_end_s)
         try:
             self.latencies_s.append(await pub.frame_done(outcome, batch.detected_wall_s))

@@ -112,6 +112,10 @@ class Publishing:
         self._seq[topic] = n + 1
         return n
 
+    def error_median_nm(self) -> float:
+        """Median of the rolling one-step prediction errors, nm (0 before any)."""
+        return statistics.median(self._errors_nm) if self._errors_nm else 0.0
+
     def offset_ticks_skipped(self, n: int) -> None:
         """The offset schedule restarted from now, ``n`` ticks late."""
         self.dropped_offset_ticks += n

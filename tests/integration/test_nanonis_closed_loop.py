@@ -19,11 +19,10 @@ import pytest
 import zmq.asyncio
 
 from afmdrift.drivers.sim import SCENARIO_DIR, SimulatedAFM
-from afmdrift.drivers.sim._nanonis_server import NanonisSimServer
 from afmdrift.service import RunStore
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from service_sim import closed_loop_config, nanonis_driver, running_service
+from service_sim import nanonis_closed_loop
 
 # 2.5 min of wall time per actuator: excluded by default, run with -m soak.
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow, pytest.mark.soak]
@@ -36,20 +35,16 @@ async def _closed_loop(run_dir: Path, actuator: str) -> dict[str, float]:
     sim = SimulatedAFM.from_scenario(SCENARIO_DIR / "default.toml")
     ctx = zmq.asyncio.Context()
     try:
-        async with NanonisSimServer(sim, speed=SPEED) as server:
-            port = await server.start_tcp(0)
-            driver = nanonis_driver(port)
-            # The project's default registration and model, with the hysteresis
-            # of the offset moves (a play) that `afmdrift diagnose` names on a
-            # closed-loop run of this scenario; the service's loops fast.
-            terms = ["trend", "warmup", "thermal_lag", "creep", "hysteresis", "scan_direction"]
-            cfg = closed_loop_config(run_dir, actuator, terms=terms)
-            async with running_service(cfg, driver, ctx) as service:
-                async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
-                    while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
-                        await asyncio.sleep(0.5)
-                latencies = np.array(service.latencies_s)
-                recentres = driver.recentres
+        async with nanonis_closed_loop(sim, run_dir, ctx, speed=SPEED, actuator=actuator) as (
+            service,
+            driver,
+            _,
+        ):
+            async with asyncio.timeout(2.5 * DURATION_S / SPEED + 60):
+                while sim.now_s < DURATION_S:  # noqa: ASYNC110 (the simulator's clock)
+                    await asyncio.sleep(0.5)
+            latencies = np.array(service.latencies_s)
+            recentres = driver.recentres
     finally:
         ctx.term()
     records = RunStore(run_dir).frames()

@@ -251,9 +251,15 @@ async def test_follow_me_mode_moves_the_tip(served) -> None:  # type: ignore[no-
         assert sim.tip_position_nm == pytest.approx((30.0, 40.0), abs=1e-6)
 
 
-async def test_drift_compensation_is_applied_booked_and_recentred(served) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("release", ["reset", "unknown"])
+async def test_drift_compensation_is_applied_booked_and_recentred(served, release: str) -> None:  # type: ignore[no-untyped-def]
+    """Booked as applied; a re-centre hands the displacement to the frame
+    centre: released by off/on on a controller said to reset it, ramped out
+    over the next interval otherwise."""
     sim, _, url = served
-    async with _driver(url, drift_comp_limit_pct=0.5, recentre_fraction=0.9) as driver:
+    async with _driver(
+        url, drift_comp_limit_pct=0.5, recentre_fraction=0.9, release=release
+    ) as driver:
         base = sim.get_offset()
         x0, y0 = await driver.get_offset()
         # 0.5 nm/s of instrument time is 50 nm per wall second at speed 100; y
@@ -275,17 +281,35 @@ async def test_drift_compensation_is_applied_booked_and_recentred(served) -> Non
         window = np.add(sim.get_offset(), sim.compensation_nm())
         await driver.set_drift_velocity(0.0, 0.0)
         assert driver.recentres == 1
-        assert sim.compensation_nm() == pytest.approx((0.0, 0.0), abs=1e-9)
+        if release == "unknown":
+            # not switched: ramped out over the last interval between calls
+            # (0.3 s of wall time), then held
+            assert sim.compensation_nm()[0] == pytest.approx(50.0, abs=1.0)
+            await asyncio.sleep(0.3)
+            await driver.set_drift_velocity(0.0, 0.0)
+            # to the wall-clock jitter of the two intervals
+            assert sim.compensation_nm() == pytest.approx((0.0, 0.0), abs=5.0)
+        else:
+            assert sim.compensation_nm() == pytest.approx((0.0, 0.0), abs=1e-9)
         # the frame centre took over the displacement: the window did not jump
         # (beyond the driver's booking error: its clock readings, not the
         # controller's own times, bound each velocity segment)
+        # (a ramp-out ends where the interval's jitter leaves it: the loop
+        # corrects that from the books, which follow it)
         np.testing.assert_allclose(
-            np.add(sim.get_offset(), sim.compensation_nm()), window, atol=0.1
+            np.add(sim.get_offset(), sim.compensation_nm()),
+            window,
+            atol=0.1 if release == "reset" else 5.0,
         )
         assert sim.get_offset()[0] - base[0] == pytest.approx(50.0, abs=0.01)
         # and the booked offset still follows the window
         x2, y2 = await driver.get_offset()
-        np.testing.assert_allclose([x2 - x0, y2 - y0], np.subtract(window, base), atol=1.0)
+        # (a ramp-out is booked at two more switches, each to within half a
+        # round trip of the line: at speed 100 a few tenths of a second of
+        # its 1.7 nm/s)
+        np.testing.assert_allclose(
+            [x2 - x0, y2 - y0], np.subtract(window, base), atol=1.0 if release == "reset" else 2.0
+        )
 
 
 async def test_controller_errors_are_typed(served) -> None:  # type: ignore[no-untyped-def]
@@ -312,3 +336,113 @@ async def test_construction_rejects_bad_options() -> None:
         NanonisDriver("nanonis://127.0.0.1")
     with pytest.raises(ValueError, match="offset_mode"):
         NanonisDriver("socket://127.0.0.1:1", offset_mode="scan")  # type: ignore[arg-type]
+
+
+async def _served_controller(**controller: object):  # type: ignore[no-untyped-def]
+    """A Nanonis simulator whose controller is ``[controller]`` ``controller``."""
+    sim = SimulatedAFM(
+        small_scenario(seed=5, drift_nm_per_sqrt_s=0.0, extra={"controller": controller})
+    )
+    server = NanonisSimServer(sim, speed=100.0)
+    port = await server.start_tcp(0)
+    return sim, server, f"nanonis://127.0.0.1:{port}"
+
+
+async def test_recentres_are_bounded_whatever_the_compensation_asks() -> None:
+    """A compensation held at its limit (a controller that keeps its
+    displacement, the loop asking for more) re-centres once, then not again
+    until its frame confirmed it and min_recentre_interval_s passed: the
+    moves are bounded, the rest counted as held."""
+    sim, server, url = await _served_controller(release="keep", piezo_range_nm=[300, 300, 300])
+    try:
+        async with _driver(url, min_recentre_interval_s=60.0) as driver:
+            b0 = np.array(await driver.get_offset())
+            w0 = np.add(sim.get_offset(), sim.compensation_nm())
+            frame_sets = server.requests.get("Scan.FrameSet", 0)
+            for _ in range(20):  # 20 calls at ~10 s of instrument time each
+                await driver.set_drift_velocity(20.0, 0.0)
+                await asyncio.sleep(0.1)
+            assert driver.recentres == 1
+            assert driver.recentres_held >= 10
+            assert server.requests.get("Scan.FrameSet", 0) - frame_sets == 1
+            rc = driver.unchecked_recentre
+            assert rc is not None
+            assert (rc.procedure, rc.kind) == ("ramp", "recentre")
+            # confirmed, and a minute of instrument time later: the next one
+            driver.recentre_checked()
+            t_next = rc.t_s + 60.0
+            while await driver.now_s() < t_next:  # noqa: ASYNC110 (the simulator's clock)
+                await asyncio.sleep(0.05)
+            await driver.set_drift_velocity(20.0, 0.0)
+            await driver.set_drift_velocity(20.0, 0.0)
+            assert driver.recentres == 2
+            # the books follow the window throughout
+            booked = np.array(await driver.get_offset()) - b0
+            window = np.add(sim.get_offset(), sim.compensation_nm()) - w0
+            np.testing.assert_allclose(booked, window, atol=2.0)
+    finally:
+        await server.stop()
+
+
+async def test_a_controller_said_to_reset_that_keeps_is_found_and_booked() -> None:
+    """Configured release = "reset" on a controller that keeps the displacement
+    through off/on: the re-centre switches it, the controller reports
+    saturation where the books say the displacement is far from it, and the
+    driver books what it still applies and re-centres without switching from
+    then on."""
+    sim, server, url = await _served_controller(release="keep", piezo_range_nm=[300, 300, 300])
+    try:
+        async with _driver(url, release="reset", min_recentre_interval_s=0.0) as driver:
+            b0 = np.array(await driver.get_offset())
+            w0 = np.add(sim.get_offset(), sim.compensation_nm())
+            # 10 % of 300 nm = 30 nm, at 1 nm/s (~10 nm per call): into the
+            # threshold, re-centred by off/on (and kept)
+            for _ in range(10):
+                await driver.set_drift_velocity(1.0, 0.0)
+                if driver.recentres:
+                    break
+                await asyncio.sleep(0.1)
+            assert driver.recentres == 1
+            assert driver.release == "reset"
+            # the kept displacement plus the new ramp saturates while the books
+            # are far from it
+            for _ in range(5):
+                await asyncio.sleep(0.1)
+                await driver.set_drift_velocity(1.0, 0.0)
+                if driver.release == "keep":
+                    break
+            assert driver.release == "keep"
+            booked = np.array(await driver.get_offset()) - b0
+            window = np.add(sim.get_offset(), sim.compensation_nm()) - w0
+            np.testing.assert_allclose(booked, window, atol=2.0)
+    finally:
+        await server.stop()
+
+
+@pytest.mark.parametrize("gain", [1.0, 0.5, -1.0])
+async def test_a_probe_is_booked_as_net_zero_and_the_window_shows_the_gain(gain: float) -> None:
+    """A probe moves the frame centre and ramps the compensation back over one
+    interval, booked net zero; the window ends (1 − g)·probe off where the
+    controller applies g times the velocity asked."""
+    sim, server, url = await _served_controller(drift_comp_gain=gain)
+    try:
+        async with _driver(url) as driver:
+            await driver.set_drift_velocity(0.0, 0.0)
+            await asyncio.sleep(0.3)
+            await driver.set_drift_velocity(0.0, 0.0)
+            w0 = np.add(sim.get_offset(), sim.compensation_nm())
+            b0 = np.array(await driver.get_offset())
+            await driver.probe(0.0, 20.0)
+            assert driver.unchecked_recentre is not None
+            assert driver.unchecked_recentre.kind == "probe"
+            assert driver.recentres == 0
+            await asyncio.sleep(0.3)
+            await driver.set_drift_velocity(0.0, 0.0)
+            await asyncio.sleep(0.3)
+            await driver.set_drift_velocity(0.0, 0.0)
+            moved = np.add(sim.get_offset(), sim.compensation_nm()) - w0
+            booked = np.array(await driver.get_offset()) - b0
+            np.testing.assert_allclose(booked, [0.0, 0.0], atol=3.0)
+            np.testing.assert_allclose(moved, [0.0, (1.0 - gain) * 20.0], atol=3.0)
+    finally:
+        await server.stop()

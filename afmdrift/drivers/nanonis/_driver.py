@@ -54,7 +54,7 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from afmdrift.drivers._base import ConnectOnEnter
+from afmdrift.drivers._base import ConnectOnEnter, Recentre
 from afmdrift.drivers._protocol import InstrumentDisconnected, InstrumentTimeout, ProtocolError
 from afmdrift.drivers._transport import SerialTransport, Transport
 from afmdrift.drivers.nanonis._codec import (
@@ -73,7 +73,12 @@ from afmdrift.records import (
     ScanDirection,
 )
 
-__all__ = ["NANONIS_SCHEME", "DriftCompState", "NanonisDriver", "nanonis_socket_url"]
+__all__ = [
+    "NANONIS_SCHEME",
+    "DriftCompState",
+    "NanonisDriver",
+    "nanonis_socket_url",
+]
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +127,16 @@ class DriftCompState:
     limit_pct: float
 
 
+#: Largest ramp of the compensation between two logged ``offset_move``
+#: entries, nm (:meth:`NanonisDriver._book_comp`), and the shortest step.
+COMP_LOG_NM = 1.0
+_MIN_COMP_LOG_S = 1e-3
+
+#: Shortest time over which a displacement handed to the frame centre is
+#: ramped out (one interval between velocity commands), instrument s.
+_MIN_UNWIND_S = 0.05
+
+
 class NanonisDriver(ConnectOnEnter):
     """A Nanonis controller seen through the :class:`Instrument` interface.
 
@@ -153,6 +168,21 @@ class NanonisDriver(ConnectOnEnter):
     recentre_fraction : float
         Re-centre the drift compensation once its displacement reaches this
         fraction of the limit on an axis (or the controller reports saturation).
+    release : {"unknown", "reset", "keep"}
+        What switching the compensation off does to its displacement on this
+        controller. Only with ``"reset"`` does a re-centre switch it off and
+        on (the displacement released at once); the frame after it, and a
+        saturation the books cannot explain, check that, and a controller
+        found to keep it is taken as ``"keep"`` from then on. Otherwise a
+        re-centre does not switch: the frame centre takes the displacement
+        over and the compensation ramps it out over the next interval
+        between velocity commands, right whatever off does (the image stands
+        off by up to the displacement for that interval).
+    min_recentre_interval_s : float
+        Instrument seconds at least between two re-centres; and while the
+        behaviour is being learned, none until the last one was checked.
+        A compensation that needs more is held at its limit and counted
+        (:attr:`recentres_held`): never a storm of moves.
     comp_log_step_s : float
         Instrument seconds of compensation ramp per logged ``offset_move``.
     timeout_s : float
@@ -176,6 +206,8 @@ class NanonisDriver(ConnectOnEnter):
         wait_ms: int = 200,
         drift_comp_limit_pct: float = 10.0,
         recentre_fraction: float = 0.8,
+        release: Literal["unknown", "reset", "keep"] = "unknown",
+        min_recentre_interval_s: float = 60.0,
         comp_log_step_s: float = 5.0,
         timeout_s: float = 5.0,
         reconnect_attempts: int = 3,
@@ -192,6 +224,12 @@ class NanonisDriver(ConnectOnEnter):
             )
         if not 0 < recentre_fraction <= 1:
             raise ValueError(f"recentre_fraction must be in (0, 1], got {recentre_fraction}")
+        if release not in ("unknown", "reset", "keep"):
+            raise ValueError(f"release must be 'unknown', 'reset' or 'keep', got {release!r}")
+        if not 0 <= min_recentre_interval_s <= 86400:
+            raise ValueError(
+                f"min_recentre_interval_s must be in [0, 86400], got {min_recentre_interval_s}"
+            )
         if not comp_log_step_s > 0:
             raise ValueError(f"comp_log_step_s must be > 0, got {comp_log_step_s}")
         if wait_ms < 0 or timeout_s <= 0 or reconnect_attempts < 1:
@@ -209,6 +247,9 @@ class NanonisDriver(ConnectOnEnter):
         self.wait_ms = int(wait_ms)
         self.drift_comp_limit_pct = float(drift_comp_limit_pct)
         self.recentre_fraction = float(recentre_fraction)
+        #: What off does to the displacement, as configured or found.
+        self.release: Literal["unknown", "reset", "keep"] = release
+        self.min_recentre_interval_s = float(min_recentre_interval_s)
         self.comp_log_step_s = float(comp_log_step_s)
         self.timeout_s = float(timeout_s)
         self.reconnect_attempts = int(reconnect_attempts)
@@ -233,6 +274,16 @@ class NanonisDriver(ConnectOnEnter):
         self._comp_q = [0.0, 0.0]
         self._comp_saturated = [False, False]
         self.recentres = 0
+        #: Re-centres the bound held back (the compensation stayed at its limit).
+        self.recentres_held = 0
+        #: Re-centres made, oldest first.
+        self.recentre_log: list[Recentre] = []
+        self._unchecked: Recentre | None = None
+        self._unwind = (0.0, 0.0)  # displacement to ramp out with the next velocity
+        self._last_set_t = math.inf  # instrument time of the last set_drift_velocity
+        #: False after the daemon found the actuator doing what it cannot
+        #: explain: no more re-centres.
+        self.recentre_allowed = True
         self.frame_transfers = 0
 
     # ---------------------------------------------------------------- lifecycle
@@ -527,15 +578,21 @@ class NanonisDriver(ConnectOnEnter):
         """Log the displacement the compensation applied since the last booking.
 
         One ``offset_move`` per ``comp_log_step_s`` of instrument time (at the
-        end of each step), so the offset the service reconstructs from the log
-        follows the ramp to within ``v · comp_log_step_s``.
+        end of each step), or per :data:`COMP_LOG_NM` of ramp where that is
+        sooner (a take-over ramped out in one interval), so the offset the
+        service reconstructs from the log follows the ramp to within
+        ``min(v · comp_log_step_s, COMP_LOG_NM)``.
         """
         t0 = self._comp_t
         if t_s <= t0:
             return
-        steps = max(1, math.ceil((t_s - t0) / self.comp_log_step_s))
+        speed = math.hypot(*self._comp_v)
+        step_s = self.comp_log_step_s
+        if speed > 0:
+            step_s = min(step_s, max(COMP_LOG_NM / speed, _MIN_COMP_LOG_S))
+        steps = max(1, math.ceil((t_s - t0) / step_s))
         for k in range(1, steps + 1):
-            t = t_s if k == steps else t0 + k * self.comp_log_step_s
+            t = t_s if k == steps else t0 + k * step_s
             dt = t - self._comp_t
             self._comp_t = t
             step = [0.0, 0.0]
@@ -569,12 +626,29 @@ class NanonisDriver(ConnectOnEnter):
             abs(q) >= self.recentre_fraction * lim
             for q, lim in zip(self._comp_q, limits, strict=True)
         )
+        if (
+            self._unchecked is not None
+            and self._unchecked.procedure == "release"
+            and self._kept_by_saturation(state, limits)
+        ):
+            self.recentre_checked(kept=True)
         if self._comp_on and (any(state.saturated[:2]) or near):
-            await self._recentre()
-            before = await self.now_s()
-        vx = float(np.float32(vx_nm_per_s / _M_TO_NM))
-        vy = float(np.float32(vy_nm_per_s / _M_TO_NM))
+            if self._may_recentre(before):
+                await self._recentre()
+                before = await self.now_s()
+            else:
+                self.recentres_held += 1
+        # A displacement the frame centre took over but the compensation
+        # still applies (a controller that keeps it) is ramped out over one
+        # interval between calls, on top of the velocity asked.
+        tick = before - self._last_set_t if before > self._last_set_t else 1.0
+        tick = max(tick, _MIN_UNWIND_S)
+        ux, uy = self._unwind
+        self._unwind = (0.0, 0.0)
+        vx = float(np.float32((vx_nm_per_s - ux / tick) / _M_TO_NM))
+        vy = float(np.float32((vy_nm_per_s - uy / tick) / _M_TO_NM))
         await self._switch_velocity(1, (vx * _M_TO_NM, vy * _M_TO_NM), before)
+        self._last_set_t = before
         self._comp_saturated = [False, False]
 
     async def _switch_velocity(
@@ -600,25 +674,113 @@ class NanonisDriver(ConnectOnEnter):
         self._comp_on = action == 1
         self._comp_v = v_nm_per_s if action == 1 else (0.0, 0.0)
 
+    @property
+    def unchecked_recentre(self) -> Recentre | None:
+        """The last re-centre while its frame has not confirmed it."""
+        return self._unchecked
+
+    def _may_recentre(self, t_s: float) -> bool:
+        """The bound: one re-centre per ``min_recentre_interval_s``, and none
+        before the last one was checked on its frame."""
+        if self._unchecked is not None or not self.recentre_allowed:
+            return False
+        last = self.recentre_log[-1].t_s if self.recentre_log else -math.inf
+        return t_s - last >= self.min_recentre_interval_s
+
+    def _kept_by_saturation(self, state: DriftCompState, limits: list[float]) -> bool:
+        """The controller reports an axis saturated that the books, since a
+        re-centre booked as released, put below half its limit: it kept the
+        displacement."""
+        return any(state.saturated[k] and abs(self._comp_q[k]) < 0.5 * limits[k] for k in range(2))
+
+    def recentre_checked(self, *, kept: bool = False) -> None:
+        """The frame after the last re-centre confirmed it (the daemon's check);
+        with ``kept``, that frame (or a saturation the books cannot explain)
+        showed a controller that kept a displacement booked as released: it
+        is booked now, as an ``offset_move``, so ``get_offset()`` and the
+        event log are right again from here on (frames in between were
+        measured on the wrong books), ramped out over the next interval,
+        and later re-centres do not switch (``release = "keep"``)."""
+        rc = self._unchecked
+        self._unchecked = None
+        if rc is None or not kept or rc.procedure != "release":
+            return
+        self.release = "keep"
+        qx, qy = rc.displacement_nm
+        self._comp_q = [self._comp_q[0] + qx, self._comp_q[1] + qy]
+        self._unwind = (self._unwind[0] + qx, self._unwind[1] + qy)
+        self._events.append(Event(max(self._comp_t, rc.t_s), EventKind.OFFSET_MOVE, qx, qy))
+        log.warning(
+            "drift compensation: the controller kept the displacement through off/on at the "
+            "re-centre at t = %.1f s, booked as released; (%.2f, %.2f) nm booked now, and "
+            "re-centres no longer switch it (release = keep)",
+            rc.t_s, qx, qy,
+        )  # fmt: skip
+
+    async def probe(self, dx_nm: float, dy_nm: float) -> None:
+        """Check the actuator: the frame centre moves by ``(dx, dy)`` and the
+        compensation ramps the same back out over the next interval between
+        velocity commands, booked as net zero (a take-over like a ramp
+        re-centre's, :class:`Recentre` ``kind = "probe"``; at most half the
+        re-centre threshold, and of the sign that leaves the compensation
+        nearer zero). A compensation
+        that applies ``g`` times what is asked leaves the image
+        ``(1 − g)·(dx, dy)`` off, which the frame after it shows."""
+        for name, v in (("dx_nm", dx_nm), ("dy_nm", dy_nm)):
+            if not math.isfinite(v):
+                raise ValueError(f"probe: {name} = {v} is not finite")
+        if self._comp_on:
+            self._book_comp(await self.now_s())
+        # At most half the re-centre threshold, and the sign that leaves the
+        # compensation nearer zero once it has ramped the probe out.
+        size = math.hypot(dx_nm, dy_nm)
+        room = 0.5 * self.recentre_fraction * self.drift_comp_limit_pct / 100.0
+        cap = room * min(self._range_nm)
+        scale = min(1.0, cap / size) if size > 0 else 0.0
+        if dx_nm * self._comp_q[0] + dy_nm * self._comp_q[1] < 0:
+            scale = -scale
+        await self._take_over((scale * dx_nm, scale * dy_nm), "ramp", "probe")
+
     async def _recentre(self) -> None:
         # Stop the ramp first (the displacement holds), so the frame centre
-        # takes over exactly what was applied, then release it.
+        # takes over exactly what was applied; then release it (a controller
+        # known to reset it), or leave it booked and ramp it out over the
+        # next interval.
         await self._switch_velocity(1, (0.0, 0.0))
-        qx, qy = self._comp_q
-        log.info("drift compensation re-centred at (%.2f, %.2f) nm", qx, qy)
+        procedure: Literal["release", "ramp"] = "release" if self.release == "reset" else "ramp"
+        await self._take_over((self._comp_q[0], self._comp_q[1]), procedure, "recentre")
+
+    async def _take_over(
+        self,
+        q: tuple[float, float],
+        procedure: Literal["release", "ramp"],
+        kind: Literal["recentre", "probe"],
+    ) -> None:
+        """The frame centre moves by ``q``; the compensation gives it up by
+        ``procedure`` (see :class:`Recentre`)."""
+        qx, qy = q
+        log.info("drift compensation: %s by (%.2f, %.2f) nm (%s)", kind, qx, qy, procedure)
         if self.offset_mode == "frame":
             cx, cy, w, h, angle = await self.call("Scan.FrameGet")
             await self.call("Scan.FrameSet", cx + qx / _M_TO_NM, cy + qy / _M_TO_NM, w, h, angle)
         else:
             x, y = await self.call("FolMe.XYPosGet", 0)
             await self.call("FolMe.XYPosSet", x + qx / _M_TO_NM, y + qy / _M_TO_NM, 0)
-        await self._switch_velocity(2, (0.0, 0.0))
         t = self._comp_t
-        # The base took over what the compensation had applied: net zero.
         self._events.append(Event(t, EventKind.OFFSET_MOVE, qx, qy))
-        self._events.append(Event(t, EventKind.OFFSET_MOVE, -qx, -qy))
-        self._comp_q = [0.0, 0.0]
-        self.recentres += 1
+        if procedure == "release":
+            await self._switch_velocity(2, (0.0, 0.0))
+            t = self._comp_t
+            # The base took over what the compensation had applied: net zero.
+            self._events.append(Event(t, EventKind.OFFSET_MOVE, -qx, -qy))
+            self._comp_q = [0.0, 0.0]
+        else:
+            self._unwind = (self._unwind[0] + qx, self._unwind[1] + qy)
+        rc = Recentre(t, (qx, qy), procedure, kind)
+        self.recentre_log.append(rc)
+        self._unchecked = rc
+        if kind == "recentre":
+            self.recentres += 1
 
     # ---------------------------------------------------------------- scan control
 

@@ -28,7 +28,12 @@ from afmdrift._version import __version__
 from afmdrift.drivers.sim._models import SimPhysics, make_physics
 from afmdrift.drivers.sim._sample import Sample
 from afmdrift.drivers.sim._scanner import FrameRaster, ScanGeometry, render_lines
-from afmdrift.drivers.sim._scenario import Scenario, check_scan_geometry, load_scenario
+from afmdrift.drivers.sim._scenario import (
+    ControllerConfig,
+    Scenario,
+    check_scan_geometry,
+    load_scenario,
+)
 from afmdrift.records import (
     ChannelSample,
     Event,
@@ -45,9 +50,10 @@ _log = logging.getLogger(__name__)
 
 FloatArray = npt.NDArray[np.float64]
 
-#: Range of the simulated scanner piezo (x, y, z) in nm; the drift
-#: compensation stops at a percentage of it.
-PIEZO_RANGE_NM = (10_000.0, 10_000.0, 2_000.0)
+#: Default range of the simulated scanner piezo (x, y, z) in nm (the
+#: scenario's ``[controller] piezo_range_nm``); the drift compensation stops
+#: at a percentage of it.
+PIEZO_RANGE_NM = ControllerConfig().piezo_range_nm
 
 
 class SimulatedAFM:
@@ -508,10 +514,15 @@ class SimulatedAFM:
 
         While on, the piezo moves the scan window at ``velocity_nm_per_s``
         (x, y; z is kept and reported, not applied) until the displacement
-        reaches ``limit_pct`` % of :data:`PIEZO_RANGE_NM` on an axis, where
+        reaches ``limit_pct`` % of :attr:`piezo_range_nm` on an axis, where
         that axis stops (saturated). Switching it off releases the
         displacement (the window returns by it); switching it on starts from
         zero. ``on=None`` keeps the state and changes velocity and limit.
+
+        The scenario's ``[controller]`` can make it another controller: one
+        that keeps the displacement through off and on (``release =
+        "keep"``), and one whose piezo applies ``drift_comp_gain`` times the
+        velocity asked (while this reports the velocity asked).
         """
         for name, v in zip(("vx", "vy", "vz"), velocity_nm_per_s, strict=True):
             if not math.isfinite(v) or abs(v) > 1e4:
@@ -525,14 +536,22 @@ class SimulatedAFM:
         vx, vy, vz = (float(v) for v in velocity_nm_per_s)
         self._comp_velocity = (vx, vy, vz)
         self._comp_limit_pct = float(limit_pct)
-        ramp = (vx, vy) if self._comp_on else (0.0, 0.0)
-        self.physics.ramp_compensation(
-            self._t, ramp, self._comp_limit_nm(), release=was_on and not self._comp_on
-        )
+        ctl = self.scenario.controller
+        g = ctl.drift_comp_gain
+        ramp = (g * vx, g * vy) if self._comp_on else (0.0, 0.0)
+        release = was_on and not self._comp_on and ctl.release == "reset"
+        self.physics.ramp_compensation(self._t, ramp, self._comp_limit_nm(), release=release)
+
+    @property
+    def piezo_range_nm(self) -> tuple[float, float, float]:
+        """The piezo's range (x, y, z), nm (the scenario's ``[controller]``)."""
+        r = self.scenario.controller.piezo_range_nm
+        return (float(r[0]), float(r[1]), float(r[2]))
 
     def _comp_limit_nm(self) -> tuple[float, float]:
         f = self._comp_limit_pct / 100.0
-        return (f * PIEZO_RANGE_NM[0], f * PIEZO_RANGE_NM[1])
+        r = self.piezo_range_nm
+        return (f * r[0], f * r[1])
 
     def drift_compensation(
         self,
@@ -540,9 +559,10 @@ class SimulatedAFM:
         """``(on, velocity_nm_per_s, saturated_xyz, limit_pct)`` now."""
         q = self.physics.compensation_at(self._t)
         lim = self._comp_limit_nm()
+        g = self.scenario.controller.drift_comp_gain
         sat = tuple(
             self._comp_on
-            and self._comp_velocity[k] != 0
+            and g * self._comp_velocity[k] != 0
             and abs(float(q[k])) >= lim[k] * (1 - 1e-9)
             for k in range(2)
         )

@@ -18,10 +18,10 @@ controller's semantics, for the commands afmdrift uses
   ``Scan.FrameDataGrab`` returns the last completed frame of the ``Z (m)``
   channel; the backward direction returns the same (trace) image.
 * ``Piezo.DriftCompSet``/``Get``: the piezo moves the scan window at the set
-  velocity until the displacement reaches the saturation limit (% of
-  :data:`PIEZO_RANGE_NM`) on an axis, which then reports saturated; switching
-  it off releases the displacement (see
-  :meth:`SimulatedAFM.set_drift_compensation`).
+  velocity until the displacement reaches the saturation limit (% of the
+  piezo range, the scenario's ``[controller]``) on an axis, which then
+  reports saturated; switching it off releases the displacement, or keeps it
+  on a controller that does (see :meth:`SimulatedAFM.set_drift_compensation`).
 * ``Signals.NamesGet``/``ValsGet``: :data:`SIGNAL_NAMES`, among them the head
   temperature, the humidity and ``Clock (s)``, the instrument's (virtual) time,
   which Nanonis does not otherwise report.
@@ -53,7 +53,7 @@ from afmdrift.drivers.nanonis._codec import (
     encode_reply,
 )
 from afmdrift.drivers.sim._clock import VirtualClock
-from afmdrift.drivers.sim._instrument import PIEZO_RANGE_NM, SimulatedAFM
+from afmdrift.drivers.sim._instrument import SimulatedAFM
 from afmdrift.drivers.sim._running import RunningSimulation
 from afmdrift.errors import AfmdriftError
 
@@ -139,7 +139,7 @@ class NanonisSimServer:
             "Scan.FrameDataGrab": self._frame_data_grab,
             "FolMe.XYPosGet": self._folme_get,
             "FolMe.XYPosSet": self._folme_set,
-            "Piezo.RangeGet": lambda a: tuple(r * _NM for r in PIEZO_RANGE_NM),
+            "Piezo.RangeGet": lambda a: tuple(r * _NM for r in self.sim.piezo_range_nm),
             "Piezo.DriftCompSet": self._drift_comp_set,
             "Piezo.DriftCompGet": self._drift_comp_get,
             "Signals.NamesGet": lambda a: (list(SIGNAL_NAMES),),

@@ -25,6 +25,7 @@ __all__ = [
     "SCENARIO_DIR",
     "ArtefactsConfig",
     "ChannelPathConfig",
+    "ControllerConfig",
     "CreepConfig",
     "ExtraChannelConfig",
     "HeatNetworkConfig",
@@ -493,6 +494,39 @@ class ManipulationConfig(_Model):
     )
 
 
+class ControllerConfig(_Model):
+    """The controller's piezo and drift compensation (``Piezo.DriftCompSet``).
+
+    A controller behaves in one of two ways on switching the compensation off
+    and on, and the daemon cannot read which: ``release = "reset"`` returns
+    the displacement to zero when it is switched off (on starts from zero);
+    ``"keep"`` holds it through off and on. ``drift_comp_gain`` is what the
+    piezo applies per velocity asked (1: as asked; 0.5: half; -1: the
+    negative, an axis wired or calibrated the wrong way), while the
+    controller reports the velocity asked.
+    """
+
+    piezo_range_nm: tuple[float, float, float] = Field(
+        (10_000.0, 10_000.0, 2_000.0),
+        description="Piezo range (x, y, z), nm (Piezo.RangeGet).",
+    )
+    release: Literal["reset", "keep"] = Field(
+        "reset", description="What switching the drift compensation off does to its displacement."
+    )
+    drift_comp_gain: float = Field(
+        1.0, ge=-10.0, le=10.0, description="Displacement applied per displacement asked."
+    )
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        for axis, r in zip("xyz", self.piezo_range_nm, strict=True):
+            if not 10.0 <= r <= 1e6:
+                raise ValueError(
+                    f"piezo_range_nm {axis} = {r} is out of range (allowed: 10..1e6 nm)"
+                )
+        return self
+
+
 class Scenario(_Model):
     """Root of a scenario file."""
 
@@ -503,6 +537,7 @@ class Scenario(_Model):
     scan: ScanConfig = Field(default_factory=ScanConfig)
     sample: SampleConfig = Field(default_factory=SampleConfig)
     physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    controller: ControllerConfig = Field(default_factory=ControllerConfig)
     artefacts: ArtefactsConfig = Field(default_factory=ArtefactsConfig)
     sensors: SensorsConfig = Field(default_factory=SensorsConfig)
     offset_moves: list[OffsetMoveConfig] = Field(default_factory=list)
