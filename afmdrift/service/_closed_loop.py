@@ -16,16 +16,20 @@ offset at the reference, and follows only how d moves from there.
 The actuator is checked, not trusted: after a re-centre of the controller's
 drift compensation the first frame scanned after it must sit where the
 published d(t) of before the re-centre put it (the books say the re-centre
-moved nothing). Where it sits instead where the other release behaviour
-would put it, the driver learns that behaviour
-(:meth:`~afmdrift.drivers.nanonis.NanonisDriver.observe_release`); where
-neither explains it, the loop raises ``actuator_mismatch`` (status flag,
-error log) and falls back to open loop: the velocity is set to zero once,
-nothing more is commanded, d(t) is still published.
+moved nothing). Where it sits where a controller that kept a displacement
+booked as released would put it, the driver books it
+(:meth:`~afmdrift.drivers.nanonis.NanonisDriver.recentre_checked`); where
+neither explains it, or the one-step error grows frame after frame while
+the loop acts, the loop raises ``actuator_mismatch`` (status flag, error
+log) and falls back to open loop: the velocity is set to zero once, nothing
+more is commanded, d(t) is still published. An optional probe
+(``closed_loop_probe_nm``) checks the compensation's gain the same way.
 """
 
 from __future__ import annotations
 
+import functools
+import itertools
 import logging
 import math
 
@@ -98,6 +102,11 @@ class ClosedLoop:
         # The re-centre waiting for its frame, with d(t) as published before it.
         self._check: tuple[Recentre, OffsetCurve] | None = None
         self._probed = False
+        # One-step errors of the frames since the loop first acted.
+        self._loop_errors: list[float] = []
+        # The first probe's result when it was off (along it, nm, and its
+        # displacement): the second, opposite probe decides.
+        self._suspect: tuple[float, tuple[float, float]] | None = None
         #: Why the loop fell back to open loop (None: it did not).
         self.fault: str | None = None
         #: Re-centres checked against their frame: (t_s, error vector nm, verdict).
@@ -132,7 +141,9 @@ class ClosedLoop:
 
     def frame_done(self, record: FrameRecord) -> None:
         """Check the last re-centre or probe against the first frame scanned
-        after it (see the module's docstring)."""
+        after it, and the loop for divergence (see the module's docstring)."""
+        if self._last_velocity is not None and self.fault is None:
+            self._check_divergence(record)
         if self._check is None or not record.valid:
             return
         rc, curve = self._check
@@ -153,6 +164,7 @@ class ClosedLoop:
         verdict, expected = _verdict(rc, e, tol)
         if rc.kind == "probe":
             tol = max(PROBE_GAIN_TOL * math.hypot(*rc.displacement_nm), CHECK_MIN_NM)
+            verdict, expected = self._probe_verdict(rc, e, verdict, expected)
         if verdict == "kept":
             actuator.recentre_checked(kept=True)
         elif verdict != "mismatch":
@@ -169,6 +181,51 @@ class ClosedLoop:
             "closed loop: %s at t = %.1f s checked on frame %d: off by (%.2f, %.2f) nm, %s",
             rc.kind, rc.t_s, record.seq, e[0], e[1], verdict,
         )  # fmt: skip
+
+    def _check_divergence(self, record: FrameRecord) -> None:
+        """Errors growing frame after frame while the loop acts (a
+        compensation of the wrong sign runs away): open the loop."""
+        err = record.pred_error_nm
+        if not math.isfinite(err):
+            return
+        self._loop_errors.append(err)
+        last = self._loop_errors[-(DIVERGE_FRAMES + 1) :]
+        if len(last) <= DIVERGE_FRAMES or last[-1] < DIVERGE_MIN_NM:
+            return
+        if all(b >= DIVERGE_FACTOR * a for a, b in itertools.pairwise(last)):
+            growth = ", ".join(f"{e:.1f}" for e in last)
+            self._fall_back(
+                f"the loop diverges: the one-step error grew on each of the last "
+                f"{DIVERGE_FRAMES} frames to frame {record.seq} ({growth} nm)"
+            )
+
+    def _probe_verdict(
+        self, rc: Recentre, e: tuple[float, float], verdict: str, expected: str
+    ) -> tuple[str, str]:
+        """A probe off the books is first a suspect: the prediction itself
+        may be off there (a model of two or three frames on a drift that
+        turns). A second probe, the opposite of the first, decides: a
+        prediction's error stays, the actuator's flips with the probe, so
+        the mean of the two along each probe is the actuator's
+        −(1 − g)·|q|."""
+        qx, qy = rc.displacement_nm
+        size = math.hypot(qx, qy)
+        along = (e[0] * qx + e[1] * qy) / size if size > 0 else 0.0
+        if self._suspect is None:
+            if verdict == "mismatch":
+                self._suspect = (along, (qx, qy))
+                self._probed = False  # the second goes out at the next tick
+                return "suspect", ""
+            return verdict, expected
+        first, _ = self._suspect
+        self._suspect = None
+        mean = 0.5 * (first + along)
+        if abs(mean) <= max(PROBE_GAIN_TOL * size, CHECK_MIN_NM):
+            return "as booked", ""
+        return "mismatch", (
+            f"{first:+.1f} and {along:+.1f} nm along two opposite probes, {mean:+.1f} nm in "
+            f"the mean where the books say 0: the compensation does not apply the velocity asked"
+        )
 
     def _fall_back(self, why: str) -> None:
         """An actuator the daemon cannot explain: alarm, and open loop from now on."""
@@ -299,13 +356,29 @@ class ClosedLoop:
         if not isinstance(actuator, CheckedActuator):
             return
         size = self.svc.closed_loop_probe_nm
-        if not first and not self._probed and size > 0 and actuator.unchecked_recentre is None:
-            # Across the drift: a prediction's lag lies along it.
-            slope = curve.at([t_now + 1.0]).reshape(-1) - curve.at([t_now]).reshape(-1)
-            norm = math.hypot(float(slope[0]), float(slope[1]))
-            ux, uy = (-float(slope[1]) / norm, float(slope[0]) / norm) if norm > 0 else (1.0, 0.0)
-            await self.link.call(actuator.probe, size * ux, size * uy)
+        # Only while the model predicts within the probe's tolerance: its
+        # frame then tells the actuator from the prediction.
+        recent = self.publishing.recent_errors_nm(PROBE_READY_FRAMES)
+        ready = len(recent) == PROBE_READY_FRAMES and max(recent) <= max(
+            PROBE_GAIN_TOL * size, CHECK_MIN_NM
+        )
+        if (
+            not first
+            and not self._probed
+            and size > 0
+            and (ready or self._suspect is not None)
+            and actuator.unchecked_recentre is None
+        ):
             self._probed = True
+            if self._suspect is not None:  # the opposite of the first
+                qx, qy = self._suspect[1]
+                await self.link.call(functools.partial(actuator.probe, exact=True), -qx, -qy)
+            else:
+                # Across the drift: a prediction's lag lies along it.
+                slope = curve.at([t_now + 1.0]).reshape(-1) - curve.at([t_now]).reshape(-1)
+                norm = math.hypot(float(slope[0]), float(slope[1]))
+                ux, uy = (-float(slope[1]) / norm, float(slope[0]) / norm) if norm else (1.0, 0.0)
+                await self.link.call(actuator.probe, size * ux, size * uy)
         rc = actuator.unchecked_recentre
         if rc is not None and (self._check is None or self._check[0] is not rc):
             self._check = (rc, curve)
@@ -332,6 +405,15 @@ CHECK_MIN_NM = 2.0
 #: the probe (or :data:`CHECK_MIN_NM`) along it: a compensation gain g with
 #: |1 − g| above it.
 PROBE_GAIN_TOL = 0.25
+#: The probe goes out once this many last one-step errors are all within
+#: its tolerance.
+PROBE_READY_FRAMES = 2
+#: The loop diverges when the one-step error grew by this factor on each of
+#: DIVERGE_FRAMES frames in a row, to above DIVERGE_MIN_NM: whatever the
+#: cause, it opens.
+DIVERGE_FACTOR = 1.5
+DIVERGE_FRAMES = 3
+DIVERGE_MIN_NM = 10.0
 
 
 def _verdict(rc: Recentre, e: tuple[float, float], tol: float) -> tuple[str, str]:

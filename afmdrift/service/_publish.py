@@ -112,6 +112,10 @@ class Publishing:
         self._seq[topic] = n + 1
         return n
 
+    def recent_errors_nm(self, n: int) -> list[float]:
+        """The last ``n`` one-step prediction errors, nm, oldest first."""
+        return list(self._errors_nm)[-n:]
+
     def error_median_nm(self) -> float:
         """Median of the rolling one-step prediction errors, nm (0 before any)."""
         return statistics.median(self._errors_nm) if self._errors_nm else 0.0

@@ -717,13 +717,13 @@ class NanonisDriver(ConnectOnEnter):
             rc.t_s, qx, qy,
         )  # fmt: skip
 
-    async def probe(self, dx_nm: float, dy_nm: float) -> None:
+    async def probe(self, dx_nm: float, dy_nm: float, *, exact: bool = False) -> None:
         """Check the actuator: the frame centre moves by ``(dx, dy)`` and the
         compensation ramps the same back out over the next interval between
         velocity commands, booked as net zero (a take-over like a ramp
         re-centre's, :class:`Recentre` ``kind = "probe"``; at most half the
-        re-centre threshold, and of the sign that leaves the compensation
-        nearer zero). A compensation
+        re-centre threshold, and unless ``exact``, of the sign that leaves
+        the compensation nearer zero). A compensation
         that applies ``g`` times what is asked leaves the image
         ``(1 − g)·(dx, dy)`` off, which the frame after it shows."""
         for name, v in (("dx_nm", dx_nm), ("dy_nm", dy_nm)):
@@ -737,7 +737,7 @@ class NanonisDriver(ConnectOnEnter):
         room = 0.5 * self.recentre_fraction * self.drift_comp_limit_pct / 100.0
         cap = room * min(self._range_nm)
         scale = min(1.0, cap / size) if size > 0 else 0.0
-        if dx_nm * self._comp_q[0] + dy_nm * self._comp_q[1] < 0:
+        if not exact and dx_nm * self._comp_q[0] + dy_nm * self._comp_q[1] < 0:
             scale = -scale
         await self._take_over((scale * dx_nm, scale * dy_nm), "ramp", "probe")
 
