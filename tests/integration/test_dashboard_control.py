@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import aiohttp
+import numpy as np
 import pytest
 import zmq.asyncio
 from service_sim import REPO, driver, running_service, service_config, sim_server
@@ -26,6 +27,7 @@ from afmdrift.config import parse_config
 from afmdrift.dashboard import Dashboard
 from afmdrift.dashboard._chromium import HeadlessChromium, find_chromium
 from afmdrift.drivers.sim import load_scenario
+from afmdrift.model import OffsetCurve
 from afmdrift.wire import ModelMsg, OffsetMsg
 
 pytestmark = [pytest.mark.asyncio]
@@ -320,9 +322,18 @@ async def test_done_when_the_page_finds_humidity_adds_it_and_the_error_falls(
             and not any(a.wall_s < w < b.wall_s for w in own_updates)
         ]
         assert len(pairs) > 10
+        # The bound is the documented one (docs/service.md): max(σ, 0.5 nm), or
+        # the step the curve published before the change makes itself over
+        # that interval where larger (at 75× a sample 0.013 s late is a second
+        # of drift: 0.69 nm seen in CI, before the change).
+        before_change = [m for m in models if m.wall_s < change_wall_s]
+        old = OffsetCurve.from_dict(before_change[-1].curve)
         steps = [math.hypot(b.x_nm - a.x_nm, b.y_nm - a.y_nm) for a, b in pairs]
-        worst = max(range(len(steps)), key=steps.__getitem__)
+        own = [float(np.hypot(*(old.at([b.t_s]) - old.at([a.t_s]))[0])) for a, b in pairs]
+        excess = [s - max(limit, 1.05 * o) for s, o in zip(steps, own, strict=True)]
+        worst = max(range(len(steps)), key=excess.__getitem__)
         a, b = pairs[worst]
+        limit = max(limit, 1.05 * own[worst])
         assert steps[worst] <= limit, (
             f"step {steps[worst]:.3f} nm > {limit:.3f} nm at {b.wall_s - change_wall_s:.3f} s "
             f"after the change, samples {b.wall_s - a.wall_s:.4f} s apart; hand-over to "

@@ -9,6 +9,7 @@ rates over both generators and the shared logs.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -104,10 +105,30 @@ GOLDEN_FIRST_PARAGRAPH = {
 
 @pytest.mark.parametrize(("shape", "seed"), sorted(GOLDEN_FIRST_PARAGRAPH))
 def test_golden_first_paragraph_end_to_end(shape: str, seed: int) -> None:
-    j, _, _ = _diagnosed(shape, seed)
-    text = diagnosis_text(j)
-    assert text.split("\n\n")[0] == GOLDEN_FIRST_PARAGRAPH[(shape, seed)]
-    assert j["plain_finding"] == GOLDEN_FIRST_PARAGRAPH[(shape, seed)]
+    """Exact, but for where a jump is placed: within one frame of the truth
+    (checked), the frame itself borderline between two on this session
+    (16740 and 16795 s, one frame apart, on two fresh installs of the
+    project, whose dependencies are pinned only for torch), so its time is
+    compared as a placeholder."""
+    j, t_jump, frame_s = _diagnosed(shape, seed)
+    first = diagnosis_text(j).split("\n\n")[0]
+    golden = GOLDEN_FIRST_PARAGRAPH[(shape, seed)]
+    assert _jump_placed(first, t_jump, frame_s) == _jump_placed(golden, t_jump, frame_s)
+    assert _jump_placed(j["plain_finding"], t_jump, frame_s) == _jump_placed(
+        golden, t_jump, frame_s
+    )
+
+
+def _jump_placed(text: str, t_jump: float, frame_s: float) -> str:
+    """``text`` with a jump's time (``jump:t_s=N`` and "at H h M min") replaced
+    by placeholders, after checking it is within one frame of ``t_jump``."""
+    m = re.search(r"jump:t_s=(\d+)", text)
+    if m is None:
+        return text
+    t_s = int(m[1])
+    assert abs(t_s - t_jump) <= frame_s, (t_s, t_jump, frame_s)
+    text = text.replace(m[0], "jump:t_s=<t>")
+    return re.sub(r"at \d+ h \d+ min", "at <h min>", text)
 
 
 def _found(kind: str, value: dict, params: dict[str, float]) -> CandidateResult:  # type: ignore[type-arg]
