@@ -62,7 +62,9 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 
 from service_sim import (  # noqa: E402
+    Residual,
     closed_loop_config,
+    content_residual,
     driver,
     nanonis_closed_loop,
     running_service,
@@ -75,20 +77,6 @@ from afmdrift.service import RunStore  # noqa: E402
 FloatArray = npt.NDArray[np.float64]
 
 ACTUATOR = {"nanonis": "velocity", "line": "offset"}
-
-
-@dataclasses.dataclass(frozen=True)
-class Residual:
-    """RMS and peak of ``|r(t)|`` over the samples, nm."""
-
-    rms_nm: float
-    peak_nm: float
-
-    @classmethod
-    def of(cls, r: FloatArray) -> Residual:
-        """From residuals of shape (n, 2), nm."""
-        norm = np.hypot(r[:, 0], r[:, 1])
-        return cls(float(np.sqrt(np.mean(norm**2))), float(norm.max()))
 
 
 def sample_times(frame_period_s: float, duration_s: float, step_s: float) -> FloatArray:
@@ -111,13 +99,6 @@ def baselines(
     none = Residual.of(p - p3)
     constant = Residual.of(p - p3 - (t - t[0])[:, None] * v[None, :])
     return none, constant
-
-
-def content_residual(physics: SimPhysics, t: FloatArray, *, t_ref_s: float) -> Residual:
-    """Where image content sits, ``p − o``, on ``t`` relative to where it sat at ``t_ref_s``."""
-    c = physics.drift_at(t) - physics.scan_offset_at(t)
-    ref = physics.drift_at(t_ref_s) - physics.scan_offset_at(t_ref_s)
-    return Residual.of(c - ref)
 
 
 @dataclasses.dataclass(frozen=True)

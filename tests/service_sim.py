@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import signal
 import socket
 import sqlite3
@@ -19,17 +20,21 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import numpy.typing as npt
 import zmq.asyncio
 
 from afmdrift.config import AfmdriftConfig, parse_config
 from afmdrift.drivers._nanoscope import NanoScopeDriver
 from afmdrift.drivers.nanonis import NanonisDriver
-from afmdrift.drivers.sim import Scenario, SimulatedAFM, parse_scenario
+from afmdrift.drivers.sim import Scenario, SimPhysics, SimulatedAFM, parse_scenario
 from afmdrift.drivers.sim._nanonis_server import CLOCK_SIGNAL, SCAN_CHANNEL, NanonisSimServer
 from afmdrift.drivers.sim._server import SimulatorServer
 from afmdrift.service import DriftService
 
 REPO = Path(__file__).resolve().parent.parent
+
+FloatArray = npt.NDArray[np.float64]
 
 
 def run_afmdrift(*args: str, cwd: Path, timeout: float = 240) -> subprocess.CompletedProcess[str]:
@@ -340,6 +345,27 @@ async def nanonis_closed_loop(
         cfg = closed_loop_config(run_dir, actuator, terms=terms, **service)
         async with running_service(cfg, driver, ctx) as running:
             yield running, driver, server
+
+
+@dataclasses.dataclass(frozen=True)
+class Residual:
+    """RMS and peak of ``|r(t)|`` over the samples, nm."""
+
+    rms_nm: float
+    peak_nm: float
+
+    @classmethod
+    def of(cls, r: FloatArray) -> Residual:
+        """From residuals of shape (n, 2), nm."""
+        norm = np.hypot(r[:, 0], r[:, 1])
+        return cls(float(np.sqrt(np.mean(norm**2))), float(norm.max()))
+
+
+def content_residual(physics: SimPhysics, t: FloatArray, *, t_ref_s: float) -> Residual:
+    """Where image content sits, ``p − o``, on ``t`` relative to where it sat at ``t_ref_s``."""
+    c = physics.drift_at(t) - physics.scan_offset_at(t)
+    ref = physics.drift_at(t_ref_s) - physics.scan_offset_at(t_ref_s)
+    return Residual.of(c - ref)
 
 
 def committed_frames(run_dir: Path) -> int:

@@ -32,6 +32,7 @@ import functools
 import itertools
 import logging
 import math
+from collections import deque
 
 import numpy as np
 import numpy.typing as npt
@@ -103,7 +104,7 @@ class ClosedLoop:
         self._check: tuple[Recentre, OffsetCurve] | None = None
         self._probed = False
         # One-step errors of the frames since the loop first acted.
-        self._loop_errors: list[float] = []
+        self._loop_errors: deque[float] = deque(maxlen=DIVERGE_FRAMES + 1)
         # The first probe's result when it was off (along it, nm, and its
         # displacement): the second, opposite probe decides.
         self._suspect: tuple[float, tuple[float, float]] | None = None
@@ -189,7 +190,7 @@ class ClosedLoop:
         if not math.isfinite(err):
             return
         self._loop_errors.append(err)
-        last = self._loop_errors[-(DIVERGE_FRAMES + 1) :]
+        last = list(self._loop_errors)
         if len(last) <= DIVERGE_FRAMES or last[-1] < DIVERGE_MIN_NM:
             return
         if all(b >= DIVERGE_FACTOR * a for a, b in itertools.pairwise(last)):

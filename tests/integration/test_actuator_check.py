@@ -31,7 +31,7 @@ from afmdrift.drivers.sim import SCENARIO_DIR, SimulatedAFM, load_scenario
 from afmdrift.service import RunStore
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from service_sim import nanonis_closed_loop
+from service_sim import Residual, content_residual, nanonis_closed_loop
 
 pytestmark = [pytest.mark.asyncio, pytest.mark.slow]
 
@@ -74,12 +74,9 @@ async def _run(
     t_ref = 0.5 * (records[0].t_start_s + records[0].t_end_s)
     if len(records) > 3:
         t = np.arange(records[2].t_end_s, out["t_end_s"], 1.0)
-        content = sim.physics.drift_at(t) - sim.physics.scan_offset_at(t)
-        content0 = sim.physics.drift_at([t_ref]) - sim.physics.scan_offset_at([t_ref])
-        r = np.hypot(*(content - content0).T)
-        out["rms_nm"] = float(np.sqrt(np.mean(r**2)))
+        out["rms_nm"] = content_residual(sim.physics, t, t_ref_s=t_ref).rms_nm
         drift = sim.physics.drift_at(t) - sim.physics.drift_at([t_ref])
-        out["drift_rms_nm"] = float(np.sqrt(np.mean(np.sum(drift**2, axis=1))))
+        out["drift_rms_nm"] = Residual.of(drift).rms_nm
     return out
 
 
