@@ -305,10 +305,10 @@ async def test_drift_compensation_is_applied_booked_and_recentred(served, releas
         # and the booked offset still follows the window
         x2, y2 = await driver.get_offset()
         # (a ramp-out is booked at two more switches, each to within half a
-        # round trip of the line: at speed 100 a few tenths of a second of
-        # its 1.7 nm/s)
+        # round trip of the line: at speed 100, up to a second or so of its
+        # 1.7 nm/s on a loaded machine; 2.6 nm was seen in CI)
         np.testing.assert_allclose(
-            [x2 - x0, y2 - y0], np.subtract(window, base), atol=1.0 if release == "reset" else 2.0
+            [x2 - x0, y2 - y0], np.subtract(window, base), atol=1.0 if release == "reset" else 4.0
         )
 
 
